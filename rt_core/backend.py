@@ -1,0 +1,73 @@
+"""Dr.Jit backend and precision: one place that maps ('llvm'|'cuda', 'f32'|'f64') to types,
+and that refuses, with a clear message, an LLVM too old to run Dr.Jit's kernels."""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from types import ModuleType
+
+MIN_LLVM = 16       # LLVM 14/15 abort on dr.maximum/dr.minimum ("Cannot select: fmaximum")
+PRECISIONS = ("f32", "f64")
+BACKENDS = ("llvm", "cuda")
+
+
+class BackendError(Exception):
+    """Dr.Jit cannot run here (missing or too old LLVM, no CUDA device)."""
+    exit_code = 1
+
+
+_checked: set[str] = set()
+
+
+def require(backend: str = "llvm") -> None:
+    """Raise BackendError unless ``backend`` can run kernels; never lets LLVM abort us."""
+    if backend in _checked:
+        return
+    import drjit as dr
+    if backend == "llvm":
+        ok = dr.has_backend(dr.JitBackend.LLVM)
+        ver = dr.detail.llvm_version() if ok else (-1, -1, -1)
+        hint = ("install Debian's libllvm19 (apt-get install -y libllvm19), or point "
+                "DRJIT_LIBLLVM_PATH at a libLLVM.so of version 16 or newer")
+        if not ok:
+            where = os.environ.get("DRJIT_LIBLLVM_PATH")
+            raise BackendError("Dr.Jit found no usable LLVM"
+                               + (f" at DRJIT_LIBLLVM_PATH={where}" if where else "")
+                               + f"; {hint}")
+        if ver[0] < MIN_LLVM:
+            raise BackendError(f"Dr.Jit loaded LLVM {'.'.join(map(str, ver))}, which aborts "
+                               f"Dr.Jit kernels (needs >= {MIN_LLVM}); {hint}")
+    elif backend == "cuda":
+        if not dr.has_backend(dr.JitBackend.CUDA):
+            raise BackendError("no CUDA device or driver found; use --backend llvm")
+    else:
+        raise BackendError(f"unknown backend {backend!r}; expected one of {', '.join(BACKENDS)}")
+    _checked.add(backend)
+
+
+@dataclass(frozen=True)
+class Types:
+    """The Dr.Jit array types of one (backend, precision) pair."""
+    backend: str
+    precision: str
+    module: ModuleType
+    Float: type
+    Array3: type
+    Bool: type
+    UInt32: type
+    Int32: type
+
+    @property
+    def label(self) -> str:
+        return f"{self.backend}-{self.precision}"
+
+
+def types(precision: str = "f32", backend: str = "llvm") -> Types:
+    if precision not in PRECISIONS:
+        raise BackendError(f"unknown precision {precision!r}; expected f32 or f64")
+    require(backend)
+    import drjit
+    m = getattr(drjit, backend)
+    if precision == "f32":
+        return Types(backend, precision, m, m.Float, m.Array3f, m.Bool, m.UInt32, m.Int32)
+    return Types(backend, precision, m, m.Float64, m.Array3f64, m.Bool, m.UInt32, m.Int32)

@@ -1,0 +1,101 @@
+"""Whole-image renders: primary-ray geometry AOVs as numpy arrays, their provenance, and EXR."""
+from __future__ import annotations
+
+import hashlib
+import os
+import platform
+from importlib import metadata
+
+import drjit as dr
+import numpy as np
+
+from . import backend
+from .camera import Camera, make_camera, primary_directions
+from .exrio import write_exr
+from .rules import Rules
+from .scene import Scene
+from .tracer import closest_hit, position, prepare, surface
+
+GEOMETRY_CHANNELS = ("hit.mask", "depth.Z", "object.id", "normal.X", "normal.Y", "normal.Z",
+                     "position.X", "position.Y", "position.Z", "uv.U", "uv.V")
+MISS_CONVENTION = ("miss: hit.mask=0, depth.Z=0, object.id=-1, normal/position/uv=0; "
+                   "depth.Z = Euclidean distance from the viewpoint")
+
+
+def trace_geometry(scene: Scene, cam: Camera, T: backend.Types, rules: Rules = Rules()):
+    """Dr.Jit arrays (flat, image order) of the primary-ray geometry AOVs, evaluated."""
+    ks = prepare(scene, T)
+    d = primary_directions(scene, cam, T)
+    if not scene.objects:
+        z = dr.zeros(T.Float, cam.size)
+        out = {name: z for name in GEOMETRY_CHANNELS}
+        out["object.id"] = z - 1
+        return out
+    t, oid, hit = closest_hit(ks, d, None, rules)
+    normal, u, v = surface(ks, d, t, oid, hit)
+    pos = position(ks, d, t, hit)
+    F = T.Float
+    out = {"hit.mask": dr.select(hit, F(1), F(0)), "depth.Z": t, "object.id": F(oid),
+           "normal.X": normal.x, "normal.Y": normal.y, "normal.Z": normal.z,
+           "position.X": pos.x, "position.Y": pos.y, "position.Z": pos.z,
+           "uv.U": u, "uv.V": v}
+    dr.eval(*out.values())
+    return out
+
+
+def to_images(flat: dict, cam: Camera) -> dict:
+    """Flat Dr.Jit arrays -> (rows, columns) numpy arrays, row 0 the top of the image."""
+    return {k: np.asarray(v.numpy()).reshape(cam.rows, cam.columns) for k, v in flat.items()}
+
+
+def render_geometry(scene: Scene, columns: int, rows: int | None = None, precision: str = "f32",
+                    backend_name: str = "llvm", sampling: str = "corners",
+                    rules: Rules = Rules(), **kw) -> dict:
+    """Geometry AOVs of the primary rays as numpy arrays (rows, columns), row 0 = top.
+
+    Keys: GEOMETRY_CHANNELS. Arrays are float32 or float64 per ``precision``."""
+    backend_name = kw.pop("backend", backend_name)
+    if kw:
+        raise TypeError(f"unexpected arguments {sorted(kw)}")
+    T = backend.types(precision, backend_name)
+    cam = make_camera(scene, columns, rows, sampling)
+    return to_images(trace_geometry(scene, cam, T, rules), cam)
+
+
+def nonfinite_count(images: dict) -> int:
+    return int(sum(np.count_nonzero(~np.isfinite(a)) for a in images.values()))
+
+
+def versions() -> dict:
+    out = {"python": platform.python_version()}
+    for pkg in ("rtval", "drjit", "mitsuba", "numpy", "OpenEXR"):
+        try:
+            out[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            out[pkg] = "not installed"
+    return out
+
+
+def provenance(scene: Scene, cam: Camera, precision: str, backend_name: str, rules: Rules,
+               **extra) -> dict:
+    """Header attributes recording what produced an output."""
+    attrs = {
+        "rtval.scene": os.path.abspath(scene.path) if scene.path != "<memory>" else scene.path,
+        "rtval.scene_sha256": scene.sha256 or hashlib.sha256(repr(scene).encode()).hexdigest(),
+        "rtval.dialect": scene.dialect,
+        "rtval.precision": precision,
+        "rtval.backend": backend_name,
+        "rtval.sampling": cam.sampling,
+        "rtval.resolution": f"{cam.columns}x{cam.rows}",
+        "rtval.rules": rules.describe(),
+        "rtval.miss": MISS_CONVENTION,
+        "rtval.versions": " ".join(f"{k}={v}" for k, v in versions().items()),
+    }
+    attrs.update({f"rtval.{k}": str(v) for k, v in extra.items()})
+    return attrs
+
+
+def write_images(path: str, images: dict, attrs: dict) -> None:
+    """Write AOVs as float32 EXR (atomically), recording the count of non-finite values."""
+    attrs = dict(attrs, **{"rtval.nonfinite": str(nonfinite_count(images))})
+    write_exr(path, images, attrs)

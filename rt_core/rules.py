@@ -1,0 +1,51 @@
+"""Hit rules of the course tracer and their variants seen in student implementations."""
+from __future__ import annotations
+
+from dataclasses import dataclass, asdict
+
+
+@dataclass(frozen=True)
+class Rules:
+    """Defaults are the notes' rules; every field is a variant seen in real course code.
+
+    t_min       plane/fplane/tplane hit needs t > t_min (notes: 0; variants 1e-4, 1e-5)
+    screen_clip a plane hit in front of the window is a miss: '>' (z > 0, the notes),
+                '>=' (z >= 0: a plane in z = 0 vanishes) or 'off'
+    clip_spheres apply the screen clip to spheres too (some implementations do)
+    edges       finite-plane bounds 'closed' (0 <= u <= w, the notes) or 'open' (0 < u < w)
+    ties        exact tie in t: 'first' object in the file wins (the notes) or 'last'
+    """
+    t_min: float = 0.0
+    screen_clip: str = ">"
+    clip_spheres: bool = False
+    edges: str = "closed"
+    ties: str = "first"
+
+    def __post_init__(self):
+        checks = {"screen_clip": (">", ">=", "off"), "edges": ("closed", "open"),
+                  "ties": ("first", "last")}
+        for name, allowed in checks.items():
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"rules: {name} must be one of {', '.join(allowed)}, "
+                                 f"not {getattr(self, name)!r}")
+        if not (self.t_min >= 0.0):
+            raise ValueError(f"rules: t_min must be >= 0, not {self.t_min!r}")
+
+    def describe(self) -> str:
+        return ",".join(f"{k}={v}" for k, v in asdict(self).items())
+
+    @classmethod
+    def parse(cls, text: str) -> "Rules":
+        """'edges=open,ties=last' -> Rules(edges='open', ties='last')."""
+        kw = {}
+        for item in filter(None, (s.strip() for s in text.split(","))):
+            key, sep, val = item.partition("=")
+            if not sep or key not in cls.__dataclass_fields__:
+                raise ValueError(f"rules: expected name=value with name in "
+                                 f"{', '.join(cls.__dataclass_fields__)}, got {item!r}")
+            if key == "t_min":
+                val = float(val)
+            elif key == "clip_spheres":
+                val = val.lower() in ("1", "true", "yes", "on")
+            kw[key] = val
+        return cls(**kw)

@@ -1,0 +1,200 @@
+"""Immutable scene model of the course tracer.
+
+Everything a tracer needs is computed once here, in float64 on the host: unit normals, the
+finite/tiled-plane frame (rows x̂, ŷ, n̂ of the seed's ``rotmat``).  Object ids are the index
+among non-light objects in file order.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Tuple, Union
+
+Vec3 = Tuple[float, float, float]
+
+
+class SceneError(Exception):
+    """A scene that cannot be used. ``str(err)`` is one line: ``file:line:col: message``."""
+
+    def __init__(self, message: str, path: str | None = None, line: int | None = None,
+                 col: int | None = None):
+        self.message, self.path, self.line, self.col = message, path, line, col
+        where = ":".join(str(p) for p in (path, line, col) if p is not None)
+        super().__init__(f"{where}: {message}" if where else message)
+
+
+class GeometryError(ValueError):
+    """Invalid geometry (zero normal, orient parallel to the normal, ...); the parser adds
+    the location and re-raises it as a :class:`SceneError`."""
+
+
+# --- small float64 vector helpers (host side) ---------------------------------------------
+
+def dot(a: Vec3, b: Vec3) -> float:
+    return math.fsum((a[0] * b[0], a[1] * b[1], a[2] * b[2]))
+
+
+def sub(a: Vec3, b: Vec3) -> Vec3:
+    return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
+
+
+def cross(a: Vec3, b: Vec3) -> Vec3:
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def unit(v: Vec3, what: str = "vector") -> Vec3:
+    """v / |v| without overflow or underflow for any finite magnitude (1e-300 .. 1e300)."""
+    m = max(abs(c) for c in v)
+    if m == 0.0 or not math.isfinite(m):
+        raise GeometryError(f"{what} {fmt(v)} has no direction")
+    s = tuple(c / m for c in v)
+    n = math.sqrt(math.fsum(c * c for c in s))
+    return (s[0] / n, s[1] / n, s[2] / n)
+
+
+def fmt(v) -> str:
+    return "(" + ", ".join(f"{c:g}" for c in v) + ")"
+
+
+def plane_frame(normal: Vec3, orient: Vec3) -> tuple[Vec3, Vec3, Vec3]:
+    """The seed's rotmat rows: x̂ = unit(orient projected onto the plane), ŷ = n̂ × x̂, n̂."""
+    n = unit(normal, "normal")
+    o = unit(orient, "orient")
+    # project the (unit) orient onto the plane; relative size 1e-12 or less means parallel
+    c = dot(o, n)
+    p = (o[0] - c * n[0], o[1] - c * n[1], o[2] - c * n[2])
+    if max(abs(x) for x in p) <= 1e-12:
+        raise GeometryError(f"orient {fmt(orient)} is parallel to the normal {fmt(normal)}; "
+                            "give an in-plane direction")
+    x = unit(p, "projected orient")
+    y = unit(cross(n, x), "n x orient")
+    return x, y, n
+
+
+# --- the model ------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Material:
+    ambient: Vec3
+    diffuse: Vec3
+    specular: Vec3
+
+
+@dataclass(frozen=True)
+class PointLight:
+    emissivity: Vec3
+    center: Vec3
+    line: int = 0
+
+
+@dataclass(frozen=True)
+class Sphere:
+    material: Material
+    center: Vec3
+    radius: float
+    line: int = 0
+    kind = "sphere"
+
+
+@dataclass(frozen=True)
+class Plane:
+    material: Material
+    normal: Vec3            # unit
+    point: Vec3
+    line: int = 0
+    kind = "plane"
+
+
+@dataclass(frozen=True)
+class FPlane:
+    """Finite rectangle: corner ``point``, frame rows ``xdir``, ``ydir``, ``normal``, size w×h."""
+    material: Material
+    normal: Vec3            # unit (rotmat row 2)
+    point: Vec3             # lower-left corner
+    orient: Vec3            # as given in the file
+    size: Tuple[float, float]
+    xdir: Vec3              # rotmat row 0
+    ydir: Vec3              # rotmat row 1
+    line: int = 0
+    kind = "fplane"
+
+    @property
+    def rotmat(self) -> tuple[Vec3, Vec3, Vec3]:
+        return (self.xdir, self.ydir, self.normal)
+
+    def corners(self) -> tuple[Vec3, Vec3, Vec3, Vec3]:
+        """(0,0), (w,0), (w,h), (0,h) in world coordinates."""
+        w, h = self.size
+        p, x, y = self.point, self.xdir, self.ydir
+        at = lambda a, b: tuple(p[i] + a * x[i] + b * y[i] for i in range(3))
+        return (at(0, 0), at(w, 0), at(w, h), at(0, h))
+
+
+@dataclass(frozen=True)
+class TPlane:
+    """Infinite plane tiled in w×h tiles: ``material`` when relx + rely is odd, else
+    ``background``."""
+    material: Material
+    normal: Vec3
+    point: Vec3
+    orient: Vec3
+    size: Tuple[float, float]
+    xdir: Vec3
+    ydir: Vec3
+    background: Material
+    line: int = 0
+    kind = "tplane"
+
+    @property
+    def rotmat(self) -> tuple[Vec3, Vec3, Vec3]:
+        return (self.xdir, self.ydir, self.normal)
+
+
+SceneObject = Union[Sphere, Plane, FPlane, TPlane]
+KINDS = ("sphere", "plane", "fplane", "tplane")
+
+
+@dataclass(frozen=True)
+class Scene:
+    window: Tuple[float, float]          # world width, height at z = 0, centred on the origin
+    viewpoint: Vec3
+    lights: Tuple[PointLight, ...] = ()
+    objects: Tuple[SceneObject, ...] = ()  # object id = index here
+    path: str = "<memory>"
+    dialect: str = "keyword"
+    sha256: str = ""
+
+    def kinds(self) -> tuple[str, ...]:
+        """Object kinds present, in the fixed order of KINDS."""
+        present = {o.kind for o in self.objects}
+        return tuple(k for k in KINDS if k in present)
+
+    def default_rows(self, columns: int) -> int:
+        """The keyword programs' rule: rows = int(world_h / world_w * columns)."""
+        return int(self.window[1] / self.window[0] * columns)
+
+
+def make_fplane(material: Material, normal: Vec3, point: Vec3, orient: Vec3,
+                size: Tuple[float, float], line: int = 0) -> FPlane:
+    if not (size[0] > 0 and size[1] > 0):
+        raise GeometryError(f"size {fmt(size)} must be positive")
+    x, y, n = plane_frame(normal, orient)
+    return FPlane(material, n, tuple(point), tuple(orient), tuple(size), x, y, line)
+
+
+def make_tplane(material: Material, normal: Vec3, point: Vec3, orient: Vec3,
+                size: Tuple[float, float], background: Material, line: int = 0) -> TPlane:
+    if not (size[0] > 0 and size[1] > 0):
+        raise GeometryError(f"tile size {fmt(size)} must be positive")
+    x, y, n = plane_frame(normal, orient)
+    return TPlane(material, n, tuple(point), tuple(orient), tuple(size), x, y, background, line)
+
+
+def make_plane(material: Material, normal: Vec3, point: Vec3, line: int = 0) -> Plane:
+    return Plane(material, unit(normal, "normal"), tuple(point), line)
+
+
+def make_sphere(material: Material, center: Vec3, radius: float, line: int = 0) -> Sphere:
+    if not radius > 0:
+        raise GeometryError(f"radius {radius:g} must be positive")
+    return Sphere(material, tuple(center), float(radius), line)

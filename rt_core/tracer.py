@@ -1,0 +1,123 @@
+"""Closest-hit search over a scene, one vectorized Dr.Jit kernel for all rays.
+
+The kernel holds code only for the object kinds present; objects are grouped by kind and
+every number enters as opaque data, so scenes with the same kinds and counts share one
+compiled kernel.  Surface data (normal, uv) is computed once, for the closest hit only, from
+per-object constants gathered by object id.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import drjit as dr
+
+from . import backend
+from .backend import Types
+from .rules import Rules
+from .scene import Scene
+from .shapes import KIND_CODE, PLANE_KINDS, ObjectConstants, fplane_uv, object_constants, object_t
+
+backend.require("llvm")     # fail early, with a message, on an LLVM that would abort kernels
+
+
+@dataclass
+class KernelScene:
+    """A scene prepared for one backend/precision: host constants and gather tables."""
+    scene: Scene
+    T: Types
+    consts: list
+    by_kind: dict = field(default_factory=dict)
+
+    @property
+    def kinds(self) -> tuple:
+        return tuple(k for k in KIND_CODE if self.by_kind.get(k))
+
+    def table(self, name: str):
+        """Per-object Dr.Jit array of one constant (for gathers by object id)."""
+        cache = self.__dict__.setdefault("_tables", {})
+        if name not in cache:
+            vals = [getattr(c, name) for c in self.consts]
+            if name == "kind":
+                cache[name] = self.T.UInt32([KIND_CODE[v] for v in vals])
+            elif isinstance(vals[0], tuple):
+                cache[name] = self.T.Array3(*([v[i] for v in vals] for i in range(3)))
+            else:
+                cache[name] = self.T.Float(vals)
+        return cache[name]
+
+
+def prepare(scene: Scene, T: Types) -> KernelScene:
+    consts = object_constants(scene)
+    by_kind = {k: [c for c in consts if c.kind == k] for k in KIND_CODE}
+    return KernelScene(scene, T, consts, by_kind)
+
+
+def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None):
+    """(t, object id, hit mask) of the closest hit along o + t·d (o relative to the
+    viewpoint; None for rays from the viewpoint).  Misses: t = 0, id = -1.
+    ``skip``: per-ray object id to ignore (the surface a secondary ray leaves)."""
+    T = ks.T
+    assert isinstance(d, T.Array3), f"expected {T.Array3.__name__} directions"
+    n = dr.width(d)
+    vz = ks.scene.viewpoint[2]
+    best_t = dr.full(T.Float, dr.inf, n)
+    best_id = dr.full(T.Int32, -1, n)
+    # file order is id order within one kind: then no tie term is needed for 'first'
+    single_kind = len(ks.kinds) == 1
+    for kind in ks.kinds:
+        for obj in ks.by_kind[kind]:
+            t, hit = object_t(d, o, obj, rules, vz)
+            oid = dr.opaque(T.Int32, obj.id)
+            if skip is not None:
+                hit &= oid != skip
+            if rules.ties == "first":
+                better = t < best_t
+                if not single_kind:
+                    better |= (t == best_t) & (oid < best_id)
+            else:
+                better = t <= best_t if single_kind else (
+                    (t < best_t) | ((t == best_t) & (oid > best_id)))
+            upd = hit & better
+            best_t = dr.select(upd, t, best_t)
+            best_id = dr.select(upd, oid, best_id)
+    hit = best_id >= 0
+    return dr.select(hit, best_t, 0), best_id, hit
+
+
+def surface(ks: KernelScene, d, t, oid, hit, o=None):
+    """Normal (plane normal as given, or outward sphere normal) and uv (finite/tiled plane
+    lasthit, else 0) at the closest hit; zeros on a miss."""
+    T = ks.T
+    kinds = ks.kinds
+    idx = T.UInt32(dr.select(hit, oid, 0))
+    q = dr.gather(T.Array3, ks.table("q"), idx, hit)
+    if o is not None:
+        q = q - o
+    zero = dr.zeros(T.Array3, dr.width(d))
+    normal = zero
+    u = v = dr.zeros(T.Float, dr.width(d))
+    kind = dr.gather(T.UInt32, ks.table("kind"), idx, hit) if len(kinds) > 1 else None
+    if any(k in PLANE_KINDS for k in kinds):
+        n = dr.gather(T.Array3, ks.table("n"), idx, hit)
+        normal = n
+    if "sphere" in kinds:
+        ns = dr.normalize(dr.fma(d, t, -q))
+        normal = ns if kind is None else dr.select(kind == KIND_CODE["sphere"], ns, normal)
+    if "fplane" in kinds or "tplane" in kinds:
+        planar = True if kind is None else (kind >= KIND_CODE["fplane"])
+        c = dr.cross(q, d)
+        inv = dr.rcp(dr.dot(n, d))
+        xd = dr.gather(T.Array3, ks.table("xdir"), idx, hit)
+        yd = dr.gather(T.Array3, ks.table("ydir"), idx, hit)
+        u = dr.select(planar, dr.dot(yd, c) * inv, 0)
+        v = dr.select(planar, -dr.dot(xd, c) * inv, 0)
+    normal = dr.select(hit, normal, zero)
+    return normal, dr.select(hit, u, 0), dr.select(hit, v, 0)
+
+
+def position(ks: KernelScene, d, t, hit, o=None):
+    """World position viewpoint + o + t·d of the hit; zeros on a miss."""
+    T = ks.T
+    V = T.Array3(*(dr.opaque(T.Float, c) for c in ks.scene.viewpoint))
+    rel = d * t if o is None else dr.fma(d, t, o)
+    return dr.select(hit, V + rel, dr.zeros(T.Array3, dr.width(d)))

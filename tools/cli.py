@@ -1,0 +1,47 @@
+"""The ``rtval`` command line: parses arguments, calls the library, maps results to exit codes.
+
+Each subcommand lives in ``tools/cmd_<name>.py`` with ``add_parser(subparsers)``; the parser it
+adds sets ``func(args) -> int``.  Library errors (bad scene, unreadable EXR, missing file)
+become one line on stderr and their exit code; usage errors exit 64 so that they are never
+confused with a command's own codes (``rtval exr diff`` uses 0-4 like idiff).
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+COMMANDS = ["render", "exr"]
+USAGE_EXIT = 64
+
+
+class Parser(argparse.ArgumentParser):
+    def error(self, message):
+        self.print_usage(sys.stderr)
+        print(f"{self.prog}: error: {message}", file=sys.stderr)
+        sys.exit(USAGE_EXIT)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = Parser(prog="rtval", description="Reference harness for the course ray tracer.")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=Parser)
+    for name in COMMANDS:
+        importlib.import_module(f"tools.cmd_{name}").add_parser(sub)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    from rt_core.errors import USER_ERRORS
+    try:
+        return int(args.func(args) or 0)
+    except USER_ERRORS as e:
+        print(f"rtval {args.command}: {e}", file=sys.stderr)
+        return getattr(e, "exit_code", 1)
+    except KeyboardInterrupt:
+        print("rtval: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

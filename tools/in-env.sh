@@ -1,0 +1,36 @@
+#!/usr/bin/env bash
+# Set up everything rtval needs on a fresh Debian machine, then run the given command inside
+# that environment:   tools/in-env.sh rtval validate    |    tools/in-env.sh python -m pytest
+#  1. an LLVM that Dr.Jit can use (>= 16; Debian 12's LLVM 15 aborts Dr.Jit kernels),
+#  2. a virtual environment (.venv, unless one is already active) with rtval installed.
+set -euo pipefail
+root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+cd "$root"
+
+have_llvm() { ldconfig -p 2>/dev/null | grep -Eq 'libLLVM(-(1[6-9]|[2-9][0-9])|\.so\.(1[6-9]|[2-9][0-9]))'; }
+if ! have_llvm; then
+    sudo=""; [ "$(id -u)" = 0 ] || sudo="sudo"
+    echo "in-env: installing libllvm19 (Dr.Jit needs LLVM >= 16)" >&2
+    $sudo apt-get update -qq >&2
+    DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq libllvm19 >&2
+    have_llvm || { echo "in-env: libllvm19 did not install; Dr.Jit cannot run" >&2; exit 1; }
+fi
+
+if [ -n "${VIRTUAL_ENV:-}" ]; then
+    venv="$VIRTUAL_ENV"
+else
+    venv="$root/.venv"
+    [ -x "$venv/bin/python" ] || python3 -m venv "$venv"
+fi
+# reinstall only when the project's metadata changed
+stamp="$venv/.rtval-installed"
+want=$(sha256sum pyproject.toml | cut -d' ' -f1)
+if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
+    echo "in-env: installing rtval and its dependencies into $venv" >&2
+    "$venv/bin/python" -m pip install -q --disable-pip-version-check -e ".[test]" >&2
+    echo "$want" > "$stamp"
+fi
+
+[ $# -gt 0 ] || exit 0
+export PATH="$venv/bin:$PATH" VIRTUAL_ENV="$venv"
+exec "$@"

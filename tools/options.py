@@ -1,0 +1,48 @@
+"""Argument types and option groups shared by the subcommands (argparse only)."""
+from __future__ import annotations
+
+import argparse
+
+
+def positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"expected a positive whole number, got {v}")
+    return v
+
+
+def nonneg_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not v >= 0 or v == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
+    return v
+
+
+def rules_arg(text: str):
+    from rt_core.rules import Rules
+    try:
+        return Rules.parse(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def add_image_options(p: argparse.ArgumentParser, columns_required: bool = True) -> None:
+    """--columns/--rows/--precision/--backend/--sampling/--rules."""
+    p.add_argument("--columns", type=positive_int, required=columns_required,
+                   default=None if columns_required else 160,
+                   help="image width in pixels" + ("" if columns_required else " (default 160)"))
+    p.add_argument("--rows", type=positive_int, default=None,
+                   help="image height (default: int(world_h / world_w * columns))")
+    p.add_argument("--precision", choices=("f32", "f64"), default="f32")
+    p.add_argument("--backend", choices=("llvm", "cuda"), default="llvm")
+    p.add_argument("--sampling", choices=("corners", "centers"), default="corners",
+                   help="course corner grid (default) or pixel centres")
+    p.add_argument("--rules", type=rules_arg, default=None, metavar="NAME=VALUE,...",
+                   help="hit-rule variants: t_min=1e-4, screen_clip='>'|'>='|off, "
+                        "clip_spheres=true, edges=closed|open, ties=first|last")
