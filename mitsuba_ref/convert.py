@@ -1,0 +1,263 @@
+"""Course scene -> the equivalent Mitsuba 3 scene, as a dict for ``mi.load_dict`` and as XML.
+
+* finite plane -> ``rectangle``; ``to_world`` columns (w/2)x̂, (h/2)ŷ, n̂, centre, so that
+  Mitsuba's uv·(w, h) is the course's ``lasthit`` and its normal is the course normal;
+* plane, tiled plane -> a square ``rectangle`` of half-size ``R`` centred on the viewpoint's
+  projection onto the plane (size rule: ``plane_extent``);
+* sphere -> ``sphere``;
+* camera -> ``perspective`` sensor whose pixel centres are the course's samples; ``near_clip``
+  = |viewpoint.z| starts every ray on the window plane z = 0 (the course's screen clip).
+
+Shape ids are ``obj<course id>_<kind>``.  Mitsuba's variant here is ``llvm_ad_rgb`` (float32;
+the wheel has no double variants).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from xml.sax.saxutils import quoteattr
+
+from rt_core.camera import make_camera
+from rt_core.errors import InputError
+from rt_core.scene import FPlane, Plane, Scene, Sphere, TPlane, dot, sub
+
+VARIANT = "llvm_ad_rgb"
+AOVS = "dd:depth,pp:position,nn:geo_normal,uv:uv"
+AOV_CHANNELS = ("dd.T", "pp.X", "pp.Y", "pp.Z", "nn.X", "nn.Y", "nn.Z", "uv.U", "uv.V")
+PLANE_EXTENT_FACTOR = 64.0
+EPS32 = 2.0 ** -24
+
+
+def mitsuba():
+    import mitsuba as mi
+    if mi.variant() != VARIANT:
+        mi.set_variant(VARIANT)
+    return mi
+
+
+def shape_id(oid: int, kind: str) -> str:
+    return f"obj{oid}_{kind}"
+
+
+def course_id(shape_id_str: str) -> int:
+    """'obj3_fplane' -> 3."""
+    head = shape_id_str.split("_", 1)[0]
+    return int(head[3:])
+
+
+def scene_scale(scene: Scene) -> float:
+    """The largest distance from the viewpoint to anything bounded in the scene (and the
+    window): what a camera ray must reach."""
+    v = scene.viewpoint
+    r = math.hypot(*scene.window) / 2 + math.sqrt(dot(v, v))
+    for o in scene.objects:
+        if isinstance(o, Sphere):
+            r = max(r, math.sqrt(dot(sub(o.center, v), sub(o.center, v))) + o.radius)
+        elif isinstance(o, FPlane):
+            for c in o.corners():
+                r = max(r, math.sqrt(dot(sub(c, v), sub(c, v))))
+        else:
+            q = sub(o.point, v)
+            r = max(r, abs(dot(o.normal, q)), math.sqrt(dot(q, q)))
+    return r
+
+
+def plane_extent(scene: Scene) -> float:
+    """Half-size R of the square standing in for an infinite (or tiled) plane.
+
+    Rule: R = 64 × the scene scale.  A camera ray then finds the plane wherever it hits it
+    within R of the viewpoint's foot point — i.e. everywhere but at grazing angles beyond
+    atan(64) ≈ 89.1° — and the rectangle's float32 vertices put an error of about
+    R·2⁻²⁴ ≈ 4e-6·scale on its position (depth error of that size over cos θ)."""
+    return PLANE_EXTENT_FACTOR * scene_scale(scene)
+
+
+def far_clip(scene: Scene) -> float:
+    """Far beyond everything: 4 × the largest plane extent / scene scale."""
+    has_infinite = any(isinstance(o, (Plane, TPlane)) for o in scene.objects)
+    return 4.0 * (plane_extent(scene) if has_infinite else scene_scale(scene))
+
+
+def rectangle_matrix(obj: FPlane) -> list:
+    """4×4 ``to_world`` of the rectangle equivalent to a finite plane."""
+    w, h = obj.size
+    x, y = obj.xdir, obj.ydir
+    c = tuple(obj.point[i] + 0.5 * w * x[i] + 0.5 * h * y[i] for i in range(3))
+    return _matrix(x, y, obj.normal, c, 0.5 * w, 0.5 * h)
+
+
+def infinite_matrix(obj, viewpoint, R: float) -> list:
+    """A square of half-size R standing in for an infinite or tiled plane, centred on the
+    viewpoint's foot point on the plane (a tiled plane keeps its tile axes)."""
+    n = obj.normal
+    if isinstance(obj, TPlane):
+        x, y = obj.xdir, obj.ydir
+    else:
+        x, y = _any_frame(n)
+    # foot point of the viewpoint on the plane
+    s = dot(n, sub(obj.point, viewpoint))
+    c = tuple(viewpoint[i] + s * n[i] for i in range(3))
+    return _matrix(x, y, n, c, R, R)
+
+
+def _any_frame(n):
+    from rt_core.scene import cross, unit
+    a = (1.0, 0.0, 0.0) if abs(n[0]) < 0.9 else (0.0, 1.0, 0.0)
+    x = unit(cross(a, n))
+    return x, cross(n, x)
+
+
+def _matrix(x, y, n, c, sx, sy) -> list:
+    return [[sx * x[0], sy * y[0], n[0], c[0]],
+            [sx * x[1], sy * y[1], n[1], c[1]],
+            [sx * x[2], sy * y[2], n[2], c[2]],
+            [0.0, 0.0, 0.0, 1.0]]
+
+
+@dataclass(frozen=True)
+class SensorSetup:
+    """The perspective sensor equivalent to the course camera (pixel centres = samples)."""
+    fov: float
+    ppo_x: float
+    ppo_y: float
+    near_clip: float
+    far_clip: float
+    columns: int
+    rows: int
+    square: bool
+    note: str
+
+
+def sensor_setup(scene: Scene, columns: int, rows: int | None, sampling: str = "corners"
+                 ) -> SensorSetup:
+    cam = make_camera(scene, columns, rows, sampling)
+    vx, vy, vz = scene.viewpoint
+    if not vz > 0:
+        raise InputError(f"{scene.path}: viewpoint z = {vz:g}; the Mitsuba camera needs the "
+                         "viewpoint in front of the window plane (z > 0)")
+    # window whose pixel centres are the samples: W·spacing wide
+    ww_c, wh_c = cam.sx * cam.columns, cam.sy * cam.rows
+    fov = math.degrees(2 * math.atan(ww_c / (2 * vz)))
+    square = math.isclose(cam.sx, cam.sy, rel_tol=1e-12)
+    note = ""
+    if not square:
+        note = (f"course sample grid is not square ({cam.sx:.9g} x {cam.sy:.9g} world units); "
+                "Mitsuba's pixels are square, so its camera samples rows "
+                f"{cam.sx:.9g} apart instead of {cam.sy:.9g}: its image is the course image "
+                "rescaled vertically. Compare it only with rt_core rendering the same "
+                "square-pixel camera (rtval compare does so); same-ray comparisons are exact")
+    return SensorSetup(fov, -vx / ww_c, vy / (cam.rows * cam.sx), vz, far_clip(scene),
+                       cam.columns, cam.rows, square, note)
+
+
+def scene_dict(scene: Scene, columns: int, rows: int | None = None, sampling: str = "corners",
+               shading: bool = False, integrator: bool = True) -> dict:
+    """The Mitsuba 3 scene as a dict for ``mi.load_dict(d, optimize=False)``."""
+    mi = mitsuba()
+    T = mi.ScalarTransform4f
+    R = plane_extent(scene)
+    d = {"type": "scene"}
+    for oid, o in enumerate(scene.objects):
+        sid = shape_id(oid, o.kind)
+        if isinstance(o, Sphere):
+            shape = {"type": "sphere", "center": list(o.center), "radius": o.radius}
+        elif isinstance(o, FPlane):
+            shape = {"type": "rectangle", "to_world": T(rectangle_matrix(o))}
+        else:
+            shape = {"type": "rectangle", "to_world": T(infinite_matrix(o, scene.viewpoint, R))}
+        shape["id"] = sid
+        if shading:
+            # closest Mitsuba equivalent (approximate): diffuse reflectance ~ course diffuse
+            kd = [min(1.0, c / 10.0) for c in o.material.diffuse]
+            shape["bsdf"] = {"type": "diffuse", "reflectance": {"type": "rgb", "value": kd}}
+        d[sid] = shape
+    if shading:
+        for i, light in enumerate(scene.lights):
+            d[f"light{i}"] = {"type": "point", "position": list(light.center),
+                              "intensity": {"type": "rgb", "value": list(light.emissivity)}}
+    s = sensor_setup(scene, columns, rows, sampling)
+    vx, vy, vz = scene.viewpoint
+    d["sensor"] = {
+        "type": "perspective", "fov_axis": "x", "fov": s.fov,
+        "principal_point_offset_x": s.ppo_x, "principal_point_offset_y": s.ppo_y,
+        "near_clip": s.near_clip, "far_clip": s.far_clip,
+        "to_world": T().look_at(origin=[vx, vy, vz], target=[vx, vy, vz - 1], up=[0, 1, 0]),
+        "sampler": {"type": "stratified", "sample_count": 1, "jitter": False},
+        "film": {"type": "hdrfilm", "width": s.columns, "height": s.rows,
+                 "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+    }
+    if integrator:
+        d["integrator"] = ({"type": "path", "max_depth": 2} if shading else
+                           {"type": "aov", "aovs": AOVS})
+    return d
+
+
+# --- XML ---------------------------------------------------------------------------------------
+
+def _num(v: float) -> str:
+    return repr(float(v))
+
+
+def _xml_value(name: str, v, indent: str) -> list:
+    mi = mitsuba()
+    if isinstance(v, bool):
+        return [f'{indent}<boolean name="{name}" value="{str(v).lower()}"/>']
+    if isinstance(v, int):
+        return [f'{indent}<integer name="{name}" value="{v}"/>']
+    if isinstance(v, float):
+        return [f'{indent}<float name="{name}" value="{_num(v)}"/>']
+    if isinstance(v, str):
+        return [f'{indent}<string name="{name}" value={quoteattr(v)}/>']
+    if isinstance(v, list) and len(v) == 3:
+        tag = "point" if name in ("center", "position") else "rgb" if name == "value" else "vector"
+        return [f'{indent}<{tag} name="{name}" value="{", ".join(_num(c) for c in v)}"/>']
+    if isinstance(v, mi.ScalarTransform4f):
+        m = v.matrix
+        vals = " ".join(_num(m[i][j]) for i in range(4) for j in range(4))
+        return [f'{indent}<transform name="{name}">', f'{indent}    <matrix value="{vals}"/>',
+                f'{indent}</transform>']
+    if isinstance(v, dict):
+        return _xml_object(v, indent, name)
+    raise TypeError(f"cannot write {name}={v!r} as Mitsuba XML")
+
+
+TAGS = {"rectangle": "shape", "sphere": "shape", "perspective": "sensor", "stratified":
+        "sampler", "hdrfilm": "film", "box": "rfilter", "aov": "integrator", "path": "integrator",
+        "diffuse": "bsdf", "point": "emitter", "rgb": "rgb"}
+
+
+def _xml_object(d: dict, indent: str, name: str | None = None) -> list:
+    tag = TAGS[d["type"]]
+    if tag == "rgb":
+        return [f'{indent}<rgb name="{name}" value="{", ".join(_num(c) for c in d["value"])}"/>']
+    attrs = f' type="{d["type"]}"' + (f' id={quoteattr(d["id"])}' if "id" in d else "")
+    if name and tag not in ("shape", "sensor", "sampler", "film", "rfilter", "integrator",
+                            "bsdf", "emitter"):
+        attrs += f' name="{name}"'
+    lines = [f"{indent}<{tag}{attrs}>"]
+    for k, v in d.items():
+        if k not in ("type", "id"):
+            lines += _xml_value(k, v, indent + "    ")
+    return lines + [f"{indent}</{tag}>"]
+
+
+def scene_xml(scene: Scene, columns: int, rows: int | None = None, sampling: str = "corners",
+              shading: bool = False) -> str:
+    """The same scene as ``scene_dict``, as Mitsuba 3 XML (``mi.load_file`` accepts it)."""
+    d = scene_dict(scene, columns, rows, sampling, shading)
+    s = sensor_setup(scene, columns, rows, sampling)
+    lines = ['<?xml version="1.0" encoding="utf-8"?>',
+             f"<!-- rtval convert: {scene.path} ({columns}x{s.rows}, {sampling} sampling) -->",
+             f"<!-- infinite and tiled planes: rectangles of half-size {plane_extent(scene):.6g}"
+             " (64 x scene scale) around the viewpoint's foot point -->"]
+    if shading:
+        lines.append("<!-- --shading: diffuse BSDFs (reflectance = course diffuse / 10, clamped)"
+                     " and point emitters: an approximation, not the course shading -->")
+    if s.note:
+        lines.append(f"<!-- WARNING: {s.note} -->")
+    lines.append('<scene version="3.0.0">')
+    for k, v in d.items():
+        if k != "type":
+            lines += _xml_object(v, "    ")
+    lines.append("</scene>")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,175 @@
+"""Why two tracers disagree at a pixel: float64 re-evaluation of every object along the ray.
+
+A disagreement (mask or object id) is *explained* when an object involved (ours or the
+reference's) is within a float32 error bound of a decision boundary:
+
+  edge        a finite plane's hit lies within the bound of its rectangle's border
+  tie         the two objects lie at the same depth within the bound
+  clip        a hit within the bound of the window plane z = 0, or a sphere straddling it
+              (the reference's rays start on z = 0: its near clip applies to spheres too)
+  extent      our hit on an infinite/tiled plane lies beyond the reference's finite stand-in
+  silhouette  the ray passes within the bound of a sphere's outline
+  graze       the ray is within the bound of parallel to a plane
+
+The bound on a position is ``K · 2⁻²⁴ · S / |cos θ|``: S the magnitude of the coordinates the
+float32 arithmetic works with (viewpoint, the object's anchor, the distance t, the object's
+size), θ the angle between ray and normal, and K = 16 rounding steps (vertex rounding, ray
+origin on the window, direction rounding, Embree's edge tests, our own float32 evaluation).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from rt_core.rules import Rules
+from rt_core.scene import FPlane, Plane, Scene, Sphere, TPlane
+
+K_ROUNDING = 16.0
+EPS32 = 2.0 ** -24
+CLASSES = ("agree", "edge", "tie", "clip", "extent", "silhouette", "graze", "unexplained")
+CLASS_CODE = {c: i for i, c in enumerate(CLASSES)}
+
+
+def _norm(a):
+    return np.sqrt(np.sum(a * a, axis=-1))
+
+
+class ObjectEval:
+    """t, validity and margins of one object along many rays from the viewpoint."""
+
+    def __init__(self, scene: Scene, obj, d: np.ndarray, rules: Rules, extent: float):
+        V = np.asarray(scene.viewpoint, np.float64)
+        self.kind = obj.kind
+        n = len(d)
+        self.margin = np.full(n, np.inf)       # world-unit distance to the decision boundary
+        self.straddle = np.zeros(n, bool)
+        self.beyond = np.zeros(n, bool)
+        if isinstance(obj, Sphere):
+            C = np.asarray(obj.center)
+            q = C - V
+            a = np.sum(d * d, 1)
+            bh = d @ q
+            perp = q[None, :] - d * (bh / a)[:, None]
+            pn = _norm(perp)
+            disc = a * (obj.radius - pn) * (obj.radius + pn)
+            s = np.sqrt(np.maximum(disc, 0))
+            c = (np.sqrt(q @ q) - obj.radius) * (np.sqrt(q @ q) + obj.radius)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = np.where(bh > 0, c / (bh + s), (bh - s) / a)
+            self.valid = (disc > 0) & (t > 0)
+            self.t = t
+            self.margin = np.abs(pn - obj.radius)          # distance from the outline
+            z = V[2] + t * d[:, 2]
+            self.straddle = self.valid & (z > 0)
+            self.scale = np.sqrt(q @ q) + obj.radius + np.sqrt(V @ V)
+            self.cos = np.ones(n)
+            return
+        nrm = np.asarray(obj.normal)
+        q = np.asarray(obj.point) - V
+        den = d @ nrm
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (nrm @ q) / den
+        valid = (den != 0) & (t > rules.t_min) & np.isfinite(t)
+        z = V[2] + t * d[:, 2]
+        self.clip_margin = np.abs(z)
+        if rules.screen_clip == ">":
+            valid &= z <= 0
+        elif rules.screen_clip == ">=":
+            valid &= z < 0
+        self.cos = np.abs(den)
+        self.t = t
+        size = 0.0
+        if isinstance(obj, FPlane):
+            w, h = obj.size
+            hitrel = t[:, None] * d - q[None, :]
+            u = hitrel @ np.asarray(obj.xdir)
+            v = hitrel @ np.asarray(obj.ydir)
+            inside = (u >= 0) & (u <= w) & (v >= 0) & (v <= h) if rules.edges == "closed" \
+                else (u > 0) & (u < w) & (v > 0) & (v < h)
+            # distance to the border (inside: >0; outside: distance to the rectangle)
+            du = np.maximum(np.maximum(-u, u - w), 0)
+            dv = np.maximum(np.maximum(-v, v - h), 0)
+            outside = np.hypot(du, dv)
+            self.margin = np.where(inside, np.minimum.reduce([u, w - u, v, h - v]), outside)
+            self.edge_valid = valid
+            valid = valid & inside
+            size = max(w, h)
+        else:
+            foot = V + (nrm @ q) * nrm
+            hit = V[None, :] + t[:, None] * d
+            self.beyond = valid & (np.max(np.abs(hit - foot), 1) > extent * (1 - 1e-6))
+            size = 0.0
+        self.valid = valid
+        self.scale = np.sqrt(q @ q) + np.sqrt(V @ V) + size + np.abs(np.asarray(obj.point)).max()
+
+    def bound(self, t):
+        """Position error bound (world units) at distance t along the ray."""
+        with np.errstate(divide="ignore"):
+            return K_ROUNDING * EPS32 * (self.scale + np.abs(t)) / np.maximum(self.cos, 1e-300)
+
+
+def classify(scene: Scene, d: np.ndarray, ours: dict, ref: dict, rules: Rules,
+             extent: float, reference_from_window: bool = True) -> np.ndarray:
+    """Class code per ray (CLASS_CODE) from flat arrays 'hit.mask', 'object.id', 'depth.Z'."""
+    d = np.asarray(d, np.float64)
+    a_id = np.where(ours["hit.mask"] > 0, ours["object.id"], -1).astype(np.int64)
+    b_id = np.where(ref["hit.mask"] > 0, ref["object.id"], -1).astype(np.int64)
+    out = np.zeros(len(d), np.int8)
+    bad = np.nonzero(a_id != b_id)[0]
+    if not len(bad):
+        return out
+    dd = d[bad]
+    evals = [ObjectEval(scene, o, dd, rules, extent) for o in scene.objects]
+    reason = np.full(len(bad), CLASS_CODE["unexplained"], np.int8)
+
+    def mark(mask, name):
+        sel = mask & (reason == CLASS_CODE["unexplained"])
+        reason[sel] = CLASS_CODE[name]
+
+    rows = np.arange(len(bad))
+    for side_ids in (a_id[bad], b_id[bad]):
+        for i, ev in enumerate(evals):
+            involved = side_ids == i
+            if not involved.any():
+                continue
+            b = ev.bound(ev.t)
+            if ev.kind == "fplane":
+                mark(involved & (np.abs(ev.margin) <= b), "edge")
+            if ev.kind == "sphere":
+                mark(involved & ev.straddle & reference_from_window, "clip")
+                mark(involved & (ev.margin <= b), "silhouette")
+            else:
+                mark(involved & (ev.clip_margin <= b), "clip")
+                mark(involved & (ev.cos <= K_ROUNDING * EPS32), "graze")
+                mark(involved & ev.beyond, "extent")
+    # ties: both hit, different objects, at the same depth within the bound
+    both = (a_id[bad] >= 0) & (b_id[bad] >= 0)
+    if both.any():
+        ta = np.array([evals[i].t[r] if i >= 0 else np.nan for r, i in zip(rows, a_id[bad])])
+        tb = np.array([evals[i].t[r] if i >= 0 else np.nan for r, i in zip(rows, b_id[bad])])
+        ba = np.array([evals[i].bound(evals[i].t)[r] if i >= 0 else 0 for r, i in
+                       zip(rows, a_id[bad])])
+        bb = np.array([evals[i].bound(evals[i].t)[r] if i >= 0 else 0 for r, i in
+                       zip(rows, b_id[bad])])
+        with np.errstate(invalid="ignore"):
+            mark(both & (np.abs(ta - tb) <= ba + bb), "tie")
+    out[bad] = reason
+    return out
+
+
+def depth_bound(scene: Scene, d: np.ndarray, ids: np.ndarray, t: np.ndarray, extent: float,
+                rules: Rules) -> np.ndarray:
+    """Relative depth error bound per ray hitting object ``ids`` at distance ``t``: the
+    position bound along the ray, over t.  For a sphere the bound grows as the ray nears
+    the outline (t is ill-conditioned there): ε·S/√(relative discriminant)."""
+    out = np.full(len(d), np.inf)
+    for i, o in enumerate(scene.objects):
+        sel = ids == i
+        if not sel.any():
+            continue
+        ev = ObjectEval(scene, o, d[sel], rules, extent)
+        b = ev.bound(t[sel])
+        if o.kind == "sphere":
+            rel_disc = np.clip(ev.margin * (2 * o.radius) / (o.radius ** 2), 1e-300, None)
+            b = K_ROUNDING * EPS32 * ev.scale / np.sqrt(np.minimum(rel_disc, 1.0))
+        out[sel] = b / np.maximum(t[sel], 1e-300)
+    return out
