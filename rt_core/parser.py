@@ -1,0 +1,416 @@
+"""Parser for the course scene files, both dialects (see notes/course-format.md).
+
+``parse_scene(path)`` and ``parse_text(text)`` return a :class:`~rt_core.scene.Scene` or raise
+:class:`~rt_core.scene.SceneError`, whose ``str`` is one line ``file:line:col: message``
+(columns are 1-based and count characters).  No other exception escapes for any file content:
+bytes that are not UTF-8 are decoded with replacement characters.
+
+Rules common to both dialects
+  * A file is a two-group header (world window ``w h``, viewpoint ``x y z``) and then objects
+    until end of file.  A header-only file is a valid, empty scene.
+  * ``#`` starts a comment that runs to the end of the line, in both dialects (the numeric
+    programs never used it, but free text there may contain it).
+  * Lines end at ``\\n``, ``\\r\\n`` or a lone ``\\r``; space, tab, ``\\f`` and ``\\v`` separate
+    tokens.  A number is a C-style decimal literal (``3``, ``-.5``, ``1.``, ``2e-3``).
+    ``nan``, ``inf``, ``infinity`` and literals that overflow (``1e999``) are rejected.
+  * The dialect is told from the first token that starts a line after the five header
+    numbers: a word means the keyword dialect, a number the numeric dialect.  (A keyword
+    written on the viewpoint line itself also means the keyword dialect.)
+  * End-of-file errors point just past the last token of the file.
+  * Geometry the tracer cannot use is an error at the offending group: a zero normal, an
+    orient parallel to the normal, a size/tile size or radius <= 0, a world window <= 0.
+  * An object kind that the course used but this project does not implement is an error
+    ``... is not supported`` naming the kind, at its type token; parsing stops there.
+
+Keyword dialect (the finite-plane notes, ``course-scenes/keyword``)
+  * A token stream: each object is a keyword (matched case-insensitively) followed by its
+    number groups; groups may wrap over lines and several may share a line.  Anything else
+    (free text without ``#``) is an error.
+
+Numeric dialect (2011-2015, ``course-scenes/numeric``); rules chosen so that every real file
+parses as its own course program read it
+  * Each line is ``numbers [free text]``: its numbers are the leading tokens that are numbers;
+    the first token that is not a number starts free text running to the end of the line
+    (numbers inside free text, e.g. ``r g b ambient 5 5 15``, are text).  Blank lines are
+    skipped.
+  * One line carries exactly one group.  The line must start with at least as many numbers as
+    the group needs; whatever follows them (text or further numbers) is ignored, as the course
+    programs' ``fscanf`` + ``fgets`` ignore it (nw's ``15 15  8 6`` header is window 15 x 15).
+    A line with too few numbers is an error: no real file wraps a group over lines, and
+    the programs that would allow it silently misread the following line.
+  * An object starts with a line whose first number is its integer code: 10 point light,
+    13 sphere, 14 plane, 15 finite plane, 16 tiled plane.  A second number on the code line
+    is nw's refraction index (``13 1.33``): not supported.  The other codes the course used
+    (11-12, 17-29 and cd's 9000/9001 header flags, which add fields to every material) are
+    named in the "not supported" error.
+"""
+from __future__ import annotations
+
+import hashlib
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from .scene import (GeometryError, Material, PointLight, Scene, SceneError, make_fplane,
+                    make_plane, make_sphere, make_tplane)
+
+__all__ = ["parse_scene", "parse_text", "SUPPORTED_KEYWORDS", "SUPPORTED_CODES"]
+
+# unambiguous (no two ways to split a digit run), so a long non-number fails in linear time
+_NUMBER = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?\Z", re.ASCII)
+_INTEGER = re.compile(r"[+-]?\d{1,9}\Z", re.ASCII)
+_NONFINITE = re.compile(r"[+-]?(?:nan|inf|infinity)\Z", re.IGNORECASE)
+_TOKEN = re.compile(r"[^ \t\f\v]+")
+
+# field groups per kind: (name, count, what the numbers are)
+_MAT = (("ambient", 3, "r g b"), ("diffuse", 3, "r g b"), ("specular", 3, "r g b"))
+_XYZ = "x y z"
+_GROUPS = {
+    "pointlight": (("emissivity", 3, "r g b"), ("center", 3, _XYZ)),
+    "sphere": _MAT + (("center", 3, _XYZ), ("radius", 1, "r")),
+    "plane": _MAT + (("normal", 3, _XYZ), ("point", 3, _XYZ)),
+    "fplane": _MAT + (("normal", 3, _XYZ), ("point", 3, _XYZ), ("orient", 3, _XYZ),
+                      ("size", 2, "w h")),
+    "tplane": _MAT + (("normal", 3, _XYZ), ("point", 3, _XYZ), ("xdir", 3, _XYZ),
+                      ("tile size", 2, "w h"), ("background ambient", 3, "r g b"),
+                      ("background diffuse", 3, "r g b"),
+                      ("background specular", 3, "r g b")),
+}
+_HEADER = (("world window", 2, "w h"), ("viewpoint", 3, _XYZ))
+
+SUPPORTED_KEYWORDS = ("pointlight", "sphere", "plane", "fplane", "tplane")
+SUPPORTED_CODES = {10: "pointlight", 13: "sphere", 14: "plane", 15: "fplane", 16: "tplane"}
+
+# kinds the course used that this project does not implement
+_UNSUPPORTED_KEYWORDS = {
+    "fplanetex": "textured finite plane",
+    "sphere_pixmap": "texture-mapped sphere",
+    "ellipsoid": "ellipsoid",
+    "spotlight": "spotlight",
+    "projector": "projector",
+    "texplane": "textured plane",
+    "tex_plane": "textured plane",
+    "texsphere": "textured sphere",
+    "psphere": "procedural sphere",
+    "pplane": "procedural plane",
+    "paraboloid": "paraboloid",
+    "cylinder": "cylinder",
+    "cone": "cone",
+    "hyperboloid": "hyperboloid",
+    "torus": "torus",
+    "triangle": "triangle",
+    "disk": "disk",
+    "lens": "lens",
+}
+_UNSUPPORTED_CODES = {
+    11: "spotlight",
+    12: "projector",
+    17: "textured plane",
+    18: "reflective sphere",
+    19: "procedural sphere",
+    20: "procedural plane",
+    21: "paraboloid",
+    22: "cylinder",
+    23: "cone",
+    24: "hyperboloid",
+    25: "torus in nw, lens in cd",
+    26: "textured sphere",
+    27: "triangle; disk in an older nw file",
+    28: "displacement sphere",
+    29: "disk",
+    9000: "cd header flag: transparency field in every material",
+    9001: "cd header flag: refraction index field in every material",
+}
+
+
+@dataclass(frozen=True)
+class _Tok:
+    text: str
+    line: int
+    col: int
+
+    @property
+    def end(self) -> int:
+        return self.col + len(self.text)
+
+
+def _show(text: str, limit: int = 40) -> str:
+    """A token for a one-line message: quoted, control characters escaped, shortened."""
+    s = "".join(c if c.isprintable() else repr(c)[1:-1] for c in text[:limit])
+    return f"'{s}...'" if len(text) > limit else f"'{s}'"
+
+
+def _numbers(n: int) -> str:
+    return f"{n} number" if n == 1 else f"{n} numbers"
+
+
+class _Ctx:
+    """Source text split into token lines, and error construction."""
+
+    def __init__(self, text: str, path: str):
+        self.path = path
+        text = text.lstrip("\ufeff").replace("\r\n", "\n").replace("\r", "\n")
+        self.lines: list[list[_Tok]] = []   # tokens per line, comments removed
+        for lineno, raw in enumerate(text.split("\n"), 1):
+            hash_at = raw.find("#")
+            if hash_at >= 0:
+                raw = raw[:hash_at]
+            self.lines.append([_Tok(m.group(), lineno, m.start() + 1)
+                               for m in _TOKEN.finditer(raw)])
+        last = next((toks[-1] for toks in reversed(self.lines) if toks), None)
+        self.eof = (last.line, last.end) if last else (1, 1)
+
+    def error(self, message: str, at) -> SceneError:
+        line, col = (at.line, at.col) if isinstance(at, _Tok) else at
+        return SceneError(message, self.path, line, col)
+
+    def number(self, tok: _Tok, what: str) -> float:
+        """The value of a token known to be where a number must be."""
+        if _NUMBER.match(tok.text):
+            value = float(tok.text)
+            if math.isfinite(value):
+                return value
+            raise self.error(f"{what}: number {_show(tok.text)} is out of range (not finite)",
+                             tok)
+        if _NONFINITE.match(tok.text):
+            raise self.error(f"{what}: {_show(tok.text)} is not a finite number", tok)
+        raise AssertionError("not a number token")  # callers check _NUMBER first
+
+
+def _is_number(tok: _Tok) -> bool:
+    return bool(_NUMBER.match(tok.text) or _NONFINITE.match(tok.text))
+
+
+def _detect(ctx: _Ctx) -> str:
+    """'keyword' or 'numeric', from the first line-start token after the 5 header numbers."""
+    count, free_text = 0, False
+    for toks in ctx.lines:
+        if not toks:
+            continue
+        if count >= 5:
+            return "numeric" if _is_number(toks[0]) else "keyword"
+        lead = 0
+        while lead < len(toks) and _is_number(toks[lead]):
+            lead += 1
+        if lead == 0:
+            # a word before the header is complete: a keyword file with a broken header,
+            # unless earlier header lines carried free text
+            return "numeric" if free_text else "keyword"
+        count += lead
+        if count > 5:
+            return "numeric"       # keyword dialect: the next token would be a number
+        if lead < len(toks):
+            word = toks[lead].text.lower()
+            if count == 5 and (word in SUPPORTED_KEYWORDS or word in _UNSUPPORTED_KEYWORDS):
+                return "keyword"
+            free_text = True
+    return "numeric" if free_text else "keyword"
+
+
+def _unsupported_keyword(ctx: _Ctx, tok: _Tok) -> SceneError:
+    name = tok.text.lower()
+    return ctx.error(f"{name} ({_UNSUPPORTED_KEYWORDS[name]}) is not supported "
+                     f"(supported: {', '.join(SUPPORTED_KEYWORDS)})", tok)
+
+
+def _unsupported_code(ctx: _Ctx, code: int, tok: _Tok) -> SceneError:
+    supported = ", ".join(f"{c} {k}" for c, k in SUPPORTED_CODES.items())
+    return ctx.error(f"{code} ({_UNSUPPORTED_CODES[code]}) is not supported "
+                     f"(supported codes: {supported})", tok)
+
+
+# --- building objects -------------------------------------------------------------------
+
+def _build(ctx: _Ctx, kind: str, start: _Tok, values: list, where: list):
+    """Make the light or object of ``kind`` from its groups; geometry errors point at the
+    offending group."""
+    if kind == "pointlight":
+        return PointLight(tuple(values[0]), tuple(values[1]), start.line)
+    mat = Material(tuple(values[0]), tuple(values[1]), tuple(values[2]))
+    g = values[3:]
+    try:
+        if kind == "sphere":
+            return make_sphere(mat, tuple(g[0]), g[1][0], start.line)
+        if kind == "plane":
+            return make_plane(mat, tuple(g[0]), tuple(g[1]), start.line)
+        if kind == "fplane":
+            return make_fplane(mat, tuple(g[0]), tuple(g[1]), tuple(g[2]), tuple(g[3]),
+                               start.line)
+        bg = Material(tuple(g[4]), tuple(g[5]), tuple(g[6]))
+        return make_tplane(mat, tuple(g[0]), tuple(g[1]), tuple(g[2]), tuple(g[3]), bg,
+                           start.line)
+    except GeometryError as exc:
+        raise ctx.error(f"{kind}: {_geometry_message(kind, str(exc))}",
+                        _geometry_location(kind, str(exc), start, g, where)) from None
+
+
+def _geometry_message(kind: str, msg: str) -> str:
+    # the tiled plane's orient is called xdir in the format table
+    return msg.replace("orient", "xdir", 1) if kind == "tplane" else msg
+
+
+def _geometry_location(kind: str, msg: str, start: _Tok, g: list, where: list):
+    """The group a GeometryError from scene.py is about: groups after the material are
+    normal, point/center, orient/xdir, size (where[3], [4], [5], [6])."""
+    if msg.startswith("normal"):
+        return where[3][0]
+    if msg.startswith(("orient", "projected orient", "n x orient")):
+        return where[5][0]
+    if msg.startswith(("size", "tile size")):
+        return where[6][0] if not g[3][0] > 0 else where[6][1]
+    if msg.startswith("radius"):
+        return where[4][0]
+    return start
+
+
+def _check_window(ctx: _Ctx, window: list, where: list) -> None:
+    if not (window[0] > 0 and window[1] > 0):
+        raise ctx.error(f"header: world window ({window[0]:g}, {window[1]:g}) must be "
+                        "positive (w h)", where[0] if not window[0] > 0 else where[1])
+
+
+# --- keyword dialect ----------------------------------------------------------------------
+
+def _parse_keyword(ctx: _Ctx):
+    toks = [t for line in ctx.lines for t in line]
+    pos = 0
+
+    def group(what: str, name: str, n: int, desc: str):
+        nonlocal pos
+        vals, locs = [], []
+        for _ in range(n):
+            if pos >= len(toks):
+                raise ctx.error(f"{what}: expected {_numbers(n)} for {name} ({desc}), "
+                                "found end of file", ctx.eof)
+            tok = toks[pos]
+            if not _is_number(tok):
+                raise ctx.error(f"{what}: expected {_numbers(n)} for {name} ({desc}), "
+                                f"found {_show(tok.text)}", tok)
+            vals.append(ctx.number(tok, what))
+            locs.append(tok)
+            pos += 1
+        return vals, locs
+
+    window, wloc = group("header", *_HEADER[0])
+    _check_window(ctx, window, wloc)
+    viewpoint, _ = group("header", *_HEADER[1])
+    lights, objects = [], []
+    while pos < len(toks):
+        start = toks[pos]
+        kind = start.text.lower()
+        if kind not in SUPPORTED_KEYWORDS:
+            if kind in _UNSUPPORTED_KEYWORDS:
+                raise _unsupported_keyword(ctx, start)
+            found = (f"number {_show(start.text)}" if _is_number(start)
+                     else f"unknown keyword {_show(start.text)}")
+            raise ctx.error(f"expected an object keyword ({', '.join(SUPPORTED_KEYWORDS)}), "
+                            f"found {found}", start)
+        pos += 1
+        values, where = [], []
+        for name, n, desc in _GROUPS[kind]:
+            v, locs = group(kind, name, n, desc)
+            values.append(v)
+            where.append(locs)
+        obj = _build(ctx, kind, start, values, where)
+        (lights if kind == "pointlight" else objects).append(obj)
+    return window, viewpoint, lights, objects
+
+
+# --- numeric dialect ----------------------------------------------------------------------
+
+def _parse_numeric(ctx: _Ctx):
+    content = [toks for toks in ctx.lines if toks]
+    idx = 0
+
+    def lead_count(toks: list[_Tok]) -> int:
+        k = 0
+        while k < len(toks) and _NUMBER.match(toks[k].text):
+            k += 1
+        return k
+
+    def group(what: str, name: str, n: int, desc: str):
+        nonlocal idx
+        expected = f"{what}: expected {_numbers(n)} for {name} ({desc})"
+        if idx >= len(content):
+            raise ctx.error(f"{expected}, found end of file", ctx.eof)
+        toks = content[idx]
+        idx += 1
+        k = lead_count(toks)
+        if k < n:
+            if k < len(toks):
+                bad = toks[k]
+                if _NONFINITE.match(bad.text):
+                    ctx.number(bad, what)        # raises the non-finite error
+                raise ctx.error(f"{expected}, found {_show(bad.text)}", bad)
+            raise ctx.error(f"{expected} on one line, found end of line after "
+                            f"{_numbers(k)}", (toks[-1].line, toks[-1].end))
+        return [ctx.number(t, what) for t in toks[:n]], toks[:n]
+
+    window, wloc = group("header", *_HEADER[0])
+    _check_window(ctx, window, wloc)
+    viewpoint, _ = group("header", *_HEADER[1])
+    lights, objects = [], []
+    while idx < len(content):
+        toks = content[idx]
+        start = toks[0]
+        if not _INTEGER.match(start.text):
+            if _is_number(start):
+                found = f"number {_show(start.text)}"
+            elif start.text.lower() in SUPPORTED_KEYWORDS + tuple(_UNSUPPORTED_KEYWORDS):
+                found = f"keyword {_show(start.text)} (keyword and numeric dialects mixed?)"
+            else:
+                found = _show(start.text)
+            raise ctx.error("expected an integer object code (10 point light, 13 sphere, "
+                            f"14 plane, 15 finite plane, 16 tiled plane), found {found}", start)
+        code = int(start.text)
+        if code not in SUPPORTED_CODES:
+            if code in _UNSUPPORTED_CODES:
+                raise _unsupported_code(ctx, code, start)
+            raise ctx.error(f"unknown object code {code}; expected 10 point light, 13 sphere, "
+                            "14 plane, 15 finite plane or 16 tiled plane", start)
+        kind = SUPPORTED_CODES[code]
+        if lead_count(toks) > 1:
+            extra = toks[1]
+            raise ctx.error(f"{code} ({kind}) with a refraction index ({_show(extra.text)}) "
+                            "after the code is not supported (nw's refractive objects)", extra)
+        idx += 1
+        values, where = [], []
+        for name, n, desc in _GROUPS[kind]:
+            v, locs = group(kind, name, n, desc)
+            values.append(v)
+            where.append(locs)
+        obj = _build(ctx, kind, start, values, where)
+        (lights if kind == "pointlight" else objects).append(obj)
+    return window, viewpoint, lights, objects
+
+
+# --- public API ---------------------------------------------------------------------------
+
+def _parse(text: str, path: str, sha: str) -> Scene:
+    ctx = _Ctx(text, path)
+    if not any(ctx.lines):
+        raise ctx.error("empty scene file: expected the world window (w h), the viewpoint "
+                        "(x y z), then objects", (1, 1))
+    dialect = _detect(ctx)
+    parse = _parse_keyword if dialect == "keyword" else _parse_numeric
+    window, viewpoint, lights, objects = parse(ctx)
+    return Scene(window=tuple(window), viewpoint=tuple(viewpoint), lights=tuple(lights),
+                 objects=tuple(objects), path=path, dialect=dialect, sha256=sha)
+
+
+def parse_text(text: str | bytes, path: str = "<string>") -> Scene:
+    """Parse scene text (either dialect); ``path`` is used in messages and ``Scene.path``.
+    ``Scene.sha256`` is the hash of the bytes given, or of the UTF-8 encoded text."""
+    if isinstance(text, (bytes, bytearray)):
+        data = bytes(text)
+        return _parse(data.decode("utf-8", "replace"), path, hashlib.sha256(data).hexdigest())
+    return _parse(text, path, hashlib.sha256(text.encode("utf-8", "surrogatepass")).hexdigest())
+
+
+def parse_scene(path) -> Scene:
+    """Parse a scene file (either dialect). ``Scene.sha256`` is the hash of the file's bytes.
+
+    Raises SceneError for any problem in the content; OSError (missing file, ...) as is."""
+    data = Path(path).read_bytes()
+    return _parse(data.decode("utf-8", "replace"), str(path), hashlib.sha256(data).hexdigest())
