@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import io
 import os
 import sys
 import tempfile
@@ -62,12 +63,13 @@ _native_lock = threading.Lock()
 
 @contextlib.contextmanager
 def _native_output_captured():
-    """Redirect file descriptors 1 and 2 while the OpenEXR C++ library runs.
+    """Capture what the OpenEXR binding prints while it runs.
 
-    On a corrupt or truncated file it prints its own warnings straight to stdout and stderr
-    ("Warning: Exception raised reading pixel data ...", "(EXR_ERR_BAD_CHUNK_LEADER) ..."),
-    which would break one-line error messages and ``--json`` output.  Yields a list that is
-    filled with the captured lines when the block ends.
+    On a corrupt or truncated file it prints its own messages: "Warning: Exception raised
+    reading pixel data ..." through Python's ``sys.stdout`` and "(EXR_ERR_BAD_CHUNK_LEADER)
+    ..." from C++ straight to file descriptor 2.  Either would break one-line error messages
+    and ``--json`` output, so both the Python streams and descriptors 1 and 2 are redirected.
+    Yields a list that is filled with the captured lines when the block ends.
     """
     lines: list[str] = []
     with _native_lock, tempfile.TemporaryFile() as sink:
@@ -81,17 +83,19 @@ def _native_output_captured():
                 os.dup2(sink.fileno(), fd)
         except OSError:  # a closed descriptor: nothing to protect
             pass
+        py_out = io.StringIO()
         try:
-            yield lines
+            with contextlib.redirect_stdout(py_out), contextlib.redirect_stderr(py_out):
+                yield lines
         finally:
-            with contextlib.suppress(Exception):  # C stdio buffers the library's stdout
+            with contextlib.suppress(Exception):  # C stdio may buffer the library's output
                 ctypes.CDLL(None).fflush(None)
             for fd, dup in saved:
                 os.dup2(dup, fd)
                 os.close(dup)
             sink.seek(0)
-            lines.extend(ln.strip() for ln in sink.read().decode("utf-8", "replace").splitlines()
-                         if ln.strip())
+            text = py_out.getvalue() + sink.read().decode("utf-8", "replace")
+            lines.extend(ln.strip() for ln in text.splitlines() if ln.strip())
 
 
 def _native_reason(path: str, lines: list[str]) -> str | None:

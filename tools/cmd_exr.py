@@ -1,0 +1,343 @@
+"""``rtval exr``: inspect and compare OpenEXR outputs (exrinfo, oiiotool --stats, idiff).
+
+Only argument parsing and formatting live here; the work is in :mod:`tools.exrtool`.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import textwrap
+
+EXIT_CODES = """\
+exit codes:
+  0   PASS: the images match within the warning and failure limits
+  1   WARNING: some pixels differ, but within the failure limits
+  2   FAILURE: too many pixels fail, or one exceeds --hard-fail
+  3   the images differ in size or in their channels and were not compared
+  4   file error: a file is missing, truncated or not an OpenEXR file, a requested
+      channel is missing, or the difference image cannot be written
+  64  usage error: unknown option, bad or negative option value
+"""
+
+DIFF_RULES = """\
+A pixel fails when, in any of its channels, the error |a - b| exceeds both --fail
+(absolute) and --fail-relative (relative to the mean of |a| and |b|); it warns likewise
+with --warn and --warn-relative.  NaN matches only NaN and Inf only the same-signed Inf;
+a non-finite value against anything else is an infinite error: that pixel fails and warns.
+
+The comparison FAILS if any error exceeds --hard-fail (regardless of the other limits),
+or if more pixels fail than both --allow-failures and --fail-percent of all pixels
+allow.  Failing pixels within --allow-failures are excused entirely; failing pixels
+within --fail-percent still count as warnings.  Otherwise it is a WARNING if more than
+--warn-percent of the pixels warn or an error exceeds --hard-warn, else it PASSES.
+Mean and RMS error are over the values finite in both images (as idiff reports them).
+"""
+
+
+def _wrap(text: str) -> str:
+    return textwrap.fill(text, 88)
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "exr", help="inspect and compare OpenEXR outputs (info, stats, diff, preview)",
+        description=_wrap("Inspect and compare the OpenEXR files rtval and the course tracer "
+                          "write, the way exrinfo, oiiotool --stats and idiff do."),
+        epilog="`rtval exr diff` exits like idiff:\n" + EXIT_CODES
+               + "info, stats and preview exit 0, 4 or 64.",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="exr_command", required=True, metavar="COMMAND",
+                           parser_class=type(p))
+
+    q = sub.add_parser("info", help="size, channels and pixel types, compression, attributes",
+                       description=_wrap("Print each file's size, windows, compression, "
+                                         "channels with pixel types and every header "
+                                         "attribute, rtval.* provenance included (like "
+                                         "exrinfo/exrheader)."),
+                       epilog="exit codes: 0 ok, 4 a file cannot be read, 64 usage error",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    q.add_argument("files", nargs="+", metavar="FILE")
+    q.add_argument("--json", action="store_true", help="print a JSON list, one object per file")
+    q.set_defaults(func=run_info)
+
+    q = sub.add_parser("stats", help="per-channel min/max/mean/std and NaN/Inf/finite counts",
+                       description=_wrap("Per-channel statistics like `oiiotool --stats`: "
+                                         "min, max, mean and std over the finite values, "
+                                         "and NaN, Inf and finite counts.  depth.* channels "
+                                         "are also summarised over hit pixels only "
+                                         "(hit.mask > 0.5)."),
+                       epilog="exit codes: 0 ok, 4 the file or a channel cannot be read, "
+                              "64 usage error",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    q.add_argument("file", metavar="FILE")
+    _channels_option(q)
+    q.add_argument("--json", action="store_true", help="print JSON")
+    q.set_defaults(func=run_stats)
+
+    q = sub.add_parser("diff", help="compare two EXRs with idiff's thresholds and exit codes",
+                       description=_wrap("Compare A and B channel by channel with idiff's "
+                                         "semantics and report mean, RMS and max error, the "
+                                         "worst pixel and the failing and warning pixel "
+                                         "counts.") + "\n\n" + DIFF_RULES,
+                       epilog=EXIT_CODES,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    q.add_argument("a", metavar="A")
+    q.add_argument("b", metavar="B")
+    _channels_option(q)
+    q.add_argument("--fail", type=_nonneg, default=1e-6, metavar="ABS",
+                   help="absolute error a failing pixel exceeds (default 1e-6)")
+    q.add_argument("--fail-relative", type=_nonneg, default=0.0, metavar="R",
+                   help="relative error a failing pixel also exceeds (default 0)")
+    q.add_argument("--fail-percent", type=_percent, default=0.0, metavar="P",
+                   help="percentage of pixels allowed to fail (default 0)")
+    q.add_argument("--hard-fail", type=_nonneg, default=math.inf, metavar="H",
+                   help="fail if any error exceeds H, whatever else is allowed (default inf)")
+    q.add_argument("--warn", type=_nonneg, default=1e-6, metavar="ABS",
+                   help="absolute error a warning pixel exceeds (default 1e-6)")
+    q.add_argument("--warn-relative", type=_nonneg, default=0.0, metavar="R",
+                   help="relative error a warning pixel also exceeds (default 0)")
+    q.add_argument("--warn-percent", type=_percent, default=0.0, metavar="P",
+                   help="percentage of pixels allowed to warn (default 0)")
+    q.add_argument("--hard-warn", type=_nonneg, default=math.inf, metavar="H",
+                   help="warn if any error exceeds H (default inf)")
+    q.add_argument("--allow-failures", type=_count, default=0, metavar="N",
+                   help="N pixels may fail by any amount below --hard-fail (default 0)")
+    q.add_argument("-o", "--output", metavar="DIFF.exr",
+                   help="write |A-B| per channel to this EXR (atomically)")
+    q.add_argument("--json", action="store_true", help="print the report as JSON")
+    q.set_defaults(func=run_diff)
+
+    q = sub.add_parser("preview", help="false-colour PNG of one channel with a colour bar",
+                       description=_wrap("Write a false-colour PNG of one channel with a "
+                                         "colour bar and its min/max: depth in viridis over "
+                                         "hit pixels (misses black), object.id in "
+                                         "categorical colours (-1 black), normal XYZ as RGB "
+                                         "(n+1)/2, hit.mask grey, R/G/B clamped, a difference "
+                                         "image (from `diff -o`) in inferno.  NaN/Inf pixels "
+                                         "are magenta.  Images narrower than 256 pixels are "
+                                         "enlarged by an integer factor."),
+                       epilog="exit codes: 0 ok, 4 the file or channel cannot be read or the "
+                              "PNG cannot be written, 64 usage error",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    q.add_argument("file", metavar="FILE")
+    q.add_argument("-o", "--output", required=True, metavar="OUT.png", help="PNG to write")
+    q.add_argument("--channel", metavar="NAME",
+                   help="channel or layer to show (default depth.Z, else the first channel)")
+    q.add_argument("--json", action="store_true", help="print what was drawn as JSON")
+    q.set_defaults(func=run_preview)
+
+
+# ----------------------------------------------------------------------------- option types
+
+def _number(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if math.isnan(v):
+        raise argparse.ArgumentTypeError("must be a number, not NaN")
+    return v
+
+
+def _nonneg(text: str) -> float:
+    v = _number(text)
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return v
+
+
+def _percent(text: str) -> float:
+    v = _nonneg(text)
+    if v > 100:
+        raise argparse.ArgumentTypeError(f"must be a percentage in [0, 100], got {text}")
+    return v
+
+
+def _count(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return v
+
+
+def _channel_list(text: str) -> list[str]:
+    names = [n.strip() for n in text.split(",")]
+    if not all(names):
+        raise argparse.ArgumentTypeError(f"empty channel name in {text!r}")
+    return names
+
+
+def _channels_option(p) -> None:
+    p.add_argument("--channels", type=_channel_list, action="append", metavar="LIST",
+                   help="comma-separated channels or layers (normal = normal.X,Y,Z); "
+                        "may be repeated (default: all)")
+
+
+def _channels(args):
+    return [n for group in args.channels for n in group] if args.channels else None
+
+
+# ----------------------------------------------------------------------------- output
+
+def _jsonable(x):
+    """NaN and Inf become the strings "nan", "inf", "-inf" so that the output is strict JSON."""
+    if isinstance(x, float) and not math.isfinite(x):
+        return "nan" if math.isnan(x) else ("inf" if x > 0 else "-inf")
+    if isinstance(x, dict):
+        return {k: _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    return x
+
+
+def _print_json(data) -> None:
+    print(json.dumps(_jsonable(data), indent=2, allow_nan=False))
+
+
+def _g(v, width: int = 0) -> str:
+    s = "-" if v is None else (f"{v:.6g}" if isinstance(v, float) else str(v))
+    return s.rjust(width) if width else s
+
+
+def _fmt_attr(v) -> str:
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, list):
+        return "(" + ", ".join(_fmt_attr(x) for x in v) + ")"
+    return _g(v)
+
+
+# ----------------------------------------------------------------------------- commands
+
+def _error(e) -> None:
+    print(f"rtval exr: {e}", file=sys.stderr)
+
+
+def run_info(args) -> int:
+    from rt_core.exrio import ExrError
+    from tools import exrtool
+    results, code = [], 0
+    for path in args.files:
+        try:
+            results.append(exrtool.info(path))
+        except ExrError as e:
+            _error(e)
+            code = e.exit_code
+    if args.json:
+        _print_json(results)
+        return code
+    for r in results:
+        (x0, y0), (x1, y1) = r["data_window"] or ((0, 0), (r["width"] - 1, r["height"] - 1))
+        print(f"file {r['file']}:")
+        print(f"  size            {r['width']} x {r['height']}")
+        print(f"  data window     ({x0}, {y0}) - ({x1}, {y1})")
+        if r["display_window"]:
+            (dx0, dy0), (dx1, dy1) = r["display_window"]
+            print(f"  display window  ({dx0}, {dy0}) - ({dx1}, {dy1})")
+        print(f"  compression     {r['compression']}")
+        print(f"  channels ({len(r['channels'])}):")
+        w = max(len(c["name"]) for c in r["channels"])
+        for c in r["channels"]:
+            samp = ("" if (c["x_sampling"], c["y_sampling"]) == (1, 1)
+                    else f"  sampling {c['x_sampling']} x {c['y_sampling']}")
+            print(f"    {c['name']:<{w}}  {c['type']}{samp}")
+        print("  attributes:")
+        w = max(len(k) for k in r["attributes"])
+        for k, v in r["attributes"].items():
+            print(f"    {k:<{w}}  {_fmt_attr(v)}")
+    return code
+
+
+_STAT_COLS = ("min", "max", "mean", "std")
+
+
+def run_stats(args) -> int:
+    from tools import exrtool
+    r = exrtool.stats(args.file, _channels(args))
+    if args.json:
+        _print_json(r)
+        return 0
+    print(f"{r['file']}: {r['width']} x {r['height']}, {len(r['channels'])} channels")
+    w = max(14, *(len(n) + 2 for n in r["channels"]))
+    head = f"{'channel':<{w}}" + "".join(f"{c:>14}" for c in _STAT_COLS) \
+        + f"{'nan':>9}{'inf':>9}{'finite':>10}"
+    print(head)
+    for name, s in r["channels"].items():
+        rows = [(name, s)]
+        if "hit" in s:
+            rows.append(("  (hit only)", s["hit"]))
+        for label, t in rows:
+            if t is None:
+                print(f"{label:<{w}}  no hit.mask in the file")
+                continue
+            print(f"{label:<{w}}" + "".join(_g(t[c], 14) for c in _STAT_COLS)
+                  + f"{t['nan']:>9}{t['inf']:>9}{t['finite']:>10}")
+    return 0
+
+
+def run_diff(args) -> int:
+    from tools import exrtool
+    th = exrtool.Thresholds(
+        fail=args.fail, fail_relative=args.fail_relative, fail_percent=args.fail_percent,
+        hard_fail=args.hard_fail, warn=args.warn, warn_relative=args.warn_relative,
+        warn_percent=args.warn_percent, hard_warn=args.hard_warn,
+        allow_failures=args.allow_failures)
+    r = exrtool.diff(args.a, args.b, _channels(args), th, args.output)
+    if r["exit_code"] == exrtool.MISMATCH:
+        _error(r["reason"])
+        if args.json:
+            _print_json(r)
+        return r["exit_code"]
+    if args.json:
+        _print_json(r)
+        return r["exit_code"]
+    print(f'Comparing "{r["file_a"]}" and "{r["file_b"]}" '
+          f'({r["width"]} x {r["height"]}, {len(r["channels"])} channels)')
+    print(f"  Mean error = {_g(r['mean_error'])}")
+    print(f"  RMS error = {_g(r['rms_error'])}")
+    wst = r["worst"]
+    if wst:
+        print(f"  Max error  = {_g(r['max_error'])} @ ({wst['x']}, {wst['y']}, "
+              f"{wst['channel']})  values are {_g(wst['a'])} vs {_g(wst['b'])}")
+    else:
+        print("  Max error  = 0")
+    if r["nonfinite_mismatches"]:
+        print(f"  {r['nonfinite_mismatches']} values non-finite in one image only")
+    th = r["thresholds"]
+    print(f"  {r['warning_pixels']} pixels ({r['warning_percent']:.3g}%) over {_g(th['warn'])}"
+          + (f" and relative {_g(th['warn_relative'])}" if th["warn_relative"] else ""))
+    print(f"  {r['failing_pixels']} pixels ({r['failing_percent']:.3g}%) over {_g(th['fail'])}"
+          + (f" and relative {_g(th['fail_relative'])}" if th["fail_relative"] else ""))
+    differing = {n: c for n, c in r["per_channel"].items() if c["max_error"] > 0}
+    if len(r["channels"]) > 1 and differing:
+        w = max(len(n) for n in differing) + 2
+        print(f"  {'channel':<{w}}{'max':>12}{'mean':>12}{'rms':>12}{'failing':>9}  worst")
+        for n, c in differing.items():
+            where = f"({c['worst'][0]}, {c['worst'][1]})" if c["worst"] else "-"
+            print(f"  {n:<{w}}{_g(c['max_error'], 12)}{_g(c['mean_error'], 12)}"
+                  f"{_g(c['rms_error'], 12)}{c['failing_pixels']:>9}  {where}")
+        if len(differing) < len(r["channels"]):
+            print(f"  ({len(r['channels']) - len(differing)} other channels identical)")
+    for reason in r["reasons"]:
+        print(f"  {reason}")
+    if r["diff_image"]:
+        print(f"  difference image: {r['diff_image']}")
+    print(r["status"])
+    return r["exit_code"]
+
+
+def run_preview(args) -> int:
+    from tools import exrtool
+    r = exrtool.preview(args.file, args.output, args.channel)
+    if args.json:
+        _print_json(r)
+    else:
+        shown = ",".join(r.get("channels") or [r["channel"]])
+        print(f"{r['output']}: {r['width']} x {r['height']} PNG of {shown} "
+              f"({r['kind']}; min {_fmt_attr(r['min'])}, max {_fmt_attr(r['max'])})")
+    return 0
