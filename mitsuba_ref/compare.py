@@ -89,13 +89,13 @@ def compare(scene: Scene, columns: int, rows: int | None = None, precision: str 
         ms_ours = (time.perf_counter() - t0) * 1e3
     ours = to_images(flat, cam)
     d = _numpy3(primary_directions(scene, cam, T))
-    ms = MitsubaScene(scene, cam.columns, cam.rows, sampling)
+    ms = MitsubaScene(scene, cam.columns, cam.rows, sampling, clip_spheres=rules.clip_spheres)
     for _ in range(2):
         t0 = time.perf_counter()
         if mode == "rays":
             ref = {k: v.reshape(cam.rows, cam.columns) for k, v in trace_rays(ms, d).items()}
         else:
-            ref = render_camera(ms)
+            ref = render_camera(ms, d)
         ms_ref = (time.perf_counter() - t0) * 1e3
     flat_o = {k: v.ravel() for k, v in ours.items()}
     flat_r = {k: v.ravel() for k, v in ref.items()}
@@ -103,7 +103,7 @@ def compare(scene: Scene, columns: int, rows: int | None = None, precision: str 
     classes = classify(scene, d, flat_o, flat_r, rules, extent).reshape(cam.rows, cam.columns)
     # depth error where both hit the same object
     same = (flat_o["hit.mask"] > 0) & (flat_r["hit.mask"] > 0) & \
-           (flat_o["object.id"] == flat_r["object.id"])
+           (flat_o["object.id"] == flat_r["object.id"]) & (classes.ravel() == 0)
     t_o = flat_o["depth.Z"][same].astype(np.float64)
     t_r = flat_r["depth.Z"][same].astype(np.float64)
     rel = np.abs(t_o - t_r) / np.maximum(np.abs(t_r), 1e-300)

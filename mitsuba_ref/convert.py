@@ -6,7 +6,8 @@
   projection onto the plane (size rule: ``plane_extent``);
 * sphere -> ``sphere``;
 * camera -> ``perspective`` sensor whose pixel centres are the course's samples; ``near_clip``
-  = |viewpoint.z| starts every ray on the window plane z = 0 (the course's screen clip).
+  = viewpoint.z starts every ray on the window plane z = 0 (the course's screen clip); with
+  the viewpoint behind the window (z < 0) the sensor faces +z and ``far_clip`` = |z| clips.
 
 Shape ids are ``obj<course id>_<kind>``.  Mitsuba's variant here is ``llvm_ad_rgb`` (float32;
 the wheel has no double variants).
@@ -89,15 +90,17 @@ def rectangle_matrix(obj: FPlane) -> list:
 def infinite_matrix(obj, viewpoint, R: float) -> list:
     """A square of half-size R standing in for an infinite or tiled plane, centred on the
     viewpoint's foot point on the plane (a tiled plane keeps its tile axes)."""
+    x, y, c = stand_in_frame(obj, viewpoint)
+    return _matrix(x, y, obj.normal, c, R, R)
+
+
+def stand_in_frame(obj, viewpoint):
+    """Axes and centre of the square standing in for an infinite or tiled plane: the tile
+    axes (or any in-plane pair) and the viewpoint's foot point on the plane."""
     n = obj.normal
-    if isinstance(obj, TPlane):
-        x, y = obj.xdir, obj.ydir
-    else:
-        x, y = _any_frame(n)
-    # foot point of the viewpoint on the plane
+    x, y = (obj.xdir, obj.ydir) if isinstance(obj, TPlane) else _any_frame(n)
     s = dot(n, sub(obj.point, viewpoint))
-    c = tuple(viewpoint[i] + s * n[i] for i in range(3))
-    return _matrix(x, y, n, c, R, R)
+    return x, y, tuple(viewpoint[i] + s * n[i] for i in range(3))
 
 
 def _any_frame(n):
@@ -126,18 +129,21 @@ class SensorSetup:
     rows: int
     square: bool
     note: str
+    facing: int            # -1: looks down -z (viewpoint z > 0); +1: looks up +z (mirrored)
 
 
-def sensor_setup(scene: Scene, columns: int, rows: int | None, sampling: str = "corners"
-                 ) -> SensorSetup:
+def sensor_setup(scene: Scene, columns: int, rows: int | None, sampling: str = "corners",
+                 clip: bool = True) -> SensorSetup:
+    """The sensor; ``clip`` False drops the screen clip (near clip ~0: for spheres, which the
+    course does not clip)."""
     cam = make_camera(scene, columns, rows, sampling)
     vx, vy, vz = scene.viewpoint
-    if not vz > 0:
-        raise InputError(f"{scene.path}: viewpoint z = {vz:g}; the Mitsuba camera needs the "
-                         "viewpoint in front of the window plane (z > 0)")
+    if vz == 0 or not math.isfinite(vz):
+        raise InputError(f"{scene.path}: viewpoint z = {vz:g} lies in the window plane; no "
+                         "camera can look through the window from there")
     # window whose pixel centres are the samples: W·spacing wide
     ww_c, wh_c = cam.sx * cam.columns, cam.sy * cam.rows
-    fov = math.degrees(2 * math.atan(ww_c / (2 * vz)))
+    fov = math.degrees(2 * math.atan(ww_c / (2 * abs(vz))))
     square = math.isclose(cam.sx, cam.sy, rel_tol=1e-12)
     note = ""
     if not square:
@@ -146,18 +152,35 @@ def sensor_setup(scene: Scene, columns: int, rows: int | None, sampling: str = "
                 f"{cam.sx:.9g} apart instead of {cam.sy:.9g}: its image is the course image "
                 "rescaled vertically. Compare it only with rt_core rendering the same "
                 "square-pixel camera (rtval compare does so); same-ray comparisons are exact")
-    return SensorSetup(fov, -vx / ww_c, vy / (cam.rows * cam.sx), vz, far_clip(scene),
-                       cam.columns, cam.rows, square, note)
+    if not clip:
+        return SensorSetup(fov, -vx / ww_c if vz > 0 else vx / ww_c, vy / (cam.rows * cam.sx),
+                           1e-6 * abs(vz), far_clip(scene), cam.columns, cam.rows, square, note,
+                           -1 if vz > 0 else +1)
+    if vz > 0:
+        # rays start on the window plane: the near clip is the course's screen clip
+        return SensorSetup(fov, -vx / ww_c, vy / (cam.rows * cam.sx), vz, far_clip(scene),
+                           cam.columns, cam.rows, square, note, -1)
+    # viewpoint behind the window (z < 0), looking toward +z: the screen clip (z > 0 is a
+    # miss) is the far clip; any proper camera facing +z sees the course image mirrored in x,
+    # so the principal point flips and the reference flips its columns back
+    return SensorSetup(fov, vx / ww_c, vy / (cam.rows * cam.sx), 1e-6 * abs(vz), abs(vz),
+                       cam.columns, cam.rows, square, note, +1)
 
 
 def scene_dict(scene: Scene, columns: int, rows: int | None = None, sampling: str = "corners",
-               shading: bool = False, integrator: bool = True) -> dict:
-    """The Mitsuba 3 scene as a dict for ``mi.load_dict(d, optimize=False)``."""
+               shading: bool = False, integrator: bool = True, only=None,
+               clip: bool = True) -> dict:
+    """The Mitsuba 3 scene as a dict for ``mi.load_dict(d, optimize=False)``.
+
+    ``only``: a set of object kinds to include (default all); ``clip``: whether the sensor
+    applies the course's screen clip (see ``sensor_setup``)."""
     mi = mitsuba()
     T = mi.ScalarTransform4f
     R = plane_extent(scene)
     d = {"type": "scene"}
     for oid, o in enumerate(scene.objects):
+        if only is not None and o.kind not in only:
+            continue
         sid = shape_id(oid, o.kind)
         if isinstance(o, Sphere):
             shape = {"type": "sphere", "center": list(o.center), "radius": o.radius}
@@ -175,13 +198,14 @@ def scene_dict(scene: Scene, columns: int, rows: int | None = None, sampling: st
         for i, light in enumerate(scene.lights):
             d[f"light{i}"] = {"type": "point", "position": list(light.center),
                               "intensity": {"type": "rgb", "value": list(light.emissivity)}}
-    s = sensor_setup(scene, columns, rows, sampling)
+    s = sensor_setup(scene, columns, rows, sampling, clip)
     vx, vy, vz = scene.viewpoint
     d["sensor"] = {
         "type": "perspective", "fov_axis": "x", "fov": s.fov,
         "principal_point_offset_x": s.ppo_x, "principal_point_offset_y": s.ppo_y,
         "near_clip": s.near_clip, "far_clip": s.far_clip,
-        "to_world": T().look_at(origin=[vx, vy, vz], target=[vx, vy, vz - 1], up=[0, 1, 0]),
+        "to_world": T().look_at(origin=[vx, vy, vz], target=[vx, vy, vz + s.facing],
+                                up=[0, 1, 0]),
         "sampler": {"type": "stratified", "sample_count": 1, "jitter": False},
         "film": {"type": "hdrfilm", "width": s.columns, "height": s.rows,
                  "rfilter": {"type": "box"}, "pixel_format": "rgb"},

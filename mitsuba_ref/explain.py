@@ -5,15 +5,15 @@ reference's) is within a float32 error bound of a decision boundary:
 
   edge        a finite plane's hit lies within the bound of its rectangle's border
   tie         the two objects lie at the same depth within the bound
-  clip        a hit within the bound of the window plane z = 0, or a sphere straddling it
-              (the reference's rays start on z = 0: its near clip applies to spheres too)
+  clip        a plane hit within the bound of the window plane z = 0 (the screen clip)
   extent      our hit on an infinite/tiled plane lies beyond the reference's finite stand-in
   silhouette  the ray passes within the bound of a sphere's outline
   graze       the ray is within the bound of parallel to a plane
 
 The bound on a position is ``K · 2⁻²⁴ · S / |cos θ|``: S the magnitude of the coordinates the
 float32 arithmetic works with (viewpoint, the object's anchor, the distance t, the object's
-size), θ the angle between ray and normal, and K = 16 rounding steps (vertex rounding, ray
+size — for an infinite or tiled plane the half-size R of the reference's stand-in square,
+whose float32 vertices tilt and shift it by about 2⁻²⁴·R), θ the angle between ray and normal, and K = 16 rounding steps (vertex rounding, ray
 origin on the window, direction rounding, Embree's edge tests, our own float32 evaluation).
 """
 from __future__ import annotations
@@ -22,6 +22,7 @@ import numpy as np
 
 from rt_core.rules import Rules
 from rt_core.scene import FPlane, Plane, Scene, Sphere, TPlane
+from .convert import stand_in_frame
 
 K_ROUNDING = 16.0
 EPS32 = 2.0 ** -24
@@ -41,7 +42,6 @@ class ObjectEval:
         self.kind = obj.kind
         n = len(d)
         self.margin = np.full(n, np.inf)       # world-unit distance to the decision boundary
-        self.straddle = np.zeros(n, bool)
         self.beyond = np.zeros(n, bool)
         if isinstance(obj, Sphere):
             C = np.asarray(obj.center)
@@ -59,7 +59,6 @@ class ObjectEval:
             self.t = t
             self.margin = np.abs(pn - obj.radius)          # distance from the outline
             z = V[2] + t * d[:, 2]
-            self.straddle = self.valid & (z > 0)
             self.scale = np.sqrt(q @ q) + obj.radius + np.sqrt(V @ V)
             self.cos = np.ones(n)
             return
@@ -94,10 +93,12 @@ class ObjectEval:
             valid = valid & inside
             size = max(w, h)
         else:
-            foot = V + (nrm @ q) * nrm
-            hit = V[None, :] + t[:, None] * d
-            self.beyond = valid & (np.max(np.abs(hit - foot), 1) > extent * (1 - 1e-6))
-            size = 0.0
+            # beyond the reference's stand-in square (half-size extent, its own axes)
+            ax, ay, foot = stand_in_frame(obj, scene.viewpoint)
+            rel = V[None, :] + t[:, None] * d - np.asarray(foot)
+            far = np.maximum(np.abs(rel @ np.asarray(ax)), np.abs(rel @ np.asarray(ay)))
+            self.beyond = valid & (far > extent * (1 - 1e-6))
+            size = extent       # the stand-in's float32 vertices lie ~extent away
         self.valid = valid
         self.scale = np.sqrt(q @ q) + np.sqrt(V @ V) + size + np.abs(np.asarray(obj.point)).max()
 
@@ -108,8 +109,9 @@ class ObjectEval:
 
 
 def classify(scene: Scene, d: np.ndarray, ours: dict, ref: dict, rules: Rules,
-             extent: float, reference_from_window: bool = True) -> np.ndarray:
-    """Class code per ray (CLASS_CODE) from flat arrays 'hit.mask', 'object.id', 'depth.Z'."""
+             extent: float) -> np.ndarray:
+    """Class code per ray (CLASS_CODE) from flat arrays 'hit.mask', 'object.id',
+    ('agree' = same object hit, or both miss)."""
     d = np.asarray(d, np.float64)
     a_id = np.where(ours["hit.mask"] > 0, ours["object.id"], -1).astype(np.int64)
     b_id = np.where(ref["hit.mask"] > 0, ref["object.id"], -1).astype(np.int64)
@@ -135,7 +137,6 @@ def classify(scene: Scene, d: np.ndarray, ours: dict, ref: dict, rules: Rules,
             if ev.kind == "fplane":
                 mark(involved & (np.abs(ev.margin) <= b), "edge")
             if ev.kind == "sphere":
-                mark(involved & ev.straddle & reference_from_window, "clip")
                 mark(involved & (ev.margin <= b), "silhouette")
             else:
                 mark(involved & (ev.clip_margin <= b), "clip")

@@ -13,7 +13,7 @@ BACKENDS = ("llvm", "cuda")
 
 class BackendError(Exception):
     """Dr.Jit cannot run here (missing or too old LLVM, no CUDA device)."""
-    exit_code = 1
+    exit_code = 2
 
 
 _checked: set[str] = set()

@@ -6,7 +6,7 @@ from .backend import BackendError
 
 class InputError(Exception):
     """A bad option value or a missing input file; ``str(err)`` is one line."""
-    exit_code = 1
+    exit_code = 2
 
 
 USER_ERRORS = (SceneError, GeometryError, ExrError, BackendError, InputError,

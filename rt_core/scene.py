@@ -15,6 +15,7 @@ Vec3 = Tuple[float, float, float]
 
 class SceneError(Exception):
     """A scene that cannot be used. ``str(err)`` is one line: ``file:line:col: message``."""
+    exit_code = 2
 
     def __init__(self, message: str, path: str | None = None, line: int | None = None,
                  col: int | None = None):

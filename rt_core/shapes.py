@@ -97,17 +97,19 @@ def plane_t(d, o, obj: ObjectConstants, rules: Rules, vz: float):
     inv_den = dr.rcp(den)
     t = nq * inv_den
     hit = (den != 0) & (t > dr.opaque(F, rules.t_min)) & dr.isfinite(t)
-    hit &= screen_clip_ok(t, d, o, rules, vz)
+    if rules.screen_clip != "off":
+        # hit z = zn/den with zn = (vz + o.z)·den + n·q'·d.z: the sign test on zn is exact
+        # for a plane in z = 0 (vz·d.z − vz·d.z = 0), where vz + t·d.z is noise around 0
+        vzo = dr.opaque(F, vz) if o is None else dr.opaque(F, vz) + o.z
+        zn = vzo * den + nq * d.z
+        hit &= clip_ok(dr.select(den > 0, zn, -zn), rules)
     return t, hit, inv_den, q
 
 
-def screen_clip_ok(t, d, o, rules: Rules, vz: float):
-    """False where the hit lies in front of the window (z > 0, or z >= 0 with '>=')."""
+def clip_ok(z, rules: Rules):
+    """False where a hit at height z lies in front of the window (z > 0; z >= 0 with '>=')."""
     if rules.screen_clip == "off":
         return True
-    F = type(t)
-    z_rel = t * d.z if o is None else dr.fma(t, d.z, o.z)
-    z = z_rel + dr.opaque(F, vz)
     return (z <= 0) if rules.screen_clip == ">" else (z < 0)
 
 
@@ -155,7 +157,8 @@ def sphere_t(d, o, obj: ObjectConstants, rules: Rules, vz: float):
     t = dr.select(bh > 0, c / (bh + s), (bh - s) / a)
     hit = (disc > 0) & (t > 0) & dr.isfinite(t)
     if rules.clip_spheres:
-        hit &= screen_clip_ok(t, d, o, rules, vz)
+        z = dr.fma(t, d.z, dr.opaque(F, vz))
+        hit &= clip_ok(z if o is None else z + o.z, rules)
     return t, hit
 
 

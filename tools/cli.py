@@ -2,7 +2,8 @@
 
 Each subcommand lives in ``tools/cmd_<name>.py`` with ``add_parser(subparsers)``; the parser it
 adds sets ``func(args) -> int``.  Library errors (bad scene, unreadable EXR, missing file)
-become one line on stderr and their exit code; usage errors exit 64 so that they are never
+become one line on stderr and their exit code (2 for a bad scene, option or missing file;
+1 means a comparison or validation failed); usage errors exit 64 so that they are never
 confused with a command's own codes (``rtval exr diff`` uses 0-4 like idiff).
 """
 from __future__ import annotations
@@ -11,7 +12,7 @@ import argparse
 import importlib
 import sys
 
-COMMANDS = ["render", "exr"]
+COMMANDS = ["render", "convert", "compare", "validate", "exr"]
 USAGE_EXIT = 64
 
 
@@ -36,8 +37,10 @@ def main(argv=None) -> int:
     try:
         return int(args.func(args) or 0)
     except USER_ERRORS as e:
-        print(f"rtval {args.command}: {e}", file=sys.stderr)
-        return getattr(e, "exit_code", 1)
+        msg = f"{e.filename}: {e.strerror.lower()}" if isinstance(e, OSError) and e.filename \
+            else str(e)
+        print(f"rtval {args.command}: {msg}", file=sys.stderr)
+        return getattr(e, "exit_code", 2)
     except KeyboardInterrupt:
         print("rtval: interrupted", file=sys.stderr)
         return 130

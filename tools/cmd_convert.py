@@ -1,0 +1,39 @@
+"""rtval convert: a course scene as a Mitsuba 3 XML scene."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from .options import positive_int
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("convert", help="write the equivalent Mitsuba 3 XML scene",
+                       description="Write the Mitsuba 3 scene equivalent to a course scene: "
+                                   "finite planes as rectangles, planes as large rectangles, "
+                                   "spheres, and a perspective sensor with the course's rays.")
+    p.add_argument("scene")
+    p.add_argument("--columns", type=positive_int, required=True)
+    p.add_argument("--rows", type=positive_int, default=None)
+    p.add_argument("--sampling", choices=("corners", "centers"), default="corners")
+    p.add_argument("--shading", action="store_true",
+                   help="add point emitters and diffuse BSDFs (an approximation of the course "
+                        "shading, for looking at, not for validation)")
+    p.add_argument("-o", "--output", required=True, metavar="OUT.xml")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from rt_core.exrio import atomic_write
+    from rt_core.parser import parse_scene
+    from mitsuba_ref.convert import scene_xml, sensor_setup
+
+    scene = parse_scene(args.scene)
+    setup = sensor_setup(scene, args.columns, args.rows, args.sampling)
+    if setup.note:
+        print(f"rtval convert: warning: {setup.note}", file=sys.stderr)
+    xml = scene_xml(scene, args.columns, args.rows, args.sampling, args.shading)
+    atomic_write(args.output, lambda tmp: Path(tmp).write_text(xml))
+    print(f"{args.output}: {len(scene.objects)} shapes, {setup.columns}x{setup.rows}",
+          file=sys.stderr)
+    return 0

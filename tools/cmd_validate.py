@@ -1,0 +1,54 @@
+"""rtval validate: the main job — every scene compared with Mitsuba, a table and a report."""
+from __future__ import annotations
+
+import sys
+
+from .options import positive_int
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("validate", help="compare rt_core with Mitsuba on many scenes",
+                       description="Compare rt_core with Mitsuba (same rays and Mitsuba's "
+                                   "camera, f32 and f64) on the given scenes, by default every "
+                                   "scene in scenes/ and every supported course scene in "
+                                   "../shared/course-scenes. Writes EXRs, report.md and "
+                                   "report.json. Exit 0 iff every comparison passes.")
+    p.add_argument("scenes", nargs="*")
+    p.add_argument("--columns", type=positive_int, default=160)
+    p.add_argument("--precision", choices=("f32", "f64", "both"), default="both")
+    p.add_argument("--mode", choices=("rays", "camera", "both"), default="both")
+    p.add_argument("-o", "--output", default="out/validate", metavar="DIR")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from tqdm import tqdm
+    from rt_core.render import versions
+    from mitsuba_ref.validate import (default_scene_paths, load_supported, stem_of, validate,
+                                      write_report)
+
+    paths = args.scenes or default_scene_paths()
+    scenes, skipped = load_supported(paths, explicit=bool(args.scenes))
+    precisions = ("f32", "f64") if args.precision == "both" else (args.precision,)
+    modes = ("rays", "camera") if args.mode == "both" else (args.mode,)
+    for s in skipped:
+        print(f"skipped: {s.reason}", file=sys.stderr)
+    bar = tqdm(total=len(scenes) * len(precisions) * len(modes), file=sys.stderr,
+               unit="cmp", disable=None)
+    results = validate(scenes, args.columns, precisions, modes, args.output,
+                       progress=lambda row: bar.update(1))
+    bar.close()
+    meta = dict(columns=args.columns, **versions())
+    md, js = write_report(results, skipped, args.output, meta)
+    head = (f"{'scene':34s} {'mode':6s} {'prec':4s} {'pixels':>7s} {'explained':>9s} "
+            f"{'unexpl':>6s} {'depth max rel':>13s} {'rt_core ms':>10s} {'Mitsuba ms':>10s}")
+    print(head)
+    for r in results:
+        print(f"{stem_of(r['scene'])[:34]:34s} {r['mode']:6s} {r['precision']:4s} "
+              f"{r['pixels']:7d} {r['explained']:9d} {r['unexplained']:6d} "
+              f"{r['depth']['max_rel']:13.2e} {r['rt_core_ms']:10.2f} {r['mitsuba_ms']:10.2f}"
+              + ("" if r["ok"] else "  FAIL"))
+    bad = [r for r in results if not r["ok"]]
+    print(f"{len(results)} comparisons on {len(scenes)} scenes ({len(skipped)} course files "
+          f"skipped as unsupported): {len(bad)} failed. Report: {md}, {js}", file=sys.stderr)
+    return 1 if bad else 0
