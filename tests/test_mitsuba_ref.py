@@ -1,0 +1,295 @@
+"""mitsuba_ref: the converter, the reference renders and the pixel classifier.
+
+The comparison tests run every bundled scene and every supported course scene through both
+Mitsuba modes in both precisions and require 0 unexplained pixels; the sensitivity tests
+check that a real error (a moved plane, a wrong depth) *is* reported as unexplained.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rt_core import backend
+from rt_core.camera import make_camera, primary_directions
+from rt_core.parser import parse_scene, parse_text
+from rt_core.render import render_geometry
+from rt_core.rules import Rules
+from rt_core.scene import FPlane, Material, Scene, make_fplane
+from rt_core.tracer import closest_hit, prepare
+from mitsuba_ref.compare import compare, write_evidence
+from mitsuba_ref.convert import (course_id, mitsuba, plane_extent, scene_dict, scene_xml,
+                                 sensor_setup)
+from mitsuba_ref.explain import CLASS_CODE, classify
+from mitsuba_ref.reference import MitsubaScene, trace_rays
+from mitsuba_ref.validate import COURSE_SCENES, default_scene_paths, load_supported
+
+REPO = Path(__file__).resolve().parents[1]
+BUNDLED = sorted((REPO / "scenes").glob("*.txt"))
+PRECISIONS = ["f32", "f64"]
+COLUMNS = 96            # comparison resolution: every scene × mode × precision in ~30 s
+
+
+def _supported_scenes():
+    scenes, _ = load_supported(default_scene_paths(), explicit=False)
+    return scenes
+
+
+SCENES = _supported_scenes()
+
+
+def _id(scene):
+    p = Path(scene.path)
+    return f"{p.parent.name}/{p.stem}" if p.parent.name in ("keyword", "numeric") else p.stem
+
+
+def _dirs(scene, cam, precision="f32"):
+    T = backend.types(precision)
+    d = primary_directions(scene, cam, T)
+    return np.stack([np.asarray(c.numpy(), np.float64) for c in (d.x, d.y, d.z)], 1)
+
+
+# --- converter -----------------------------------------------------------------------------
+
+@pytest.mark.parametrize("path", BUNDLED, ids=lambda p: p.stem)
+def test01_xml_loads_and_equals_dict(path, tmp_path):
+    """mi.load_file accepts the XML, and it renders exactly like the dict."""
+    mi = mitsuba()
+    scene = parse_scene(path)
+    xml = tmp_path / "scene.xml"
+    xml.write_text(scene_xml(scene, 48, 36))
+    a = np.asarray(mi.render(mi.load_file(str(xml), optimize=False)))
+    b = np.asarray(mi.render(mi.load_dict(scene_dict(scene, 48, 36), optimize=False)))
+    assert a.shape == (36, 48, 9)
+    np.testing.assert_array_equal(a, b)
+
+
+def test02_shape_ids_carry_course_index():
+    scene = parse_scene(REPO / "scenes" / "mixed.txt")
+    d = scene_dict(scene, 32)
+    ids = [k for k, v in d.items() if isinstance(v, dict) and v.get("type") in
+           ("rectangle", "sphere")]
+    assert [course_id(i) for i in ids] == list(range(len(scene.objects)))
+    assert all(i == f"obj{course_id(i)}_{scene.objects[course_id(i)].kind}" for i in ids)
+    # validation needs no BSDFs or emitters; --shading adds them
+    assert not any("bsdf" in v for v in d.values() if isinstance(v, dict))
+    shaded = scene_dict(scene, 32, shading=True)
+    assert sum(1 for v in shaded.values() if isinstance(v, dict) and v.get("type") == "point") \
+        == len(scene.lights)
+
+
+def _fplane_scenes():
+    out = []
+    for s in SCENES:
+        if any(isinstance(o, FPlane) for o in s.objects):
+            out.append(s)
+    return out
+
+
+@pytest.mark.parametrize("scene", _fplane_scenes(), ids=_id)
+def test03_rectangle_corners_round_trip(scene):
+    """Corners of each rectangle as Mitsuba loaded it equal the course corners (1e-6 rel)."""
+    mi = mitsuba()
+    ms = mi.load_dict(scene_dict(scene, 16, 12, integrator=False), optimize=False)
+    shapes = {s.id(): s for s in ms.shapes()}
+    for oid, o in enumerate(scene.objects):
+        if not isinstance(o, FPlane):
+            continue
+        v = np.asarray(shapes[f"obj{oid}_fplane"].vertex_positions_buffer().numpy()
+                       ).reshape(-1, 3)
+        # Mitsuba's canonical vertices (-1,-1), (1,-1), (-1,1), (1,1) = course (0,0), (w,0),
+        # (0,h), (w,h)
+        want = np.asarray(o.corners())[[0, 1, 3, 2]]
+        scale = max(np.abs(want).max(), max(o.size))
+        assert np.abs(v - want).max() <= 1e-6 * scale, (oid, v, want)
+
+
+def test04_non_square_grid_is_reported(tmp_path):
+    scene = parse_scene(REPO / "scenes" / "sphere.txt")         # 8 x 6 window
+    assert sensor_setup(scene, 161, 121).square                  # 160/8 == 120/6
+    s = sensor_setup(scene, 160, 120)
+    assert not s.square and "not square" in s.note
+    out = tmp_path / "x.xml"
+    r = subprocess.run([sys.executable, "-m", "tools.cli", "convert", str(REPO / "scenes" /
+                        "sphere.txt"), "--columns", "160", "-o", str(out)],
+                       capture_output=True, text=True, cwd=REPO)
+    assert r.returncode == 0, r.stderr
+    assert "not square" in r.stderr and "WARNING" in out.read_text()
+
+
+# --- every scene, both modes, both precisions: nothing unexplained --------------------------
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+@pytest.mark.parametrize("mode", ["rays", "camera"])
+@pytest.mark.parametrize("scene", SCENES, ids=_id)
+def test10_no_unexplained_pixels(scene, mode, precision, tmp_path):
+    cmp = compare(scene, COLUMNS, None, precision, mode)
+    if not cmp.ok:
+        paths = write_evidence(cmp, str(tmp_path), "evidence")
+        print("evidence:", *paths, sep="\n  ")
+    assert cmp.unexplained == 0, cmp.summary()
+    assert cmp.depth["over_bound"] == 0, cmp.summary()
+    # most pixels agree: explanations are about boundaries, not whole images
+    boundary = cmp.counts["edge"] + cmp.counts["tie"] + cmp.counts["silhouette"]
+    assert boundary <= 0.02 * cmp.columns * cmp.rows, cmp.summary()
+
+
+def test11_course_scenes_are_covered():
+    if not COURSE_SCENES.is_dir():
+        pytest.skip("../shared/course-scenes not present")
+    course = [s for s in SCENES if COURSE_SCENES in Path(s.path).resolve().parents]
+    assert len(course) >= 90        # 97 course files parse (tests/test_parser.py pins them)
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test12_same_rays_surface_data_matches(precision):
+    """Normals, uv (Mitsuba uv·size = course lasthit) and positions agree where ids agree."""
+    scene = parse_scene(REPO / "scenes" / "fplane_tilted.txt")
+    cmp = compare(scene, 120, None, precision, "rays")
+    o, r = cmp.ours, cmp.ref
+    same = (cmp.classes == 0) & (o["hit.mask"] > 0)
+    assert same.sum() > 1000
+    for k in ("normal.X", "normal.Y", "normal.Z"):
+        assert np.abs(o[k][same] - r[k][same]).max() < 1e-5
+    size = max(max(x.size) for x in scene.objects if isinstance(x, FPlane))
+    for k in ("uv.U", "uv.V"):
+        assert np.abs(o[k][same] - r[k][same]).max() < 1e-5 * size
+    for k in ("position.X", "position.Y", "position.Z"):
+        assert np.abs(o[k][same] - r[k][same]).max() < 1e-4
+
+
+# --- the classifier must not excuse real errors -------------------------------------------
+
+def _shifted(scene: Scene, oid: int, delta: float) -> Scene:
+    o = scene.objects[oid]
+    moved = make_fplane(o.material, o.normal, tuple(p + delta * x for p, x in
+                                                     zip(o.point, o.xdir)), o.orient, o.size)
+    objs = list(scene.objects)
+    objs[oid] = moved
+    return dataclasses.replace(scene, objects=tuple(objs))
+
+
+@pytest.mark.parametrize("delta", [1e-3, 1e-2])
+def test20_moved_plane_is_unexplained(delta):
+    scene = parse_scene(REPO / "scenes" / "seed_fplane.txt")
+    oid = next(i for i, o in enumerate(scene.objects) if isinstance(o, FPlane))
+    cam = make_camera(scene, 200)
+    ours = {k: v.ravel() for k, v in render_geometry(_shifted(scene, oid, delta), 200).items()}
+    d = _dirs(scene, cam)
+    ref = trace_rays(MitsubaScene(scene, cam.columns, cam.rows), d)
+    classes = classify(scene, d, ours, ref, Rules(), plane_extent(scene))
+    assert np.count_nonzero(classes == CLASS_CODE["unexplained"]) > 0
+
+
+def test21_wrong_depth_exceeds_bound(monkeypatch):
+    import mitsuba_ref.compare as C
+    real = C.trace_geometry
+
+    def biased(*a, **k):
+        out = real(*a, **k)
+        out["depth.Z"] = out["depth.Z"] * (1 + 1e-4)
+        return out
+
+    monkeypatch.setattr(C, "trace_geometry", biased)
+    cmp = compare(parse_scene(REPO / "scenes" / "sphere.txt"), 64, None, "f32", "rays")
+    assert cmp.depth["over_bound"] > 0 and not cmp.ok
+
+
+def test22_evidence_written(tmp_path):
+    cmp = compare(parse_scene(REPO / "scenes" / "sphere.txt"), 32, None, "f32", "rays")
+    paths = write_evidence(cmp, str(tmp_path), "s")
+    assert len(paths) == 4 and all(Path(p).stat().st_size > 0 for p in paths)
+    from rt_core.exrio import read_exr
+    ch, hdr = read_exr(paths[-1])
+    assert "class.id" in ch and "rtval.classes" in hdr and hdr["rtval.mode"] == "rays"
+
+
+# --- Mitsuba's rectangle tests, ported to rt_core's finite plane -------------------------
+
+def _trace(scene, origins, dirs, precision):
+    """rt_core closest hit for arbitrary rays (origins in world space)."""
+    T = backend.types(precision)
+    ks = prepare(scene, T)
+    V = np.asarray(scene.viewpoint)
+    rel = np.asarray(origins, np.float64) - V
+    o = T.Array3(*(rel[:, i] for i in range(3)))
+    d = T.Array3(*(np.asarray(dirs, np.float64)[:, i] for i in range(3)))
+    t, oid, hit = closest_hit(ks, d, o, Rules(screen_clip="off"))
+    return np.asarray(hit.numpy()), np.asarray(t.numpy())
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+@pytest.mark.parametrize("scale", [0.5, 1.0, 2.0, 1e3])
+def test30_diagonal_rays_hit_iff_inside(scale, precision):
+    """Mitsuba test_rectangle 'ray_intersect': rays parallel to the normal along the diagonal
+    of a scaled rectangle hit iff inside; the edges (exactly representable here) count."""
+    m = Material((0,) * 3, (1,) * 3, (0,) * 3)
+    # rectangle [-s, s]² in z = 0 (corner (-s, -s)), normal +z, looked at from z = 10
+    fp = make_fplane(m, (0, 0, 1), (-scale, -scale, 0), (1, 0, 0), (2 * scale, 2 * scale))
+    scene = Scene((1, 1), (0, 0, 10), (), (fp,))
+    xs = np.linspace(-1.5, 1.5, 61) * scale         # includes ±scale exactly
+    origins = np.stack([xs, xs, np.full_like(xs, 10.0)], 1)
+    dirs = np.tile([0.0, 0.0, -1.0], (len(xs), 1))
+    hit, t = _trace(scene, origins, dirs, precision)
+    inside = np.abs(xs) <= scale
+    np.testing.assert_array_equal(hit, inside)
+    np.testing.assert_allclose(t[inside], 10.0, rtol=1e-6)
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test31_vectorized_equals_scalar(precision):
+    """Mitsuba's scalar-vs-vector check: each ray traced alone gives the batch's answer."""
+    scene = parse_scene(REPO / "scenes" / "fplane_tilted.txt")
+    rng = np.random.default_rng(7)
+    n = 48
+    origins = np.tile(scene.viewpoint, (n, 1)) + rng.normal(0, 0.5, (n, 3))
+    dirs = rng.normal(0, 1, (n, 3)) + [0, 0, -3]
+    dirs /= np.linalg.norm(dirs, axis=1)[:, None]
+    hit, t = _trace(scene, origins, dirs, precision)
+    assert hit.any() and not hit.all()
+    for i in range(n):
+        h1, t1 = _trace(scene, origins[i:i + 1], dirs[i:i + 1], precision)
+        assert h1[0] == hit[i] and t1[0] == t[i]
+
+
+# --- command line ---------------------------------------------------------------------------
+
+def _cli(*args):
+    return subprocess.run([sys.executable, "-m", "tools.cli", *args], capture_output=True,
+                          text=True, cwd=REPO)
+
+
+def test40_compare_cli_passes_and_prints_classes():
+    r = _cli("compare", "scenes/seed_fplane.txt", "--columns", "64")
+    assert r.returncode == 0, r.stderr
+    assert "rays" in r.stdout and "camera" in r.stdout and "agree=" in r.stdout
+
+
+def test41_bad_scene_is_one_line_and_no_output(tmp_path):
+    bad = tmp_path / "bad.txt"
+    bad.write_text("8 6\n0 0 3\nfplane\n0 0 0\n1 1 1\n0 0 0\n0 0 1\n0 0 -1\n0 0 2\n1 1\n")
+    out = tmp_path / "o.xml"
+    for args in (("convert", str(bad), "--columns", "8", "-o", str(out)),
+                 ("compare", str(bad), "--columns", "8")):
+        r = _cli(*args)
+        assert r.returncode == 2
+        assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
+        assert "bad.txt:9:1" in r.stderr and "parallel" in r.stderr
+    assert not out.exists() and not list(tmp_path.glob(".tmp-*"))
+
+
+def test42_validate_writes_report(tmp_path):
+    r = _cli("validate", "scenes/sphere.txt", "scenes/plane.txt", "--columns", "32",
+             "-o", str(tmp_path))
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "report.md").exists() and (tmp_path / "report.json").exists()
+    import json
+    rep = json.loads((tmp_path / "report.json").read_text())
+    assert len(rep["results"]) == 2 * 2 * 2 and all(x["ok"] for x in rep["results"])
+    assert "drjit" in rep["meta"] and "mitsuba" in rep["meta"]
+    assert "sphere" in r.stdout and "unexpl" in r.stdout
