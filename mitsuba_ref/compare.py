@@ -39,6 +39,9 @@ class Comparison:
     ms_ref: float
     note: str = ""
     counts: dict = field(default_factory=dict)
+    sampling: str = "corners"
+    rules: Rules = Rules()
+    backend: str = "llvm"
 
     @property
     def unexplained(self) -> int:
@@ -116,29 +119,35 @@ def compare(scene: Scene, columns: int, rows: int | None = None, precision: str 
              "over_bound": int(np.count_nonzero(rel > bound))}
     counts = {c: int(np.count_nonzero(classes == i)) for i, c in enumerate(CLASSES)}
     return Comparison(scene, mode, precision, cam.columns, cam.rows, classes, ours, ref, depth,
-                      ms_ours, ms_ref, note, counts)
+                      ms_ours, ms_ref, note, counts, sampling, rules, backend_name)
 
 
-def write_evidence(cmp: Comparison, outdir: str, stem: str) -> list[str]:
-    """EXRs of ours, the reference, their difference and the classes; returns the paths."""
-    os.makedirs(outdir, exist_ok=True)
-    cam = make_camera(cmp.scene, cmp.columns, cmp.rows)
-    attrs = provenance(cmp.scene, cam, cmp.precision, "llvm", Rules(), mode=cmp.mode,
-                       reference="mitsuba " + _mitsuba_version())
-    paths = {}
-    for name, imgs in (("ours", cmp.ours), ("mitsuba", cmp.ref)):
-        paths[name] = os.path.join(outdir, f"{stem}.{name}.exr")
-        write_images(paths[name], imgs, dict(attrs, **{"rtval.image": name}))
-    diff = {k: np.abs(cmp.ours[k].astype(np.float64) - cmp.ref[k]) for k in cmp.ours}
-    paths["diff"] = os.path.join(outdir, f"{stem}.diff.exr")
-    write_images(paths["diff"], diff, dict(attrs, **{"rtval.image": "|ours - mitsuba|"}))
-    paths["classes"] = os.path.join(outdir, f"{stem}.classes.exr")
+EVIDENCE = ("ours", "mitsuba", "diff", "classes")
+
+
+def write_evidence(cmp: Comparison, outdir: str, stem: str, which=EVIDENCE) -> list[str]:
+    """EXRs of ours, the reference, their difference and the classes (or the ones named in
+    ``which``); returns the paths written."""
+    cam = make_camera(cmp.scene, cmp.columns, cmp.rows, cmp.sampling)
+    attrs = provenance(cmp.scene, cam, cmp.precision, cmp.backend, cmp.rules, mode=cmp.mode,
+                       reference="mitsuba " + _mitsuba_version() + " llvm_ad_rgb")
     legend = ", ".join(f"{i}={c}" for i, c in enumerate(CLASSES))
-    write_images(paths["classes"], {"class.id": cmp.classes.astype(np.float32),
-                                    "class.unexplained": (cmp.classes == CLASS_CODE[
-                                        "unexplained"]).astype(np.float32)},
-                 dict(attrs, **{"rtval.classes": legend}))
-    return list(paths.values())
+    images = {
+        "ours": (cmp.ours, {}),
+        "mitsuba": (cmp.ref, {}),
+        "diff": ({k: np.abs(cmp.ours[k].astype(np.float64) - cmp.ref[k]) for k in cmp.ours},
+                 {"rtval.image": "|ours - mitsuba|"}),
+        "classes": ({"class.id": cmp.classes,
+                     "class.unexplained": cmp.classes == CLASS_CODE["unexplained"]},
+                    {"rtval.classes": legend}),
+    }
+    paths = []
+    for name in which:
+        imgs, extra = images[name]
+        path = os.path.join(outdir, f"{stem}.{name}.exr")
+        write_images(path, imgs, {**attrs, "rtval.image": name, **extra})
+        paths.append(path)
+    return paths
 
 
 def _mitsuba_version() -> str:

@@ -62,7 +62,8 @@ def validate(scenes, columns: int, precisions, modes, outdir: str, progress=None
                 if not cmp.ok:
                     row["evidence"] = write_evidence(cmp, os.path.join(outdir, "failures"), stem)
                 elif precision == precisions[0]:
-                    row["evidence"] = write_evidence(cmp, os.path.join(outdir, "exr"), stem)[:2]
+                    row["evidence"] = write_evidence(cmp, os.path.join(outdir, "exr"), stem,
+                                                     ("ours", "mitsuba"))
                 results.append(row)
                 if progress:
                     progress(row)

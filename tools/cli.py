@@ -44,6 +44,11 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("rtval: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        # stdout closed early (rtval ... | head): not an error of ours
+        import os
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
 
 
 if __name__ == "__main__":
