@@ -270,6 +270,18 @@ def _check_window(ctx: _Ctx, window: list, where: list) -> None:
                         "positive (w h)", where[0] if not window[0] > 0 else where[1])
 
 
+def _read_object(ctx: _Ctx, kind: str, start: _Tok, group, lights: list, objects: list):
+    """Read the number groups of one object with the dialect's ``group`` reader, build it and
+    append it to ``lights`` or ``objects``."""
+    values, where = [], []
+    for name, n, desc in _GROUPS[kind]:
+        v, locs = group(kind, name, n, desc)
+        values.append(v)
+        where.append(locs)
+    obj = _build(ctx, kind, start, values, where)
+    (lights if kind == "pointlight" else objects).append(obj)
+
+
 # --- keyword dialect ----------------------------------------------------------------------
 
 def _parse_keyword(ctx: _Ctx):
@@ -307,13 +319,7 @@ def _parse_keyword(ctx: _Ctx):
             raise ctx.error(f"expected an object keyword ({', '.join(SUPPORTED_KEYWORDS)}), "
                             f"found {found}", start)
         pos += 1
-        values, where = [], []
-        for name, n, desc in _GROUPS[kind]:
-            v, locs = group(kind, name, n, desc)
-            values.append(v)
-            where.append(locs)
-        obj = _build(ctx, kind, start, values, where)
-        (lights if kind == "pointlight" else objects).append(obj)
+        _read_object(ctx, kind, start, group, lights, objects)
     return window, viewpoint, lights, objects
 
 
@@ -375,13 +381,7 @@ def _parse_numeric(ctx: _Ctx):
             raise ctx.error(f"{code} ({kind}) with a refraction index ({_show(extra.text)}) "
                             "after the code is not supported (nw's refractive objects)", extra)
         idx += 1
-        values, where = [], []
-        for name, n, desc in _GROUPS[kind]:
-            v, locs = group(kind, name, n, desc)
-            values.append(v)
-            where.append(locs)
-        obj = _build(ctx, kind, start, values, where)
-        (lights if kind == "pointlight" else objects).append(obj)
+        _read_object(ctx, kind, start, group, lights, objects)
     return window, viewpoint, lights, objects
 
 

@@ -10,6 +10,8 @@ import math
 import sys
 import textwrap
 
+from .options import count, nonneg, percent
+
 EXIT_CODES = """\
 exit codes:
   0   PASS: the images match within the warning and failure limits
@@ -86,23 +88,23 @@ def add_parser(subparsers) -> None:
     q.add_argument("a", metavar="A")
     q.add_argument("b", metavar="B")
     _channels_option(q)
-    q.add_argument("--fail", type=_nonneg, default=1e-6, metavar="ABS",
+    q.add_argument("--fail", type=nonneg, default=1e-6, metavar="ABS",
                    help="absolute error a failing pixel exceeds (default 1e-6)")
-    q.add_argument("--fail-relative", type=_nonneg, default=0.0, metavar="R",
+    q.add_argument("--fail-relative", type=nonneg, default=0.0, metavar="R",
                    help="relative error a failing pixel also exceeds (default 0)")
-    q.add_argument("--fail-percent", type=_percent, default=0.0, metavar="P",
+    q.add_argument("--fail-percent", type=percent, default=0.0, metavar="P",
                    help="percentage of pixels allowed to fail (default 0)")
-    q.add_argument("--hard-fail", type=_nonneg, default=math.inf, metavar="H",
+    q.add_argument("--hard-fail", type=nonneg, default=math.inf, metavar="H",
                    help="fail if any error exceeds H, whatever else is allowed (default inf)")
-    q.add_argument("--warn", type=_nonneg, default=1e-6, metavar="ABS",
+    q.add_argument("--warn", type=nonneg, default=1e-6, metavar="ABS",
                    help="absolute error a warning pixel exceeds (default 1e-6)")
-    q.add_argument("--warn-relative", type=_nonneg, default=0.0, metavar="R",
+    q.add_argument("--warn-relative", type=nonneg, default=0.0, metavar="R",
                    help="relative error a warning pixel also exceeds (default 0)")
-    q.add_argument("--warn-percent", type=_percent, default=0.0, metavar="P",
+    q.add_argument("--warn-percent", type=percent, default=0.0, metavar="P",
                    help="percentage of pixels allowed to warn (default 0)")
-    q.add_argument("--hard-warn", type=_nonneg, default=math.inf, metavar="H",
+    q.add_argument("--hard-warn", type=nonneg, default=math.inf, metavar="H",
                    help="warn if any error exceeds H (default inf)")
-    q.add_argument("--allow-failures", type=_count, default=0, metavar="N",
+    q.add_argument("--allow-failures", type=count, default=0, metavar="N",
                    help="N pixels may fail by any amount below --hard-fail (default 0)")
     q.add_argument("-o", "--output", metavar="DIFF.exr",
                    help="write |A-B| per channel to this EXR (atomically)")
@@ -130,40 +132,6 @@ def add_parser(subparsers) -> None:
 
 
 # ----------------------------------------------------------------------------- option types
-
-def _number(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if math.isnan(v):
-        raise argparse.ArgumentTypeError("must be a number, not NaN")
-    return v
-
-
-def _nonneg(text: str) -> float:
-    v = _number(text)
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
-    return v
-
-
-def _percent(text: str) -> float:
-    v = _nonneg(text)
-    if v > 100:
-        raise argparse.ArgumentTypeError(f"must be a percentage in [0, 100], got {text}")
-    return v
-
-
-def _count(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
-    return v
-
 
 def _channel_list(text: str) -> list[str]:
     names = [n.strip() for n in text.split(",")]

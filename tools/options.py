@@ -14,13 +14,47 @@ def positive_int(text: str) -> int:
     return v
 
 
-def nonneg_float(text: str) -> float:
+def number(text: str) -> float:
+    """A float that is not NaN (inf allowed: 'no limit')."""
     try:
         v = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not v >= 0 or v == float("inf"):
-        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if v != v:
+        raise argparse.ArgumentTypeError("must be a number, not NaN")
+    return v
+
+
+def nonneg(text: str) -> float:
+    v = number(text)
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return v
+
+
+def nonneg_float(text: str) -> float:
+    """A finite number >= 0."""
+    v = nonneg(text)
+    if v == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be finite, got {text}")
+    return v
+
+
+def percent(text: str) -> float:
+    v = nonneg(text)
+    if v > 100:
+        raise argparse.ArgumentTypeError(f"must be a percentage in [0, 100], got {text}")
+    return v
+
+
+def count(text: str) -> int:
+    """A whole number >= 0."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
     return v
 
 
