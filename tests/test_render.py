@@ -1,0 +1,134 @@
+"""rtval render: EXR channels, provenance, atomic output, one-line errors, LLVM check."""
+from __future__ import annotations
+
+import glob
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rt_core.exrio import read_exr
+from rt_core.parser import parse_scene
+from rt_core.render import GEOMETRY_CHANNELS, render_geometry
+
+REPO = Path(__file__).resolve().parents[1]
+PRECISIONS = ["f32", "f64"]
+
+
+def rtval(*args, env=None):
+    return subprocess.run([sys.executable, "-m", "tools.cli", *map(str, args)],
+                          capture_output=True, text=True, cwd=REPO,
+                          env=None if env is None else {**os.environ, **env})
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test01_exr_channels_and_provenance(precision, tmp_path):
+    out = tmp_path / "seed.exr"
+    r = rtval("render", "scenes/seed_fplane.txt", "--columns", 64, "--precision", precision,
+              "-o", out)
+    assert r.returncode == 0, r.stderr
+    ch, hdr = read_exr(out)
+    assert set(GEOMETRY_CHANNELS) <= set(ch)
+    geometry = {k: v for k, v in ch.items() if k in GEOMETRY_CHANNELS}
+    assert all(v.dtype == np.float32 and v.shape == (48, 64) for v in geometry.values())
+    # the file holds exactly what the library renders (float32 of it)
+    want = render_geometry(parse_scene(REPO / "scenes" / "seed_fplane.txt"), 64,
+                           precision=precision)
+    for k in GEOMETRY_CHANNELS:
+        np.testing.assert_array_equal(ch[k], want[k].astype(np.float32))
+    # misses follow the stated convention
+    miss = ch["hit.mask"] == 0
+    assert miss.any() and (~miss).any()
+    assert (ch["object.id"][miss] == -1).all() and (ch["depth.Z"][miss] == 0).all()
+    assert all((ch[k][miss] == 0).all() for k in GEOMETRY_CHANNELS if k[:3] in ("nor", "pos",
+                                                                                 "uv."))
+    sha = __import__("hashlib").sha256((REPO / "scenes/seed_fplane.txt").read_bytes())
+    assert hdr["rtval.scene_sha256"] == sha.hexdigest()
+    assert hdr["rtval.precision"] == precision and hdr["rtval.backend"] == "llvm"
+    assert hdr["rtval.sampling"] == "corners" and "edges=closed" in hdr["rtval.rules"]
+    assert "drjit=" in hdr["rtval.versions"] and "mitsuba=" in hdr["rtval.versions"]
+    assert "object.id=-1" in hdr["rtval.miss"] and hdr["rtval.nonfinite"] == "0"
+
+
+def test02_image_orientation_top_row_first():
+    """Row 0 of the image is the course's top row y = H-1 (a plane below the window's
+    centre shows in the bottom rows only)."""
+    img = render_geometry(parse_scene(REPO / "scenes" / "plane.txt"), 40)
+    rows_hit = np.nonzero(img["hit.mask"].any(axis=1))[0]
+    assert rows_hit.min() > 0 and rows_hit.max() == img["hit.mask"].shape[0] - 1
+
+
+def test03_rows_default_and_sampling(tmp_path):
+    out = tmp_path / "c.exr"
+    assert rtval("render", "scenes/sphere.txt", "--columns", 50, "--sampling", "centers",
+                 "-o", out).returncode == 0
+    ch, hdr = read_exr(out)
+    assert ch["depth.Z"].shape == (37, 50)          # int(6/8 * 50)
+    assert hdr["rtval.sampling"] == "centers"
+
+
+BAD = [
+    ("missing", None, "no such file"),
+    ("empty", "", "empty"),
+    ("truncated", "8 6\n0 0 3\nsphere\n1 1 1\n", "end of file"),
+    ("parallel", "8 6\n0 0 3\nfplane\n0 0 0\n1 1 1\n0 0 0\n0 0 1\n0 0 -1\n0 0 2\n1 1\n",
+     "parallel"),
+    ("unsupported", "8 6\n0 0 3\n17 textured plane\n", "not supported"),
+]
+
+
+@pytest.mark.parametrize("name,text,phrase", BAD, ids=[b[0] for b in BAD])
+def test04_bad_input_is_one_line_no_output(name, text, phrase, tmp_path):
+    scene = tmp_path / f"{name}.txt"
+    if text is not None:
+        scene.write_text(text)
+    out = tmp_path / "out.exr"
+    r = rtval("render", scene, "--columns", 16, "-o", out)
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in r.stderr
+    assert f"{name}.txt" in lines[0] and phrase in lines[0].lower()
+    assert not out.exists() and not glob.glob(str(tmp_path / ".tmp-*"))
+
+
+@pytest.mark.parametrize("args,phrase", [
+    (["--columns", "0"], "positive"),
+    (["--columns", "x"], "whole number"),
+    (["--columns", "8", "--rules", "edges=ajar"], "edges"),
+    (["--columns", "8", "--precision", "f16"], "invalid choice"),
+])
+def test05_bad_options_are_usage_errors(args, phrase, tmp_path):
+    r = rtval("render", "scenes/sphere.txt", *args, "-o", tmp_path / "o.exr")
+    assert r.returncode == 64 and phrase in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "o.exr").exists()
+
+
+def test06_too_few_rows_for_corner_sampling(tmp_path):
+    r = rtval("render", "scenes/sphere.txt", "--columns", 2, "-o", tmp_path / "o.exr")
+    assert r.returncode == 2 and "--rows" in r.stderr and "Traceback" not in r.stderr
+
+
+def test07_unwritable_output_leaves_nothing(tmp_path):
+    target = tmp_path / "dir.exr"
+    target.mkdir()                                   # rename onto a directory fails
+    r = rtval("render", "scenes/sphere.txt", "--columns", 16, "-o", target)
+    assert r.returncode != 0 and "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+    assert not glob.glob(str(tmp_path / ".tmp-*"))
+
+
+OLD_LLVM = [sorted(glob.glob(f"/usr/lib/*/libLLVM-{v}.so*")) for v in (14, 15)]
+
+
+@pytest.mark.parametrize("lib", [p[0] if p else None for p in OLD_LLVM], ids=["llvm14", "llvm15"])
+def test08_old_llvm_is_a_clear_error_not_an_abort(lib, tmp_path):
+    if lib is None:
+        pytest.skip("this LLVM version is not installed here")
+    r = rtval("render", "scenes/sphere.txt", "--columns", 16, "-o", tmp_path / "o.exr",
+              env={"DRJIT_LIBLLVM_PATH": lib})
+    assert r.returncode == 2, (r.returncode, r.stderr)
+    assert "libllvm19" in r.stderr and "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
