@@ -25,13 +25,10 @@ def require(backend: str = "llvm") -> None:
         return
     import drjit as dr
     if backend == "llvm":
-        # Dr.Jit logs its own warning about an old LLVM; ours below says what to do
-        level = dr.log_level()
-        dr.set_log_level(dr.LogLevel.Disable)
-        try:
+        # Dr.Jit prints its own line about an old LLVM; ours below says what to do
+        from .native import native_output_captured
+        with native_output_captured():
             ok = dr.has_backend(dr.JitBackend.LLVM)
-        finally:
-            dr.set_log_level(level)
         ver = dr.detail.llvm_version() if ok else (-1, -1, -1)
         hint = ("install Debian's libllvm19 (apt-get install -y libllvm19), or point "
                 "DRJIT_LIBLLVM_PATH at a libLLVM.so of version 16 or newer")

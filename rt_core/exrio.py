@@ -5,16 +5,13 @@ failed or interrupted write never leaves a partial file.
 """
 from __future__ import annotations
 
-import contextlib
-import ctypes
-import io
 import os
-import sys
 import tempfile
-import threading
 
 import numpy as np
 import OpenEXR
+
+from .native import native_output_captured
 
 
 class ExrError(Exception):
@@ -58,46 +55,6 @@ def write_exr(path: str, channels: dict, attrs: dict | None = None,
     atomic_write(path, lambda tmp: OpenEXR.File(header, data).write(tmp))
 
 
-_native_lock = threading.Lock()
-
-
-@contextlib.contextmanager
-def _native_output_captured():
-    """Capture what the OpenEXR binding prints while it runs.
-
-    On a corrupt or truncated file it prints its own messages: "Warning: Exception raised
-    reading pixel data ..." through Python's ``sys.stdout`` and "(EXR_ERR_BAD_CHUNK_LEADER)
-    ..." from C++ straight to file descriptor 2.  Either would break one-line error messages
-    and ``--json`` output, so both the Python streams and descriptors 1 and 2 are redirected.
-    Yields a list that is filled with the captured lines when the block ends.
-    """
-    lines: list[str] = []
-    with _native_lock, tempfile.TemporaryFile() as sink:
-        for stream in (sys.stdout, sys.stderr):
-            with contextlib.suppress(Exception):
-                stream.flush()
-        saved = []
-        try:
-            for fd in (1, 2):
-                saved.append((fd, os.dup(fd)))
-                os.dup2(sink.fileno(), fd)
-        except OSError:  # a closed descriptor: nothing to protect
-            pass
-        py_out = io.StringIO()
-        try:
-            with contextlib.redirect_stdout(py_out), contextlib.redirect_stderr(py_out):
-                yield lines
-        finally:
-            with contextlib.suppress(Exception):  # C stdio may buffer the library's output
-                ctypes.CDLL(None).fflush(None)
-            for fd, dup in saved:
-                os.dup2(dup, fd)
-                os.close(dup)
-            sink.seek(0)
-            text = py_out.getvalue() + sink.read().decode("utf-8", "replace")
-            lines.extend(ln.strip() for ln in text.splitlines() if ln.strip())
-
-
 def _native_reason(path: str, lines: list[str]) -> str | None:
     """The most telling line the library printed (its EXR_ERR_* message), without the path."""
     for ln in lines:
@@ -124,7 +81,7 @@ def read_exr(path: str) -> tuple[dict, dict]:
         raise ExrError(f"{path}: not an OpenEXR file (bad magic number)")
     native: list[str] = []
     try:
-        with _native_output_captured() as native:
+        with native_output_captured() as native:
             f = OpenEXR.File(path, separate_channels=True)
             chans = {name: np.array(ch.pixels) for name, ch in f.channels().items()}
             header = dict(f.header())

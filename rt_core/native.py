@@ -1,0 +1,49 @@
+"""Keep native libraries' own console output out of ours."""
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import io
+import os
+import sys
+import tempfile
+import threading
+
+_lock = threading.Lock()
+
+
+@contextlib.contextmanager
+def native_output_captured():
+    """Capture what native libraries print while the block runs.
+
+    The OpenEXR binding prints its own messages on a corrupt file (through Python's
+    ``sys.stdout`` and from C++ straight to descriptor 2), and Dr.Jit prints one when it
+    meets an old LLVM.  Either would break one-line error messages and ``--json`` output, so
+    both the Python streams and descriptors 1 and 2 are redirected.  Yields a list that is
+    filled with the captured lines when the block ends.
+    """
+    lines: list[str] = []
+    with _lock, tempfile.TemporaryFile() as sink:
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        saved = []
+        try:
+            for fd in (1, 2):
+                saved.append((fd, os.dup(fd)))
+                os.dup2(sink.fileno(), fd)
+        except OSError:  # a closed descriptor: nothing to protect
+            pass
+        py_out = io.StringIO()
+        try:
+            with contextlib.redirect_stdout(py_out), contextlib.redirect_stderr(py_out):
+                yield lines
+        finally:
+            with contextlib.suppress(Exception):  # C stdio may buffer the library's output
+                ctypes.CDLL(None).fflush(None)
+            for fd, dup in saved:
+                os.dup2(dup, fd)
+                os.close(dup)
+            sink.seek(0)
+            text = py_out.getvalue() + sink.read().decode("utf-8", "replace")
+            lines.extend(ln.strip() for ln in text.splitlines() if ln.strip())
