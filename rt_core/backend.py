@@ -45,6 +45,12 @@ def require(backend: str = "llvm") -> None:
             raise BackendError("no CUDA device or driver found; use --backend llvm")
     else:
         raise BackendError(f"unknown backend {backend!r}; expected one of {', '.join(BACKENDS)}")
+    if backend == "llvm":
+        import sys
+        from . import DRJIT_IMPORT_MESSAGES
+        for line in DRJIT_IMPORT_MESSAGES:
+            print(line, file=sys.stderr)
+        DRJIT_IMPORT_MESSAGES.clear()
     _checked.add(backend)
 
 
