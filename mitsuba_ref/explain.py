@@ -89,7 +89,6 @@ class ObjectEval:
             dv = np.maximum(np.maximum(-v, v - h), 0)
             outside = np.hypot(du, dv)
             self.margin = np.where(inside, np.minimum.reduce([u, w - u, v, h - v]), outside)
-            self.edge_valid = valid
             valid = valid & inside
             size = max(w, h)
         else:
@@ -110,8 +109,8 @@ class ObjectEval:
 
 def classify(scene: Scene, d: np.ndarray, ours: dict, ref: dict, rules: Rules,
              extent: float) -> np.ndarray:
-    """Class code per ray (CLASS_CODE) from flat arrays 'hit.mask', 'object.id',
-    ('agree' = same object hit, or both miss)."""
+    """Class code per ray (CLASS_CODE) from flat arrays 'hit.mask' and 'object.id' of both
+    tracers ('agree' = the same object hit, or both miss)."""
     d = np.asarray(d, np.float64)
     a_id = np.where(ours["hit.mask"] > 0, ours["object.id"], -1).astype(np.int64)
     b_id = np.where(ref["hit.mask"] > 0, ref["object.id"], -1).astype(np.int64)
@@ -127,32 +126,30 @@ def classify(scene: Scene, d: np.ndarray, ours: dict, ref: dict, rules: Rules,
         sel = mask & (reason == CLASS_CODE["unexplained"])
         reason[sel] = CLASS_CODE[name]
 
-    rows = np.arange(len(bad))
+    # per object along each disagreeing ray: distance t and its position error bound
+    t_all = np.stack([ev.t for ev in evals])
+    b_all = np.stack([ev.bound(ev.t) for ev in evals])
     for side_ids in (a_id[bad], b_id[bad]):
         for i, ev in enumerate(evals):
             involved = side_ids == i
             if not involved.any():
                 continue
-            b = ev.bound(ev.t)
             if ev.kind == "fplane":
-                mark(involved & (np.abs(ev.margin) <= b), "edge")
+                mark(involved & (np.abs(ev.margin) <= b_all[i]), "edge")
             if ev.kind == "sphere":
-                mark(involved & (ev.margin <= b), "silhouette")
+                mark(involved & (ev.margin <= b_all[i]), "silhouette")
             else:
-                mark(involved & (ev.clip_margin <= b), "clip")
+                mark(involved & (ev.clip_margin <= b_all[i]), "clip")
                 mark(involved & (ev.cos <= K_ROUNDING * EPS32), "graze")
                 mark(involved & ev.beyond, "extent")
-    # ties: both hit, different objects, at the same depth within the bound
-    both = (a_id[bad] >= 0) & (b_id[bad] >= 0)
-    if both.any():
-        ta = np.array([evals[i].t[r] if i >= 0 else np.nan for r, i in zip(rows, a_id[bad])])
-        tb = np.array([evals[i].t[r] if i >= 0 else np.nan for r, i in zip(rows, b_id[bad])])
-        ba = np.array([evals[i].bound(evals[i].t)[r] if i >= 0 else 0 for r, i in
-                       zip(rows, a_id[bad])])
-        bb = np.array([evals[i].bound(evals[i].t)[r] if i >= 0 else 0 for r, i in
-                       zip(rows, b_id[bad])])
-        with np.errstate(invalid="ignore"):
-            mark(both & (np.abs(ta - tb) <= ba + bb), "tie")
+    # ties: both hit, different objects, at the same depth within the bounds
+    a, b = a_id[bad], b_id[bad]
+    both = (a >= 0) & (b >= 0)
+    cols = np.arange(len(bad))
+    ia, ib = np.maximum(a, 0), np.maximum(b, 0)
+    with np.errstate(invalid="ignore"):
+        gap = np.abs(t_all[ia, cols] - t_all[ib, cols])
+        mark(both & (gap <= b_all[ia, cols] + b_all[ib, cols]), "tie")
     out[bad] = reason
     return out
 
