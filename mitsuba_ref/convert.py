@@ -142,7 +142,7 @@ def sensor_setup(scene: Scene, columns: int, rows: int | None, sampling: str = "
         raise InputError(f"{scene.path}: viewpoint z = {vz:g} lies in the window plane; no "
                          "camera can look through the window from there")
     # window whose pixel centres are the samples: W·spacing wide
-    ww_c, wh_c = cam.sx * cam.columns, cam.sy * cam.rows
+    ww_c = cam.sx * cam.columns
     fov = math.degrees(2 * math.atan(ww_c / (2 * abs(vz))))
     square = math.isclose(cam.sx, cam.sy, rel_tol=1e-12)
     note = ""

@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from rt_core.rules import Rules
-from rt_core.scene import FPlane, Plane, Scene, Sphere, TPlane
+from rt_core.scene import FPlane, Scene, Sphere
 from .convert import stand_in_frame
 
 K_ROUNDING = 16.0
@@ -35,40 +35,46 @@ def _norm(a):
 
 
 class ObjectEval:
-    """t, validity and margins of one object along many rays from the viewpoint."""
+    """t, validity and decision margins of one object along rays O + t·d (float64).
 
-    def __init__(self, scene: Scene, obj, d: np.ndarray, rules: Rules, extent: float):
+    ``O``: (N, 3) ray origins in world space; None for rays from the viewpoint."""
+
+    def __init__(self, scene: Scene, obj, d: np.ndarray, rules: Rules, extent: float,
+                 O: np.ndarray | None = None):
         V = np.asarray(scene.viewpoint, np.float64)
-        self.kind = obj.kind
         n = len(d)
+        O = np.tile(V, (n, 1)) if O is None else np.asarray(O, np.float64)
+        self.kind = obj.kind
         self.margin = np.full(n, np.inf)       # world-unit distance to the decision boundary
+        self.clip_margin = np.full(n, np.inf)
         self.beyond = np.zeros(n, bool)
+        self.cos = np.ones(n)
+        origin = _norm(O) + np.sqrt(V @ V)
         if isinstance(obj, Sphere):
-            C = np.asarray(obj.center)
-            q = C - V
+            q = np.asarray(obj.center) - O
             a = np.sum(d * d, 1)
-            bh = d @ q
-            perp = q[None, :] - d * (bh / a)[:, None]
-            pn = _norm(perp)
+            bh = np.sum(q * d, 1)
+            pn = _norm(q - d * (bh / a)[:, None])
             disc = a * (obj.radius - pn) * (obj.radius + pn)
             s = np.sqrt(np.maximum(disc, 0))
-            c = (np.sqrt(q @ q) - obj.radius) * (np.sqrt(q @ q) + obj.radius)
+            qn = _norm(q)
+            c = (qn - obj.radius) * (qn + obj.radius)
             with np.errstate(divide="ignore", invalid="ignore"):
                 t = np.where(bh > 0, c / (bh + s), (bh - s) / a)
             self.valid = (disc > 0) & (t > 0)
+            if rules.clip_spheres:
+                self.clip_margin = np.abs(O[:, 2] + t * d[:, 2])
             self.t = t
             self.margin = np.abs(pn - obj.radius)          # distance from the outline
-            z = V[2] + t * d[:, 2]
-            self.scale = np.sqrt(q @ q) + obj.radius + np.sqrt(V @ V)
-            self.cos = np.ones(n)
+            self.scale = origin + qn + obj.radius
             return
         nrm = np.asarray(obj.normal)
-        q = np.asarray(obj.point) - V
+        q = np.asarray(obj.point) - O
         den = d @ nrm
         with np.errstate(divide="ignore", invalid="ignore"):
-            t = (nrm @ q) / den
+            t = (q @ nrm) / den
         valid = (den != 0) & (t > rules.t_min) & np.isfinite(t)
-        z = V[2] + t * d[:, 2]
+        z = O[:, 2] + t * d[:, 2]
         self.clip_margin = np.abs(z)
         if rules.screen_clip == ">":
             valid &= z <= 0
@@ -76,35 +82,36 @@ class ObjectEval:
             valid &= z < 0
         self.cos = np.abs(den)
         self.t = t
-        size = 0.0
         if isinstance(obj, FPlane):
             w, h = obj.size
-            hitrel = t[:, None] * d - q[None, :]
-            u = hitrel @ np.asarray(obj.xdir)
-            v = hitrel @ np.asarray(obj.ydir)
-            inside = (u >= 0) & (u <= w) & (v >= 0) & (v <= h) if rules.edges == "closed" \
-                else (u > 0) & (u < w) & (v > 0) & (v < h)
+            rel = t[:, None] * d - q
+            u, v = rel @ np.asarray(obj.xdir), rel @ np.asarray(obj.ydir)
+            inside = ((u >= 0) & (u <= w) & (v >= 0) & (v <= h)) if rules.edges == "closed" \
+                else ((u > 0) & (u < w) & (v > 0) & (v < h))
             # distance to the border (inside: >0; outside: distance to the rectangle)
             du = np.maximum(np.maximum(-u, u - w), 0)
             dv = np.maximum(np.maximum(-v, v - h), 0)
-            outside = np.hypot(du, dv)
-            self.margin = np.where(inside, np.minimum.reduce([u, w - u, v, h - v]), outside)
-            valid = valid & inside
+            self.margin = np.where(inside, np.minimum.reduce([u, w - u, v, h - v]),
+                                   np.hypot(du, dv))
+            valid &= inside
             size = max(w, h)
         else:
             # beyond the reference's stand-in square (half-size extent, its own axes)
             ax, ay, foot = stand_in_frame(obj, scene.viewpoint)
-            rel = V[None, :] + t[:, None] * d - np.asarray(foot)
+            rel = O + t[:, None] * d - np.asarray(foot)
             far = np.maximum(np.abs(rel @ np.asarray(ax)), np.abs(rel @ np.asarray(ay)))
             self.beyond = valid & (far > extent * (1 - 1e-6))
             size = extent       # the stand-in's float32 vertices lie ~extent away
         self.valid = valid
-        self.scale = np.sqrt(q @ q) + np.sqrt(V @ V) + size + np.abs(np.asarray(obj.point)).max()
+        self.scale = origin + _norm(q) + size
 
-    def bound(self, t):
-        """Position error bound (world units) at distance t along the ray."""
-        with np.errstate(divide="ignore"):
-            return K_ROUNDING * EPS32 * (self.scale + np.abs(t)) / np.maximum(self.cos, 1e-300)
+    def bound(self, t=None):
+        """Position error bound (world units) at distance t along the ray (default: the
+        object's own t)."""
+        t = self.t if t is None else t
+        with np.errstate(divide="ignore", invalid="ignore"):
+            b = K_ROUNDING * EPS32 * (self.scale + np.abs(t)) / np.maximum(self.cos, 1e-300)
+        return np.where(np.isfinite(b), b, np.inf)
 
 
 def classify(scene: Scene, d: np.ndarray, ours: dict, ref: dict, rules: Rules,

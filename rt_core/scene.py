@@ -7,7 +7,7 @@ among non-light objects in file order.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Tuple, Union
 
 Vec3 = Tuple[float, float, float]

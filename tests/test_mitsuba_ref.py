@@ -7,7 +7,6 @@ check that a real error (a moved plane, a wrong depth) *is* reported as unexplai
 from __future__ import annotations
 
 import dataclasses
-import math
 import subprocess
 import sys
 from pathlib import Path
@@ -17,7 +16,7 @@ import pytest
 
 from rt_core import backend
 from rt_core.camera import make_camera, primary_directions
-from rt_core.parser import parse_scene, parse_text
+from rt_core.parser import parse_scene
 from rt_core.render import render_geometry
 from rt_core.rules import Rules
 from rt_core.scene import FPlane, Material, Scene, make_fplane
