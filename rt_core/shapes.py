@@ -14,12 +14,31 @@ hit = o + t·d with t = n·q'/(n·d) and q' = q − o (Binet–Cauchy identity),
     u = ŷ · (q' × d) / (n·d),      v = −x̂ · (q' × d) / (n·d),
 
 which never forms the absolute hit point, so it does not cancel catastrophically when the
-plane is small and far away.
+plane is small and far away.  The bounds are tested without dividing, ``0 <= u·|n·d| <=
+w·|n·d|``, i.e. ``ŷ·(q'×d)`` between 0 and ``w·(n·d)``: every comparison is then monotone in one
+rounded quantity, so a ray exactly through an edge that the arithmetic represents exactly is
+decided exactly (``u·(1/(n·d))`` rounds twice and can land past w).
+
+Numerical choices measured against the exact oracle (rt_core/exact.py, mitsuba_ref/stability.py):
+
+* screen clip: the sign of the hit's z·(n·d) = V.z·(n·d) + (n·q)·d.z is taken as
+  V.z·(n.x d.x + n.y d.y) + g·d.z with the host constant g = n·q + n.z V.z = n·P − n.x V.x −
+  n.y V.y (rounded once): the n.z V.z d.z terms, which cancel, are gone; for a plane nearly
+  parallel to the window the old form lost z to ~u·V.z, four orders above its condition.
+  (Same operation count: n.x d.x + n.y d.y is the first part of n·d.)
+* sphere: the distance of the centre from the ray is |q × d|/|d|, not |q − d(q·d)/|d|²|, whose
+  error along the ray adds in quadrature (for a ray along an axis the cross product is exact);
+* host constants: n·q is rounded once from exact products (``math.fsum`` of exact
+  ``Fraction`` terms); |n·q| within its float64 uncertainty of 0 is 0 (a plane through the
+  viewpoint: t = 0, a miss, instead of a hit at t ~ 1e-17); planes whose unit normals agree
+  (up to sign) and whose n·q agree within that uncertainty share n and n·q exactly, so
+  coplanar objects tie exactly and the tie rule decides, as in exact arithmetic.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from fractions import Fraction
 
 import drjit as dr
 
@@ -43,33 +62,77 @@ class ObjectConstants:
     size: tuple = (0.0, 0.0)  # fplane w h, tplane tile w h
     radius: float = 0.0
     c: float = 0.0           # sphere |q|² − r²
+    g: float = 0.0           # plane kinds: n·q + n.z·viewpoint.z, for the screen clip
+
+
+# |n·q| below SNAP · Σ|n_i|(|P_i| + |V_i|) is within float64 rounding of the scene's numbers
+# (the unit normal's rounding, ~3 units of 2^-53 per component): its sign is not known.
+SNAP = 8 * 2.0 ** -53
+
+
+def _exact_dot(a, b) -> float:
+    """a·b rounded once (exact products, exact sum)."""
+    return float(sum(Fraction(x) * Fraction(y) for x, y in zip(a, b)))
+
+
+def _exact_nq(n, point, v) -> tuple[float, float]:
+    """(n·(point − v) rounded once, its uncertainty from the rounding of n)."""
+    q = [Fraction(p) - Fraction(c) for p, c in zip(point, v)]
+    nq = float(sum(Fraction(a) * b for a, b in zip(n, q)))
+    scale = math.fsum(abs(a) * (abs(p) + abs(c)) for a, p, c in zip(n, point, v))
+    return nq, SNAP * scale
 
 
 def object_constants(scene: Scene) -> list[ObjectConstants]:
     v = scene.viewpoint
     out = []
+    planes = []                 # (n, nq, tolerance) of the plane kinds seen so far
     for i, o in enumerate(scene.objects):
         if isinstance(o, Sphere):
             q = sub(o.center, v)
-            # |q|² − r² = (|q| − r)(|q| + r): no cancellation for origins near the surface
-            qn = math.sqrt(dot(q, q))
-            out.append(ObjectConstants(i, o.kind, q, radius=o.radius,
-                                       c=(qn - o.radius) * (qn + o.radius)))
+            # |q|² − r², rounded once from the exact value (q = centre − viewpoint exactly)
+            qx = [Fraction(a) - Fraction(b) for a, b in zip(o.center, v)]
+            c = float(sum(x * x for x in qx) - Fraction(o.radius) ** 2)
+            out.append(ObjectConstants(i, o.kind, q, radius=o.radius, c=c))
+            continue
+        q = sub(o.point, v)
+        n = tuple(o.normal)
+        nq, tol = _exact_nq(n, o.point, v)
+        if abs(nq) <= tol:
+            nq = 0.0                                 # through the viewpoint
+        for m, mq, mtol in planes:
+            for s in (1.0, -1.0):
+                if max(abs(a - s * b) for a, b in zip(n, m)) <= SNAP and \
+                        abs(nq - s * mq) <= tol + mtol:
+                    n, nq = tuple(s * b for b in m), s * mq      # coplanar: tie exactly
+                    break
+            else:
+                continue
+            break
         else:
-            q = sub(o.point, v)
-            xd = getattr(o, "xdir", (0.0, 0.0, 0.0))
-            yd = getattr(o, "ydir", (0.0, 0.0, 0.0))
-            size = getattr(o, "size", (0.0, 0.0))
-            out.append(ObjectConstants(i, o.kind, q, o.normal, dot(o.normal, q), xd, yd, size))
+            planes.append((n, nq, tol))
+        xd = getattr(o, "xdir", (0.0, 0.0, 0.0))
+        yd = getattr(o, "ydir", (0.0, 0.0, 0.0))
+        size = getattr(o, "size", (0.0, 0.0))
+        g = float(Fraction(nq) + Fraction(n[2]) * Fraction(v[2]))
+        out.append(ObjectConstants(i, o.kind, q, n, nq, xd, yd, size, g=g))
     return out
 
 
 # --- helpers ---------------------------------------------------------------------------------
 
 def opaque3(Array3, v):
-    """A host vector as an opaque Dr.Jit value (data, not a literal baked into the kernel)."""
+    """A host vector as an opaque Dr.Jit value (data, not a literal baked into the kernel);
+    a Dr.Jit vector (constants gathered per ray, rt_core/accel.py) passes through."""
+    if isinstance(v, Array3):
+        return v
     F = dr.value_t(Array3)
     return Array3(*(dr.opaque(F, float(c)) for c in v))
+
+
+def opaque(F, v):
+    """A host number as an opaque Dr.Jit value; a Dr.Jit array passes through."""
+    return v if isinstance(v, F) else dr.opaque(F, v)
 
 
 def _check(d):
@@ -85,25 +148,40 @@ def plane_t(d, o, obj: ObjectConstants, rules: Rules, vz: float):
     """Ray–plane distance: t = n·q'/(n·d). Miss if n·d = 0, t <= t_min, or screen-clipped.
 
     Returns (t, hit, inv_den, q') — the last two let ``fplane_t`` reuse this work."""
+    t, hit, den, inv_den, q = _plane(d, o, obj, rules, vz)
+    return t, hit, inv_den, q
+
+
+def _plane(d, o, obj, rules: Rules, vz: float):
+    """plane_t's work: (t, hit, n·d, 1/(n·d), q')."""
     F, B = _check(d)
     n = opaque3(type(d), obj.n)
     q = opaque3(type(d), obj.q)
     if o is None:
-        nq = dr.opaque(F, obj.nq)
+        nq = opaque(F, obj.nq)
     else:
         q = q - o
         nq = dr.dot(n, q)
-    den = dr.dot(n, d)
+    nd_xy = dr.fma(n.x, d.x, n.y * d.y)
+    den = dr.fma(n.z, d.z, nd_xy)
     inv_den = dr.rcp(den)
     t = nq * inv_den
     hit = (den != 0) & (t > dr.opaque(F, rules.t_min)) & dr.isfinite(t)
     if rules.screen_clip != "off":
-        # hit z = zn/den with zn = (vz + o.z)·den + n·q'·d.z: the sign test on zn is exact
-        # for a plane in z = 0 (vz·d.z − vz·d.z = 0), where vz + t·d.z is noise around 0
+        # hit z = zn/den with zn = vz'·den + n·q'·d.z = vz'·(n.x d.x + n.y d.y) + g'·d.z,
+        # g' = n·q' + n.z·vz' (host constant g; see the module docstring): nothing cancels
+        # that is not the answer (exact 0 for a plane in z = 0)
         vzo = dr.opaque(F, vz) if o is None else dr.opaque(F, vz) + o.z
-        zn = vzo * den + nq * d.z
+        g = getattr(obj, "g", None)
+        if g is None:               # constants without g (older tables): the plain form
+            zn = vzo * den + nq * d.z
+        else:
+            g = opaque(F, g)
+            if o is not None:
+                g = g - dr.fma(n.x, o.x, n.y * o.y)
+            zn = dr.fma(vzo, nd_xy, g * d.z)
         hit &= clip_ok(dr.select(den > 0, zn, -zn), rules)
-    return t, hit, inv_den, q
+    return t, hit, den, inv_den, q
 
 
 def clip_ok(z, rules: Rules):
@@ -125,34 +203,53 @@ def fplane_uv(d, q, inv_den, obj: ObjectConstants):
 def fplane_t(d, o, obj: ObjectConstants, rules: Rules, vz: float):
     """plane_t, then the bounds test 0 <= u <= w, 0 <= v <= h (strict with open edges)."""
     F, B = _check(d)
-    t, hit, inv_den, q = plane_t(d, o, obj, rules, vz)
-    u, v = fplane_uv(d, q, inv_den, obj)
-    w, h = dr.opaque(F, obj.size[0]), dr.opaque(F, obj.size[1])
-    if rules.edges == "closed":
-        inside = (u >= 0) & (u <= w) & (v >= 0) & (v <= h)
+    t, hit, den, _, q = _plane(d, o, obj, rules, vz)
+    Array3 = type(d)
+    c = dr.cross(q, d)
+    # u·|den| in [0, w·|den|], v·|den| in [0, h·|den|] (see the module docstring): no
+    # division, every comparison monotone in one rounded quantity
+    X, Y = obj.xdir, obj.ydir
+    w, h = obj.size
+    if o is None and isinstance(obj.nq, (int, float)):
+        # rays from the viewpoint: a hit has t = nq/den > 0, so sign(den) = sign(nq), known
+        # here: fold it into the constants (no extra work per ray)
+        sg = -1.0 if obj.nq < 0 else 1.0
+        X, Y = tuple(sg * c for c in X), tuple(sg * c for c in Y)
+        su = dr.dot(opaque3(Array3, Y), c)
+        sv = -dr.dot(opaque3(Array3, X), c)
+        wd, hd = opaque(F, sg * w) * den, opaque(F, sg * h) * den
     else:
-        inside = (u > 0) & (u < w) & (v > 0) & (v < h)
+        su = dr.mulsign(dr.dot(opaque3(Array3, Y), c), den)
+        sv = dr.mulsign(-dr.dot(opaque3(Array3, X), c), den)
+        aden = dr.abs(den)
+        wd, hd = opaque(F, w) * aden, opaque(F, h) * aden
+    if rules.edges == "closed":
+        inside = (su >= 0) & (su <= wd) & (sv >= 0) & (sv <= hd)
+    else:
+        inside = (su > 0) & (su < wd) & (sv > 0) & (sv < hd)
     return t, hit & inside
 
 
 def sphere_t(d, o, obj: ObjectConstants, rules: Rules, vz: float):
     """The near root of |o + t·d − centre|² = r²; miss if the discriminant <= 0 or t <= 0.
 
-    The discriminant is taken as a·(r² − |q'⊥|²) (distance of the centre from the ray line),
-    and the near root as c/(b' + √disc) when b' > 0, so neither cancels."""
+    The discriminant is taken as a·r² − |q' × d|² = (r√a − |q'×d|)(r√a + |q'×d|) (|q'×d|/√a
+    is the distance of the centre from the ray line), and the near root as c/(b' + √disc)
+    when b' > 0, so neither cancels."""
     F, B = _check(d)
     q = opaque3(type(d), obj.q)
-    r = dr.opaque(F, obj.radius)
+    r = opaque(F, obj.radius)
     if o is None:
-        c = dr.opaque(F, obj.c)
+        c = opaque(F, obj.c)
     else:
         q = q - o
         qn = dr.norm(q)
         c = (qn - r) * (qn + r)
     a = dr.squared_norm(d)
     bh = dr.dot(q, d)                       # −b/2 of the course's quadratic
-    pn = dr.norm(q - d * (bh / a))           # distance of the centre from the ray line
-    disc = a * (r - pn) * (r + pn)
+    cn = dr.norm(dr.cross(q, d))            # |d| × distance of the centre from the ray line
+    ra = r * dr.sqrt(a)
+    disc = (ra - cn) * (ra + cn)
     s = dr.sqrt(dr.maximum(disc, 0))
     t = dr.select(bh > 0, c / (bh + s), (bh - s) / a)
     hit = (disc > 0) & (t > 0) & dr.isfinite(t)

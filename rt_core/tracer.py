@@ -2,7 +2,10 @@
 
 The kernel holds code only for the object kinds present; objects are grouped by kind and
 every number enters as opaque data, so scenes with the same kinds and counts share one
-compiled kernel.  Surface data (normal, uv) is computed once, for the closest hit only, from
+compiled kernel.  Up to accel.UNROLL_MAX objects each gets its own unrolled block; above, a
+kind is one symbolic loop over a table of its objects (with screen-space bins for rays from
+the viewpoint; rt_core/accel.py), whose kernel does not depend on the count either.
+Surface data (normal, uv) is computed once, for the closest hit only, from
 per-object constants gathered by object id.
 """
 from __future__ import annotations
@@ -11,7 +14,7 @@ from dataclasses import dataclass, field
 
 import drjit as dr
 
-from . import backend
+from . import accel, backend
 from .backend import Types
 from .rules import Rules
 from .scene import Scene
@@ -43,6 +46,7 @@ class KernelScene:
                 cache[name] = self.T.Array3(*([v[i] for v in vals] for i in range(3)))
             else:
                 cache[name] = self.T.Float(vals)
+            dr.make_opaque(cache[name])     # a one-object table would be a literal otherwise
         return cache[name]
 
 
@@ -65,6 +69,9 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None):
     # file order is id order within one kind: then no tie term is needed for 'first'
     single_kind = len(ks.kinds) == 1
     for kind in ks.kinds:
+        if accel.looped(ks, kind):          # many objects: one loop, constants as data
+            best_t, best_id = accel.closest_kind(ks, kind, d, o, rules, skip, best_t, best_id)
+            continue
         for obj in ks.by_kind[kind]:
             t, hit = object_t(d, o, obj, rules, vz)
             oid = dr.opaque(T.Int32, obj.id)
@@ -121,3 +128,23 @@ def position(ks: KernelScene, d, t, hit, o=None):
     V = T.Array3(*(dr.opaque(T.Float, c) for c in ks.scene.viewpoint))
     rel = d * t if o is None else dr.fma(d, t, o)
     return dr.select(hit, V + rel, dr.zeros(T.Array3, dr.width(d)))
+
+
+def occluded(ks: KernelScene, d, o, maxt, rules: Rules = Rules(), skip=None):
+    """Shadow-ray test: mask of the rays o + t·d that hit any object (other than ``skip``)
+    at 0 < t < ``maxt``, with the same hit functions and rules as ``closest_hit``.  No t, no
+    id, no tie order: the first level of the intersection only."""
+    T = ks.T
+    assert isinstance(d, T.Array3), f"expected {T.Array3.__name__} directions"
+    vz = ks.scene.viewpoint[2]
+    blocked = dr.zeros(T.Bool, dr.width(d))
+    for kind in ks.kinds:
+        if accel.looped(ks, kind):
+            blocked = accel.occluded_kind(ks, kind, d, o, maxt, rules, skip, blocked)
+            continue
+        for obj in ks.by_kind[kind]:
+            t, hit = object_t(d, o, obj, rules, vz)
+            if skip is not None:
+                hit &= dr.opaque(T.Int32, obj.id) != skip
+            blocked |= hit & (t < maxt)
+    return blocked

@@ -1,0 +1,351 @@
+"""Many objects: one symbolic loop per object kind, and screen-space bins for primary rays.
+
+``tracer.closest_hit`` unrolls one block of code per object while a scene has at most
+``UNROLL_MAX`` bounded objects (spheres and finite planes together; infinite planes count per
+kind): the fastest kernel for a few objects, but its size, compile time and run time grow with
+the count (7 s to compile and 7 Mrays/s at 256 finite planes).  Above that, a kind is traced
+here, by one Dr.Jit symbolic loop (``dr.while_loop``) whose body is that kind's hit function,
+with the object's constants gathered per iteration from a table: the kernel no longer depends
+on the count, and scenes of the same kinds share it whatever their sizes.
+
+Rays from the viewpoint (``o is None``, the camera's rays) share their origin, so an object can
+only be hit by rays that cross the window plane z = 0 inside its projection from the viewpoint.
+A grid of bins covers the window; each bin lists, per kind and in ascending object id, the
+objects whose (conservatively enlarged) projected bounding box overlaps it, as copies of their
+table rows, so a ray reads its bin's rows in sequence.  With ~32 bins per object a camera ray
+visits 2-4 rows in the benchmark scenes (mitsuba_ref/bench.py) whatever N: time grows as
+~N^0.1-0.3 from 16 to 1024 objects, against N^1 for the unrolled or unbinned search.  A ray computes its
+bin from its own direction and loops over that bin's list only; rays that cross the plane
+outside the grid (or not at all) take a last bin that lists every object.  The per-object test
+is the same function on the same (float64-derived) constants as the unrolled code, and the tie
+test compares object ids, so the results are bit-identical to the unrolled search (tested in
+tests/test_kernels.py).  Other rays (reflections, shadow rays) loop over every object of the
+kind.
+
+Why the culling is conservative: an object is left out of a bin only if its float64 projected
+box, enlarged by ``MARGIN`` (2⁻¹² of the window, viewpoint and box scales), misses the bin.  A
+float32 hit test can accept a ray that exactly misses only within a few ulps of an edge, i.e.
+within ~1e-6 of those scales in window coordinates, and the float32 bin of a ray is off by as
+little; the margin is 2.4e-4 of them.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from types import SimpleNamespace
+
+import drjit as dr
+import numpy as np
+
+from .rules import Rules
+from .shapes import ObjectConstants, object_t
+
+# More (bounded) objects than this: the symbolic loop instead of unrolled code.  Measured
+# crossover (bench, f32): unrolled wins up to ~8-12 objects, the binned loop above.
+UNROLL_MAX = 8
+# Bins per looped object (bounded kinds), at most one per RAYS_PER_BIN rays of the first
+# batch traced, and at most MAX_BINS.
+BINS_PER_OBJECT = 32
+RAYS_PER_BIN = 64
+MAX_BINS = 1 << 16
+MARGIN = 2.0 ** -12
+# Per-kind constants that the hit functions read (shapes.object_t), in the order of a row;
+# the object id rides along as a float (exact below 2**24).  (Scalar gathers: Dr.Jit's
+# packet gathers of Array4f were no faster here, and chose between packet and scalar code
+# from call to call, which broke kernel reuse.)
+LAYOUT = {"sphere": ("qx", "qy", "qz", "radius", "c", "id"),
+          "plane": ("qx", "qy", "qz", "nq", "nx", "ny", "nz", "g", "id"),
+          "fplane": ("qx", "qy", "qz", "nq", "nx", "ny", "nz", "g", "w", "xx", "xy", "xz", "h",
+                     "yx", "yy", "yz", "id")}
+LAYOUT["tplane"] = LAYOUT["plane"]
+BOUNDED = ("sphere", "fplane")
+HAS_G = "g" in ObjectConstants.__dataclass_fields__     # the screen-clip constant of planes
+
+
+def configure(ks, unroll_max: int | None = None, bins: bool | None = None):
+    """Override UNROLL_MAX and the use of bins for one KernelScene (benchmarks, tests)."""
+    opts = ks.__dict__.setdefault("_accel_opts", {})
+    if unroll_max is not None:
+        opts["unroll_max"] = unroll_max
+    if bins is not None:
+        opts["bins"] = bins
+    return ks
+
+
+def looped(ks, kind: str) -> bool:
+    """Is ``kind`` traced by a loop rather than unrolled?  Bounded kinds (spheres, finite
+    planes) loop when there are more than UNROLL_MAX of them together; the unbounded ones
+    (planes, tiled planes: every bin lists them) when there are more than UNROLL_MAX of the
+    kind."""
+    limit = ks.__dict__.get("_accel_opts", {}).get("unroll_max", UNROLL_MAX)
+    if kind in BOUNDED:
+        return sum(len(ks.by_kind.get(k, ())) for k in BOUNDED) > limit
+    return len(ks.by_kind.get(kind, ())) > limit
+
+
+def _row(c) -> dict:
+    """The numbers of one ObjectConstants by slot name (float64, host)."""
+    r = {"id": float(c.id), "radius": c.radius, "c": c.c, "nq": c.nq, "g": getattr(c, "g", 0.0)}
+    for name, v in (("q", c.q), ("n", c.n), ("x", c.xdir), ("y", c.ydir)):
+        r[name + "x"], r[name + "y"], r[name + "z"] = v
+    r["w"], r["h"] = c.size
+    return r
+
+
+@dataclass
+class KindTable:
+    """One kind's objects as a flat array of packed rows (LAYOUT): rows 0..count-1 are the
+    objects in ascending id; with bins, each bin's rows follow (copies, so that a loop reads
+    its rows in sequence, without an index list)."""
+    kind: str
+    count: int
+    rows: object                 # Float[rows * len(LAYOUT[kind])]
+    offsets: object = None       # UInt32[nbins + 2]: bin b is rows offsets[b]..offsets[b+1]
+
+    def view(self, T, k):
+        """The constants of row k (per ray), in the form shapes.object_t reads."""
+        names = LAYOUT[self.kind]
+        base = k * len(names)
+        v = {name: dr.gather(T.Float, self.rows, base + j) for j, name in enumerate(names)}
+        A3 = T.Array3
+        out = SimpleNamespace(kind=self.kind, id=T.Int32(v["id"]),
+                              q=A3(v["qx"], v["qy"], v["qz"]))
+        if self.kind == "sphere":
+            out.radius, out.c = v["radius"], v["c"]
+        else:
+            out.n, out.nq = A3(v["nx"], v["ny"], v["nz"]), v["nq"]
+            if HAS_G:
+                out.g = v["g"]
+        if self.kind == "fplane":
+            out.xdir = A3(v["xx"], v["xy"], v["xz"])
+            out.ydir = A3(v["yx"], v["yy"], v["yz"])
+            out.size = (v["w"], v["h"])
+        return out
+
+
+def pack(kind: str, consts) -> np.ndarray:
+    """(len(consts), len(LAYOUT[kind])) float64 rows."""
+    return np.array([[r[n] for n in LAYOUT[kind]] for r in map(_row, consts)], np.float64)
+
+
+def _upload(ks, kind: str, rows: np.ndarray, offsets=None) -> KindTable:
+    T = ks.T
+    flat = T.Float(rows.ravel())
+    dr.make_opaque(flat)
+    off = None
+    if offsets is not None:
+        off = T.UInt32(offsets)
+        dr.make_opaque(off)
+    return KindTable(kind, len(ks.by_kind[kind]), flat, off)
+
+
+def tables(ks) -> dict:
+    """KindTables of the looped kinds, without bins (built once per KernelScene)."""
+    cache = ks.__dict__.setdefault("_accel", {})
+    if "tables" not in cache:
+        cache["tables"] = {}
+        for k in ks.kinds:
+            if looped(ks, k):
+                assert len(ks.by_kind[k]) < 2 ** 24, "object ids must be exact in float32"
+                cache["tables"][k] = _upload(ks, k, pack(k, ks.by_kind[k]))
+    return cache["tables"]
+
+
+# --- screen-space bins ------------------------------------------------------------------------
+
+@dataclass
+class Grid:
+    """Bins over the window plane z = 0: nbx × nby cells of the rectangle [x0, x0 + nbx·bw] ×
+    [y0, y0 + nby·bh] (world units), plus bin nbx·nby, which lists every object."""
+    nbx: int
+    nby: int
+    x0: float
+    y0: float
+    bw: float
+    bh: float
+
+    @property
+    def nbins(self) -> int:
+        return self.nbx * self.nby
+
+
+def make_grid(scene, n_objects: int, rays: int) -> Grid:
+    """About BINS_PER_OBJECT bins per object, one per RAYS_PER_BIN rays at most, over the
+    window (enlarged by 1% so rays through its edges fall inside), square in world units."""
+    ww, wh = scene.window
+    ww, wh = 1.02 * ww, 1.02 * wh
+    nb = max(1, min(MAX_BINS, BINS_PER_OBJECT * n_objects, rays // RAYS_PER_BIN))
+    nbx = max(1, min(nb, round(math.sqrt(nb * ww / wh))))
+    nby = max(1, min(nb // nbx if nbx else 1, round(nb / nbx)))
+    return Grid(nbx, nby, -ww / 2, -wh / 2, ww / nbx, wh / nby)
+
+
+def _corners(kind: str, consts) -> np.ndarray:
+    """(count, m, 3) points relative to the viewpoint whose convex hull holds each object."""
+    if kind == "fplane":
+        out = []
+        for c in consts:
+            q, x, y = np.array(c.q), np.array(c.xdir), np.array(c.ydir)
+            w, h = c.size
+            out.append([q, q + w * x, q + w * x + h * y, q + h * y])
+        return np.array(out, np.float64)
+    if kind == "sphere":
+        s = np.array([(i, j, k) for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], np.float64)
+        q = np.array([c.q for c in consts], np.float64)
+        r = np.array([c.radius for c in consts], np.float64) * (1 + MARGIN)
+        return q[:, None, :] + r[:, None, None] * s[None]
+    return None                                       # unbounded: every bin
+
+
+def project_boxes(scene, kind: str, consts):
+    """Per object: (status, box) with status 0 = no ray from the viewpoint through the grid
+    can hit it, 1 = box (x0, x1, y0, y1) in window coordinates, 2 = anywhere."""
+    n = len(consts)
+    status = np.full(n, 2, np.int8)
+    box = np.zeros((n, 4))
+    vx, vy, vz = scene.viewpoint
+    P = _corners(kind, consts)
+    if P is None or vz == 0:
+        return status, box
+    # rays through the window go along sign(-vz) in z: a point is ahead iff its z (relative
+    # to the viewpoint) has that sign
+    ahead = P[..., 2] * (-math.copysign(1.0, vz))
+    tiny = MARGIN * np.linalg.norm(P, axis=-1)
+    status[np.all(ahead < -tiny, axis=1)] = 0
+    front = np.all(ahead > tiny, axis=1)
+    status[front] = 1
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = -vz / P[..., 2]
+        wx = vx + P[..., 0] * s
+        wy = vy + P[..., 1] * s
+    box[:, 0], box[:, 1] = wx.min(1), wx.max(1)
+    box[:, 2], box[:, 3] = wy.min(1), wy.max(1)
+    scale = math.hypot(*scene.window) + abs(vx) + abs(vy) + abs(vz)
+    m = MARGIN * (scale + np.abs(box).max(1))
+    box += np.stack([-m, m, -m, m], 1)
+    return status, box
+
+
+def bin_lists(grid: Grid, status, box, count: int):
+    """(offsets, items) of one kind: bins 0..nbins-1 list the objects whose box overlaps them,
+    in ascending position; bin nbins lists all."""
+    nbx, nby = grid.nbx, grid.nby
+    bins, items = [], []
+    for k in range(count):
+        if status[k] == 0:
+            continue
+        if status[k] == 2:
+            bx0, bx1, by0, by1 = 0, nbx - 1, 0, nby - 1
+        else:
+            x0, x1, y0, y1 = box[k]
+            fx0, fx1 = (x0 - grid.x0) / grid.bw, (x1 - grid.x0) / grid.bw
+            fy0, fy1 = (y0 - grid.y0) / grid.bh, (y1 - grid.y0) / grid.bh
+            if not (fx1 >= 0 and fx0 < nbx and fy1 >= 0 and fy0 < nby):
+                continue
+            bx0, bx1 = max(0, math.floor(fx0)), min(nbx - 1, math.floor(fx1))
+            by0, by1 = max(0, math.floor(fy0)), min(nby - 1, math.floor(fy1))
+        b = (np.arange(by0, by1 + 1)[:, None] * nbx + np.arange(bx0, bx1 + 1)[None]).ravel()
+        bins.append(b)
+        items.append(np.full(len(b), k))
+    nb = grid.nbins
+    bins = np.concatenate(bins + [np.full(count, nb)]).astype(np.int64)
+    items = np.concatenate(items + [np.arange(count)]).astype(np.int64)
+    order = np.lexsort((items, bins))
+    offsets = np.zeros(nb + 2, np.int64)
+    np.cumsum(np.bincount(bins, minlength=nb + 1), out=offsets[1:])
+    return offsets.astype(np.uint32), items[order].astype(np.uint32)
+
+
+def binned(ks, rays: int = 1 << 21):
+    """(grid, {kind: KindTable whose rows are its bins' rows}) for rays from the viewpoint;
+    None without bins (no looped kind, or the viewpoint in the window plane).  Built once per
+    KernelScene, for the size ``rays`` of the first batch."""
+    cache = ks.__dict__.setdefault("_accel", {})
+    if "binned" not in cache:
+        cache["binned"] = None
+        kinds = list(tables(ks))
+        if kinds and ks.scene.viewpoint[2] != 0:
+            n = sum(len(ks.by_kind[k]) for k in kinds if k in BOUNDED)
+            grid = make_grid(ks.scene, max(n, 1), rays)
+            tabs = {}
+            for kind in kinds:
+                consts = ks.by_kind[kind]
+                status, box = project_boxes(ks.scene, kind, consts)
+                off, items = bin_lists(grid, status, box, len(consts))
+                tabs[kind] = _upload(ks, kind, pack(kind, consts)[items], off)
+            cache["binned"] = (grid, tabs)
+    return cache["binned"]
+
+
+def ray_bins(ks, grid: Grid, d):
+    """Bin of each ray from the viewpoint along d: where it crosses z = 0, or the all-objects
+    bin.  Every grid number is opaque data: the kernel does not depend on the grid."""
+    T = ks.T
+    F, U = T.Float, T.UInt32
+    vx, vy, vz = ks.scene.viewpoint
+    s = dr.opaque(F, -vz) / d.z
+    bx = dr.floor(dr.fma(d.x, s, dr.opaque(F, vx - grid.x0)) * dr.opaque(F, 1.0 / grid.bw))
+    by = dr.floor(dr.fma(d.y, s, dr.opaque(F, vy - grid.y0)) * dr.opaque(F, 1.0 / grid.bh))
+    inside = (s > 0) & (bx >= 0) & (bx < dr.opaque(F, grid.nbx)) & (by >= 0) & \
+        (by < dr.opaque(F, grid.nby))
+    b = U(dr.select(inside, by, 0)) * dr.opaque(U, grid.nbx) + U(dr.select(inside, bx, 0))
+    return dr.select(inside, b, dr.opaque(U, grid.nbins))
+
+
+# --- the loops ----------------------------------------------------------------------------------
+
+def _range(ks, kind: str, d, o):
+    """(table, start, end): the rows start..end-1 of the table that each ray visits."""
+    U = ks.T.UInt32
+    use = o is None and ks.__dict__.get("_accel_opts", {}).get("bins", True)
+    b = binned(ks, dr.width(d)) if use else None
+    if b is None:
+        tab = tables(ks)[kind]
+        return tab, dr.zeros(U, dr.width(d)), dr.opaque(U, tab.count, dr.width(d))
+    grid, tabs = b
+    tab = tabs[kind]
+    k = ray_bins(ks, grid, d)
+    return tab, dr.gather(U, tab.offsets, k), dr.gather(U, tab.offsets, k + 1)
+
+
+def closest_kind(ks, kind: str, d, o, rules: Rules, skip, best_t, best_id):
+    """Fold every object of ``kind`` into the running closest hit (best_t, best_id) with the
+    same test and tie rule as the unrolled code: smaller t wins; an exact tie goes to the
+    smaller id ('first') or the larger ('last')."""
+    T = ks.T
+    vz = ks.scene.viewpoint[2]
+    tab, start, end = _range(ks, kind, d, o)
+
+    def body(i, bt, bid):
+        obj = tab.view(T, i)
+        t, hit = object_t(d, o, obj, rules, vz)
+        if skip is not None:
+            hit &= obj.id != skip
+        tie = (obj.id < bid) if rules.ties == "first" else (obj.id > bid)
+        upd = hit & ((t < bt) | ((t == bt) & tie))
+        return i + 1, dr.select(upd, t, bt), dr.select(upd, obj.id, bid)
+
+    _, best_t, best_id = dr.while_loop((start, best_t, best_id),
+                                       lambda i, bt, bid: i < end, body,
+                                       labels=("i", "best_t", "best_id"),
+                                       label=f"closest_{kind}")
+    return best_t, best_id
+
+
+def occluded_kind(ks, kind: str, d, o, maxt, rules: Rules, skip, blocked):
+    """``blocked`` or any object of ``kind`` (other than ``skip``) hit at 0 < t < maxt; each
+    ray stops at its first blocker."""
+    T = ks.T
+    vz = ks.scene.viewpoint[2]
+    tab, start, end = _range(ks, kind, d, o)
+
+    def body(i, blk):
+        obj = tab.view(T, i)
+        t, hit = object_t(d, o, obj, rules, vz)
+        if skip is not None:
+            hit &= obj.id != skip
+        return i + 1, blk | (hit & (t < maxt))
+
+    _, blocked = dr.while_loop((start, blocked), lambda i, blk: (i < end) & ~blk, body,
+                               labels=("i", "blocked"), label=f"occluded_{kind}")
+    return blocked
