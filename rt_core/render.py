@@ -1,4 +1,5 @@
-"""Whole-image renders: primary-ray geometry AOVs as numpy arrays, their provenance, and EXR."""
+"""Whole-image renders: primary-ray geometry AOVs and the shaded image as numpy arrays, their
+provenance, and EXR."""
 from __future__ import annotations
 
 import hashlib
@@ -14,6 +15,8 @@ from .camera import Camera, make_camera, primary_directions
 from .exrio import write_exr
 from .rules import Rules
 from .scene import Scene
+from . import shading
+from .shading import DEFAULT_MAX_DIST
 from .tracer import closest_hit, position, prepare, surface
 
 GEOMETRY_CHANNELS = ("hit.mask", "depth.Z", "object.id", "normal.X", "normal.Y", "normal.Z",
@@ -22,25 +25,56 @@ MISS_CONVENTION = ("miss: hit.mask=0, depth.Z=0, object.id=-1, normal/position/u
                    "depth.Z = Euclidean distance from the viewpoint")
 
 
-def trace_geometry(scene: Scene, cam: Camera, T: backend.Types, rules: Rules = Rules()):
+def geometry_channels(ks, d, t, oid, hit, normal, u, v) -> dict:
+    """The GEOMETRY_CHANNELS of primary-ray hits, as lazy Dr.Jit arrays."""
+    F = ks.T.Float
+    pos = position(ks, d, t, hit)
+    return {"hit.mask": dr.select(hit, F(1), F(0)), "depth.Z": t, "object.id": F(oid),
+            "normal.X": normal.x, "normal.Y": normal.y, "normal.Z": normal.z,
+            "position.X": pos.x, "position.Y": pos.y, "position.Z": pos.z,
+            "uv.U": u, "uv.V": v}
+
+
+def _empty_geometry(T, n: int) -> dict:
+    z = dr.zeros(T.Float, n)
+    out = {name: z for name in GEOMETRY_CHANNELS}
+    out["object.id"] = z - 1
+    return out
+
+
+def trace_geometry(scene: Scene, cam: Camera, T: backend.Types, rules: Rules = Rules(),
+                   log=None):
     """Dr.Jit arrays (flat, image order) of the primary-ray geometry AOVs, evaluated."""
     ks = prepare(scene, T)
     d = primary_directions(scene, cam, T)
     if not scene.objects:
-        z = dr.zeros(T.Float, cam.size)
-        out = {name: z for name in GEOMETRY_CHANNELS}
-        out["object.id"] = z - 1
-        return out
+        return _empty_geometry(T, cam.size)
     t, oid, hit = closest_hit(ks, d, None, rules)
     normal, u, v = surface(ks, d, t, oid, hit)
-    pos = position(ks, d, t, hit)
-    F = T.Float
-    out = {"hit.mask": dr.select(hit, F(1), F(0)), "depth.Z": t, "object.id": F(oid),
-           "normal.X": normal.x, "normal.Y": normal.y, "normal.Z": normal.z,
-           "position.X": pos.x, "position.Y": pos.y, "position.Z": pos.z,
-           "uv.U": u, "uv.V": v}
+    out = geometry_channels(ks, d, t, oid, hit, normal, u, v)
     dr.eval(*out.values())
+    if log is not None:
+        log.mark("hit", "primary", 0, cam.size)
     return out
+
+
+def render_image(scene: Scene, cam: Camera, T: backend.Types, rules: Rules = Rules(), *,
+                 geometry: bool = True, shade: bool = False,
+                 max_dist: float = DEFAULT_MAX_DIST, log=None, record: int = 0):
+    """One render: the geometry channels (``geometry``) and/or the shaded image (``shade``:
+    channels 'R', 'G', 'B', the unclamped intensity) as (rows, columns) numpy arrays, row 0
+    the top.  Geometry only skips shading entirely.  Returns (images, ShadeResult or None)."""
+    if not shade:
+        return to_images(trace_geometry(scene, cam, T, rules, log), cam), None
+    ks = prepare(scene, T)
+    d = primary_directions(scene, cam, T)
+    extra = (lambda *a: geometry_channels(ks, d, *a)) if geometry else None
+    res = shading.shade(ks, d, rules, max_dist, log=log, extra=extra, record=record)
+    flat = dict(res.extra) if geometry else {}
+    if geometry and not scene.objects:
+        flat = _empty_geometry(T, cam.size)
+    flat.update({"R": res.rgb.x, "G": res.rgb.y, "B": res.rgb.z})
+    return to_images(flat, cam), res
 
 
 def to_images(flat: dict, cam: Camera) -> dict:

@@ -1,37 +1,177 @@
-"""rtval render: a scene's primary-ray geometry (and, with --ppm/--png, the shaded image)."""
+"""rtval render: a scene's primary-ray geometry (EXR) and/or its shaded image (PPM, PNG, EXR).
+
+What runs is what the outputs need: ``-o`` alone writes the geometry channels and skips
+shading entirely; ``--ppm``/``--png`` (or ``--shade``) shade the image, and an EXR written
+beside them also gets ``R``, ``G``, ``B``: the unclamped intensity, whose
+floor(255·clamp(I, 0, 1)) is the 8-bit image.
+"""
 from __future__ import annotations
 
+import os
 import sys
 
-from .options import add_image_options
+from .options import add_image_options, nonneg_float
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser("render", help="render a course scene to OpenEXR",
-                       description="Render the primary-ray geometry AOVs of a course scene "
-                                   "(hit.mask, depth.Z, object.id, normal, position, uv) to "
-                                   "a float32 OpenEXR file.")
+    p = sub.add_parser("render", help="render a course scene: geometry EXR and/or shaded image",
+                       description="Render a course scene.  -o writes the primary-ray geometry "
+                                   "AOVs (hit.mask, depth.Z, object.id, normal, position, uv) "
+                                   "as float32 OpenEXR; --ppm/--png write the shaded 8-bit "
+                                   "image (ambient, diffuse with shadows, reflections, tiled "
+                                   "planes), and then the EXR also gets R, G, B (unclamped).")
     p.add_argument("scene", help="course scene file (keyword or numeric dialect)")
     add_image_options(p)
-    p.add_argument("-o", "--output", required=True, metavar="OUT.exr")
-    p.set_defaults(func=run)
+    p.add_argument("-o", "--output", metavar="OUT.exr",
+                   help="float32 OpenEXR: geometry channels (+ R, G, B when shaded)")
+    p.add_argument("--ppm", metavar="OUT.ppm",
+                   help="shaded image as binary PPM, as the course programs write it "
+                        "(header 'P6 W H 255', top row first)")
+    p.add_argument("--png", metavar="OUT.png", help="shaded image as PNG")
+    p.add_argument("--shade", action="store_true",
+                   help="shade even when only -o is given (adds R, G, B to the EXR)")
+    p.add_argument("--max-dist", type=nonneg_float, default=None, metavar="D",
+                   help="reflections stop once a path is this long (the notes' MAX_DIST; "
+                        "default 1000)")
+    p.add_argument("--explain", action="store_true",
+                   help="print on stderr the object kinds, the passes that ran and the Dr.Jit "
+                        "kernels they compiled and launched")
+    p.set_defaults(func=run, usage_error=p.error)
+
+
+def _outputs(args) -> list[tuple[str, str]]:
+    """(option, path) of every output asked for; usage errors for none or a repeated file."""
+    outs = [(opt, path) for opt, path in (("-o", args.output), ("--ppm", args.ppm),
+                                          ("--png", args.png)) if path]
+    if not outs:
+        args.usage_error("nothing to write: give -o OUT.exr, --ppm OUT.ppm and/or --png OUT.png")
+    seen = {}
+    for opt, path in outs:
+        key = os.path.abspath(path)
+        if key in seen:
+            args.usage_error(f"{seen[key]} and {opt} name the same file {path}")
+        seen[key] = opt
+    return outs
+
+
+def _check_writable(path: str) -> None:
+    """Fail before rendering on an output that cannot be a file."""
+    from rt_core.errors import InputError
+    if os.path.isdir(path):
+        raise InputError(f"{path}: is a directory; give a file name")
+    parent = os.path.dirname(os.path.abspath(path))
+    while not os.path.exists(parent):
+        parent = os.path.dirname(parent)
+    if not os.path.isdir(parent):
+        raise InputError(f"{path}: {parent} is not a directory")
 
 
 def run(args) -> int:
-    from rt_core.parser import parse_scene
-    from rt_core.render import provenance, render_geometry, write_images, nonfinite_count
-    from rt_core.camera import make_camera
-    from rt_core.rules import Rules
+    import contextlib
 
+    import numpy as np
+    from rt_core import backend
+    from rt_core.camera import make_camera
+    from rt_core.errors import InputError
+    from rt_core.imageio import write_png, write_ppm
+    from rt_core.jitlog import KernelLog
+    from rt_core.parser import parse_scene
+    from rt_core.render import nonfinite_count, provenance, render_image, write_images
+    from rt_core.rules import Rules
+    from rt_core import shading
+    from rt_core.shading import DEFAULT_MAX_DIST, quantize
+
+    outs = _outputs(args)
     rules = args.rules or Rules()
+    max_dist = DEFAULT_MAX_DIST if args.max_dist is None else args.max_dist
+    shade = bool(args.ppm or args.png or args.shade)
+    for _, path in outs:
+        _check_writable(path)
     scene = parse_scene(args.scene)
+    T = backend.types(args.precision, args.backend)
     cam = make_camera(scene, args.columns, args.rows, args.sampling)
-    images = render_geometry(scene, cam.columns, cam.rows, args.precision, args.backend,
-                             args.sampling, rules)
-    write_images(args.output, images, provenance(scene, cam, args.precision, args.backend, rules))
+    with (KernelLog() if args.explain else contextlib.nullcontext()) as log:
+        images, res = render_image(scene, cam, T, rules, geometry=bool(args.output),
+                                   shade=shade, max_dist=max_dist, log=log)
+    if args.explain:
+        for line in explain_lines(scene, log, res, max_dist):
+            print(f"rtval render: explain: {line}", file=sys.stderr)
+
+    extra = {"shading": "on" if shade else "off"}
+    if shade:
+        extra.update(max_dist=repr(max_dist), reflection_bounces=res.bounces)
+    attrs = provenance(scene, cam, args.precision, args.backend, rules, **extra)
+    pixels = quantize(np.stack([images[c] for c in "RGB"], -1)) if shade else None
     bad = nonfinite_count(images)
-    hits = int(images["hit.mask"].sum())
-    print(f"{args.output}: {cam.columns}x{cam.rows} {args.precision} {hits} hits, "
-          f"{len(scene.objects)} objects" + (f", {bad} NON-FINITE values" if bad else ""),
-          file=sys.stderr)
+    # everything is computed: write each output (atomically)
+    for opt, path in outs:
+        try:
+            if opt == "-o":
+                write_images(path, images, attrs)
+            elif opt == "--ppm":
+                write_ppm(path, pixels)
+            else:
+                write_png(path, pixels, attrs)
+        except OSError as e:
+            raise InputError(f"{path}: cannot write ({e.strerror or e})") from None
+    size = f"{cam.columns}x{cam.rows} {args.precision}"
+    for opt, path in outs:
+        if opt == "-o":
+            hits = int(images["hit.mask"].sum())
+            msg = (f"{path}: {size} {hits} hits, {len(scene.objects)} objects"
+                   + (", shaded R G B" if shade else ""))
+        else:
+            msg = (f"{path}: {size} shaded, {_n(res.bounces, 'reflection bounce')} "
+                   f"(max-dist {max_dist:g})")
+        print(msg + (f", {bad} NON-FINITE values" if bad else ""), file=sys.stderr)
+    if shade and res.capped:
+        print(f"rtval render: warning: reflections stopped at the safety cap of "
+              f"{shading.MAX_BOUNCES} bounces with {res.left_active} rays still short of "
+              f"max-dist {max_dist:g}", file=sys.stderr)
     return 1 if bad else 0
+
+
+def _n(count: int, noun: str) -> str:
+    return f"{count} {noun}" + ("" if count == 1 else "es" if noun.endswith("s") else "s")
+
+
+def explain_lines(scene, log, res, max_dist: float) -> list[str]:
+    """What the render did: object kinds, the passes that ran, the kernels they launched."""
+    from collections import Counter
+    from rt_core.shading import any_specular
+    kinds = Counter(o.kind for o in scene.objects)
+    lines = [f"scene {scene.path}: {_n(len(scene.objects), 'object')}"
+             + (" (" + ", ".join(f"{k} {kinds[k]}" for k in scene.kinds()) + ")" if kinds else "")
+             + f", {_n(len(scene.lights), 'light')}, "
+             + ("specular surfaces" if any_specular(scene) else "no specular surface")]
+    if res is None:
+        lines.append("shading: off (geometry only): no shadow or reflection pass")
+    else:
+        stop = ("no ray left" if not res.capped else
+                f"SAFETY CAP reached with {res.left_active} rays active")
+        n = len(scene.lights)
+        lines.append("shading: " + (f"{_n(n, 'shadow pass')} per bounce" if n else
+                                    "no lights: no shadow pass") + "; "
+                     + (f"{_n(res.bounces, 'reflection bounce')} (max-dist {max_dist:g}; "
+                        f"stopped: {stop})" if any_specular(scene) and max_dist > 0
+                        else "no reflection pass"))
+    lines.append(f"{'bounce':<9}{'pass':<12}{'rays':>9}{'kernels':>9}{'compiled':>10}"
+                 f"{'disk':>6}{'memory':>8}  other launches")
+    # the primary rays and the first reflection pass by pass; deeper bounces summed
+    rows: dict = {}
+    for p in log.passes:
+        label = ("primary" if p.bounce == 0 else str(p.bounce) if p.bounce == 1
+                 else f"2-{res.bounces}")
+        rows.setdefault((label, p.name), []).append(p)
+    for (label, name), ps in rows.items():
+        k, c, dk = (sum(getattr(p, a) for p in ps) for a in ("kernels", "compiled", "disk"))
+        other = Counter()
+        for p in ps:
+            other.update(p.other)
+        lines.append(f"{label:<9}{name:<12}{sum(p.rays for p in ps):>9}{k:>9}{c:>10}{dk:>6}"
+                     f"{k - c - dk:>8}  " + ", ".join(f"{n} {v}" for n, v in sorted(other.items())))
+    tot = log.total()
+    lines.append(f"kernels: {tot.kernels} launched, {tot.compiled} compiled, {tot.disk} loaded "
+                 f"from the disk cache, {tot.memory} reused from memory; "
+                 f"{len(set(tot.hashes))} distinct; {sum(tot.other.values())} other launches")
+    return lines
