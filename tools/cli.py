@@ -12,7 +12,7 @@ import argparse
 import importlib
 import sys
 
-COMMANDS = ["render", "convert", "compare", "validate", "exr"]
+COMMANDS = ["render", "convert", "compare", "validate", "exr", "gallery", "bench", "report"]
 USAGE_EXIT = 64
 
 
@@ -33,6 +33,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    if hasattr(args, "before_import"):      # e.g. pick Dr.Jit's kernel cache before it loads
+        args.before_import(args)
     from rt_core.errors import USER_ERRORS
     try:
         return int(args.func(args) or 0)

@@ -1,0 +1,384 @@
+"""Throughput of rt_core (f32, f64) against Mitsuba 3's ray_intersect_preliminary, on identical
+rays, interleaved in one process.
+
+Scenes (``bench_scene``): a 16 × 9 window seen from (0, 0, 10), so 1920 columns give 1920 × 1080
+rays; N objects on a jittered grid over the view, each covering about 1.5 × 1.5 grid cells (so
+a ray passes 2-3 objects on average), at depths 2..30 behind the window:
+
+* ``fplanes``: N finite planes, tilted up to ~17° and turned in their planes;
+* ``spheres``: N spheres of 1.2 cells' apparent diameter;
+* ``mixed``: N objects alternating sphere / finite plane, in front of an infinite back wall and
+  above a tiled floor (every kind the course has).
+
+Everything lies behind the window (z < 0) so the course's screen clip decides nothing, and one
+Mitsuba scene with rays from the viewpoint computes the course's answer (up to float32 edge
+rounding: ``agree`` counts the rays where rt_core f32 and Mitsuba see different objects).
+
+Rays: rt_core's float32 camera directions, evaluated once; rt_core f64 traces the same values
+widened exactly, Mitsuba the same float32 values from the (float32) viewpoint.  Timed: the
+closest-hit kernel alone (rt_core ``closest_hit`` → t, id; Mitsuba ``ray_intersect_preliminary``
+→ t, shape index), each call ``dr.eval`` + ``dr.sync_thread``.  The first call (compilation
+included, unless a kernel of the same structure ran before in the process) is reported apart;
+steady state is the median of ``reps`` calls, taken round-robin over the tracers so that the
+machine's drift hits them alike (``*_best``: the fastest call, which a shared machine's
+one-sided slowdowns disturb least).  Scene preparation is timed apart too: rt_core's host
+constants and screen-space bins, Mitsuba's ``load_dict`` (its BVH build).
+"""
+from __future__ import annotations
+
+import math
+import random
+import statistics
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from rt_core.scene import Material, Scene, make_fplane, make_plane, make_sphere, make_tplane
+
+DEFAULT_OBJECTS = (1, 16, 64, 256, 1024)
+SCENES = ("fplanes", "spheres", "mixed")
+WINDOW = (16.0, 9.0)
+VIEWPOINT = (0.0, 0.0, 10.0)
+GREY = Material((1, 1, 1), (2, 2, 2), (0, 0, 0))
+TRACERS = ("rt_core-f32", "rt_core-f64", "mitsuba")
+# optional variants (--brute): what the many-object path replaced
+BRUTE = ("rt_core-f32-nobins", "rt_core-f32-unrolled")
+UNROLLED_LIMIT = 64          # the unrolled kernel beyond this takes seconds to compile and run
+
+
+# --- scenes -----------------------------------------------------------------------------------
+
+def _cells(n: int, rng: random.Random):
+    """n jittered points of a grid over the window, with the cell size: (x, y, cw, ch)."""
+    gx = max(1, round(math.sqrt(n * WINDOW[0] / WINDOW[1])))
+    gy = max(1, math.ceil(n / gx))
+    cw, ch = WINDOW[0] / gx, WINDOW[1] / gy
+    return [(-WINDOW[0] / 2 + (i % gx + rng.uniform(0.3, 0.7)) * cw,
+             -WINDOW[1] / 2 + (i // gx + rng.uniform(0.3, 0.7)) * ch, cw, ch)
+            for i in range(n)]
+
+
+def _fplane(rng, wx, wy, cw, ch):
+    z = -rng.uniform(2.0, 30.0)
+    s = (VIEWPOINT[2] - z) / VIEWPOINT[2]           # window -> depth z magnification
+    w, h = 1.5 * cw * s, 1.5 * ch * s
+    normal = (rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), 1.0)
+    orient = (1.0, rng.uniform(-0.3, 0.3), 0.0)
+    f = make_fplane(GREY, normal, (0, 0, 0), orient, (w, h))
+    # the corner that puts the panel's centre on the view ray through (wx, wy)
+    c = (wx * s, wy * s, z)
+    p = tuple(c[i] - 0.5 * w * f.xdir[i] - 0.5 * h * f.ydir[i] for i in range(3))
+    return make_fplane(GREY, normal, p, orient, (w, h))
+
+
+def _sphere(rng, wx, wy, cw, ch):
+    z = -rng.uniform(2.0, 30.0)
+    s = (VIEWPOINT[2] - z) / VIEWPOINT[2]
+    return make_sphere(GREY, (wx * s, wy * s, z), 0.6 * min(cw, ch) * s)
+
+
+def bench_scene(kind: str, n: int, seed: int = 1) -> Scene:
+    """The benchmark scene ``kind`` (one of SCENES) with n objects (plus, for 'mixed', a back
+    wall and a tiled floor)."""
+    if kind not in SCENES:
+        raise ValueError(f"bench scene must be one of {', '.join(SCENES)}, not {kind!r}")
+    rng = random.Random(seed * 7919 + n)
+    objs = []
+    for i, cell in enumerate(_cells(n, rng)):
+        make = {"fplanes": _fplane, "spheres": _sphere}.get(kind)
+        if make is None:
+            make = _sphere if i % 2 == 0 else _fplane
+        objs.append(make(rng, *cell))
+    if kind == "mixed":
+        objs.append(make_plane(GREY, (0, 0, 1), (0, 0, -40)))
+        objs.append(make_tplane(GREY, (0, 1, 0), (0, -WINDOW[1] / 2 - 0.1, 0), (1, 0, 0),
+                                (1.0, 1.0), GREY))
+    return Scene(WINDOW, VIEWPOINT, (), tuple(objs), path=f"<bench {kind} {n}>")
+
+
+# --- measuring ----------------------------------------------------------------------------------
+
+def vm_kib(field_name: str) -> int:
+    """A field of /proc/self/status in KiB (VmRSS, VmHWM); -1 where unavailable."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith(field_name + ":"):
+                    return int(line.split()[1])
+    except OSError:
+        pass
+    return -1
+
+
+class MemoryProbe:
+    """Peak memory of a block: Dr.Jit's allocation watermark (its arrays: rt_core's and
+    Mitsuba's; the allocator's cache is flushed first so the peak is this block's), and the
+    process's peak RSS (VmHWM, reset through /proc/self/clear_refs; it also sees Embree's BVH
+    and LLVM's compiler, which Dr.Jit does not allocate).  Both as growth over the start."""
+
+    def __enter__(self):
+        import drjit as dr
+        dr.sync_thread()
+        dr.flush_malloc_cache()
+        dr.detail.malloc_clear_statistics()
+        self.jit0 = dr.detail.malloc_watermark(dr.JitBackend.LLVM)
+        try:
+            with open("/proc/self/clear_refs", "w") as f:
+                f.write("5")
+            self.hwm_ok = True
+        except OSError:
+            self.hwm_ok = False
+        self.rss0 = vm_kib("VmRSS")
+        return self
+
+    def __exit__(self, *exc):
+        import drjit as dr
+        dr.sync_thread()
+        self.jit_peak = dr.detail.malloc_watermark(dr.JitBackend.LLVM) - self.jit0
+        hwm = vm_kib("VmHWM")
+        self.rss_peak = (hwm - self.rss0) * 1024 if self.hwm_ok and hwm >= 0 else -1
+        return False
+
+
+def kernel_stats(history) -> dict:
+    """Compilation of the JIT kernels in a kernel history: how many, how many compiled now
+    (neither memory nor disk cache), and the LLVM time spent (ms)."""
+    jit = [e for e in history if str(e["type"]).endswith("JIT")]
+    return {"kernels": len(jit),
+            "compiled": sum(1 for e in jit if not e.get("cache_hit") and not e.get("cache_disk")),
+            "disk": sum(1 for e in jit if e.get("cache_disk")),
+            "compile_ms": round(sum(e.get("codegen_time", 0.0) + e.get("backend_time", 0.0)
+                                    for e in jit if not e.get("cache_hit")), 3)}
+
+
+def timed_call(fn):
+    """(seconds, result) of fn() followed by dr.sync_thread()."""
+    import drjit as dr
+    t0 = time.perf_counter()
+    out = fn()
+    dr.sync_thread()
+    return time.perf_counter() - t0, out
+
+
+def first_call(fn) -> tuple:
+    """(seconds, result, kernel_stats, MemoryProbe) of a first call."""
+    import drjit as dr
+    saved = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history()
+    try:
+        with MemoryProbe() as mem:
+            sec, out = timed_call(fn)
+        stats = kernel_stats(dr.kernel_history())
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, saved)
+    return sec, out, stats, mem
+
+
+def round_robin(calls: dict, reps: int) -> dict:
+    """{name: [seconds...]}: ``reps`` rounds, each calling every fn once, in turn."""
+    out = {k: [] for k in calls}
+    for _ in range(reps):
+        for k, fn in calls.items():
+            out[k].append(timed_call(fn)[0])
+    return out
+
+
+# --- the tracers -------------------------------------------------------------------------------
+
+@dataclass
+class Tracer:
+    """One way of tracing a case's rays: ``run()`` returns evaluated (t, id) arrays."""
+    name: str
+    run: object
+    prepare_ms: float
+    ids: object = None            # -> numpy course ids of the last result
+    keep: list = field(default_factory=list)   # objects that must outlive the calls
+
+
+def rt_tracer(name, scene, precision, d32, unroll_max=None, bins=None) -> Tracer:
+    import drjit as dr
+    from rt_core import accel, backend
+    from rt_core.tracer import closest_hit, prepare
+    T = backend.types(precision)
+    d = d32 if precision == "f32" else T.Array3(*(T.Float(c) for c in (d32.x, d32.y, d32.z)))
+    dr.eval(d)
+    t0 = time.perf_counter()
+    ks = accel.configure(prepare(scene, T), unroll_max, bins)
+    if bins is not False and any(accel.looped(ks, k) for k in ks.kinds):
+        accel.binned(ks, dr.width(d))
+    prep = (time.perf_counter() - t0) * 1e3
+    state = {}
+
+    def run():
+        t, oid, _ = closest_hit(ks, d)
+        dr.eval(t, oid)
+        state["id"] = oid
+        return t, oid
+    return Tracer(name, run, prep, lambda: np.asarray(state["id"].numpy()), [ks, d])
+
+
+def mitsuba_tracer(scene, d32, columns: int) -> Tracer:
+    import drjit as dr
+    from .convert import course_id, mitsuba, scene_dict
+    mi = mitsuba()
+    t0 = time.perf_counter()
+    ms = mi.load_dict(scene_dict(scene, columns, None, integrator=False, clip=False),
+                      optimize=False)
+    prep = (time.perf_counter() - t0) * 1e3
+    ids = np.array([course_id(s.id()) for s in ms.shapes()] + [-1], np.int64)
+    n = dr.width(d32)
+    o = mi.Point3f(*(dr.full(mi.Float, float(c), n) for c in scene.viewpoint))
+    ray = mi.Ray3f(o, mi.Vector3f(d32.x, d32.y, d32.z))
+    dr.eval(ray)
+    state = {}
+
+    def run():
+        pi = ms.ray_intersect_preliminary(ray)
+        dr.eval(pi.t, pi.shape_index)
+        state["pi"] = pi
+        return pi.t, pi.shape_index
+    def course_ids():
+        idx = np.asarray(state["pi"].shape_index.numpy()).astype(np.int64)
+        return ids[np.minimum(idx, len(ids) - 1)]
+    return Tracer("mitsuba", run, prep, course_ids, [ms, ray])
+
+
+# --- the benchmark -----------------------------------------------------------------------------
+
+def bench_case(kind: str, n: int, columns: int = 1920, reps: int = 9, brute: bool = False,
+               tracers=TRACERS) -> dict:
+    """One scene: every tracer's first call and steady state, interleaved."""
+    import drjit as dr
+    from rt_core import backend
+    from rt_core.camera import make_camera, primary_directions
+    scene = bench_scene(kind, n)
+    cam = make_camera(scene, columns)
+    T32 = backend.types("f32")
+    d32 = primary_directions(scene, cam, T32)
+    dr.eval(d32)
+    makers = {"rt_core-f32": lambda: rt_tracer("rt_core-f32", scene, "f32", d32),
+              "rt_core-f64": lambda: rt_tracer("rt_core-f64", scene, "f64", d32),
+              "mitsuba": lambda: mitsuba_tracer(scene, d32, columns),
+              "rt_core-f32-nobins": lambda: rt_tracer("rt_core-f32-nobins", scene, "f32", d32,
+                                                      bins=False),
+              "rt_core-f32-unrolled": lambda: rt_tracer("rt_core-f32-unrolled", scene, "f32",
+                                                        d32, unroll_max=1 << 30)}
+    names = list(tracers) + (list(BRUTE) if brute else [])
+    if n > UNROLLED_LIMIT and "rt_core-f32-unrolled" in names:
+        names.remove("rt_core-f32-unrolled")
+    out = {"scene": kind, "objects": n, "total_objects": len(scene.objects),
+           "columns": cam.columns, "rows": cam.rows, "rays": cam.size, "reps": reps,
+           "tracers": {}}
+    trs = {}
+    for name in names:
+        tr = makers[name]()
+        sec, _, stats, mem = first_call(tr.run)
+        trs[name] = tr
+        out["tracers"][name] = {"prepare_ms": round(tr.prepare_ms, 3),
+                                "first_ms": round(sec * 1e3, 3), **stats,
+                                "jit_peak_bytes": mem.jit_peak, "rss_peak_bytes": mem.rss_peak}
+    times = round_robin({k: tr.run for k, tr in trs.items()}, reps)
+    for name, ts in times.items():
+        med = statistics.median(ts)
+        r = out["tracers"][name]
+        r["median_ms"] = round(med * 1e3, 3)
+        r["min_ms"] = round(min(ts) * 1e3, 3)
+        r["mrays_per_s"] = round(cam.size / med / 1e6, 2)
+        r["mrays_per_s_best"] = round(cam.size / min(ts) / 1e6, 2)
+    # agreement: rays whose object differs from rt_core f32
+    if "rt_core-f32" in trs:
+        ref = trs["rt_core-f32"].ids()
+        for name, tr in trs.items():
+            if name != "rt_core-f32":
+                out["tracers"][name]["differ_from_f32"] = int(np.count_nonzero(tr.ids() != ref))
+    mi = out["tracers"].get("mitsuba")
+    for name, r in out["tracers"].items():
+        if mi and name != "mitsuba":
+            r["ratio_vs_mitsuba"] = round(mi["median_ms"] / r["median_ms"], 3)
+            r["ratio_vs_mitsuba_best"] = round(mi["min_ms"] / r["min_ms"], 3)
+    for p in ("f32", "f64"):
+        r = out["tracers"].get(f"rt_core-{p}")
+        if r and mi:
+            out[f"ratio_{p}_vs_mitsuba"] = r["ratio_vs_mitsuba"]
+            out[f"ratio_{p}_vs_mitsuba_best"] = r["ratio_vs_mitsuba_best"]
+    return out
+
+
+def run_bench(objects=DEFAULT_OBJECTS, scenes=SCENES, columns: int = 1920, reps: int = 9,
+              brute: bool = False, progress=None) -> dict:
+    """Every scene kind × object count; returns {'meta', 'cases', 'growth'}."""
+    from rt_core.render import versions
+    cases = []
+    for kind in scenes:
+        for n in objects:
+            cases.append(bench_case(kind, n, columns, reps, brute))
+            if progress:
+                progress(cases[-1])
+    return {"meta": {"columns": columns, "reps": reps, **versions(), **machine()},
+            "cases": cases, "growth": growth(cases)}
+
+
+def machine() -> dict:
+    import os
+    import drjit as dr
+    info = {"cpus": os.cpu_count(), "drjit_threads": dr.thread_count(),
+            "llvm": ".".join(map(str, dr.detail.llvm_version())),
+            "kernel_cache": os.environ.get("DRJIT_CACHE_DIR", "~/.drjit (shared)")}
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    info["cpu"] = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    return info
+
+
+def growth(cases) -> dict:
+    """Per scene kind and tracer: the exponent b of time ∝ N^b fitted over the object counts
+    from 16 up (least squares in log-log; all counts if fewer than two are >= 16), and the
+    largest N where rt_core f32 is still ahead of Mitsuba."""
+    out = {}
+    for kind in dict.fromkeys(c["scene"] for c in cases):
+        cs = sorted((c for c in cases if c["scene"] == kind), key=lambda c: c["objects"])
+        row = {}
+        for name in dict.fromkeys(k for c in cs for k in c["tracers"]):
+            pts = [(c["objects"], c["tracers"][name]["median_ms"]) for c in cs
+                   if name in c["tracers"]]
+            if sum(1 for p in pts if p[0] >= 16) >= 2:
+                pts = [p for p in pts if p[0] >= 16]
+            if len(pts) >= 2:
+                x = np.log([p[0] for p in pts])
+                y = np.log([p[1] for p in pts])
+                row[f"{name}_exponent"] = round(float(np.polyfit(x, y, 1)[0]), 3)
+        ahead = [c["objects"] for c in cs if c.get("ratio_f32_vs_mitsuba", 0) >= 1]
+        row["f32_ahead_of_mitsuba_up_to"] = max(ahead) if ahead else 0
+        behind = [c["objects"] for c in cs
+                  if c["tracers"].get("rt_core-f32-nobins", {}).get("ratio_vs_mitsuba", 9) < 1]
+        if behind:
+            row["brute_force_behind_mitsuba_from"] = min(behind)
+        out[kind] = row
+    return out
+
+
+def table(result: dict) -> str:
+    """A plain-text table of run_bench's result."""
+    lines = [f"{'scene':8s} {'N':>5s} {'tracer':21s} {'Mrays/s':>8s} {'median ms':>9s} "
+             f"{'first ms':>9s} {'compiled':>8s} {'prep ms':>8s} {'vs Mitsuba':>10s} "
+             f"{'(best)':>7s} {'differ':>7s}"]
+    for c in result["cases"]:
+        for name, r in c["tracers"].items():
+            ratio = r.get("ratio_vs_mitsuba")
+            best = r.get("ratio_vs_mitsuba_best")
+            lines.append(f"{c['scene']:8s} {c['objects']:5d} {name:21s} {r['mrays_per_s']:8.1f} "
+                         f"{r['median_ms']:9.2f} {r['first_ms']:9.1f} {r['compiled']:8d} "
+                         f"{r['prepare_ms']:8.1f} "
+                         f"{(f'{ratio:.2f}x' if ratio else '-'):>10s} "
+                         f"{(f'{best:.2f}x' if best else '-'):>7s} "
+                         f"{r.get('differ_from_f32', '-')!s:>7s}")
+    for kind, g in result["growth"].items():
+        lines.append(f"{kind}: " + ", ".join(f"{k}={v}" for k, v in g.items()))
+    return "\n".join(lines)

@@ -1,0 +1,52 @@
+"""rtval gallery: PNGs of every supported scene, an HTML page, a contact sheet; unsupported
+files listed on stderr with the parser's one-line message."""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from tools.cmd_gallery import scene_files
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def rtval(*args):
+    return subprocess.run([sys.executable, "-m", "tools.cli", *map(str, args)],
+                          capture_output=True, text=True, cwd=REPO)
+
+
+def test01_every_scene(tmp_path):
+    out = tmp_path / "g"
+    r = rtval("gallery", "-o", out, "--columns", 24)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == [str(out / "index.html"), str(out / "contact.png")]
+    skipped = [ln for ln in r.stderr.splitlines() if ln.startswith("rtval gallery: skipped")]
+    # each with the parser's one line: file:line:col: message
+    assert skipped and all(":" in ln.split("skipped ", 1)[1] for ln in skipped)
+    assert sum("is not supported" in ln for ln in skipped) > 0.9 * len(skipped)
+    pngs = sorted(p.name for p in out.glob("*.png") if p.name != "contact.png")
+    files = scene_files([])
+    assert len(pngs) + len(skipped) == len(files)
+    bundled = sorted(p.stem for p in (REPO / "scenes").glob("*.txt"))
+    assert {f"scenes__{b}.png" for b in bundled} <= set(pngs)
+    assert any(p.startswith("course__numeric__") for p in pngs)
+    page = (out / "index.html").read_text()
+    assert all(f'src="{p}"' in page for p in pngs) and page.count("<li>") == len(skipped)
+    assert f"{len(pngs)} scenes rendered, {len(skipped)} skipped" in r.stderr
+    sheet = np.asarray(Image.open(out / "contact.png"))
+    assert sheet.shape[1] == 6 * 24 and sheet.shape[0] >= (len(pngs) // 6) * 18
+
+
+def test02_given_files(tmp_path):
+    bad = tmp_path / "spot.txt"
+    bad.write_text("8 6\n0 0 5\n11\n1 1 1\n")
+    r = rtval("gallery", "-o", tmp_path / "g", "--columns", 16, REPO / "scenes" / "sphere.txt",
+              bad)
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "g" / "sphere.png").exists()
+    assert f"skipped {bad}:3:1: 11 (spotlight) is not supported" in r.stderr
+    assert "Traceback" not in r.stderr

@@ -1,0 +1,295 @@
+"""What the tracer's kernels hold, and the many-object path (rt_core/accel.py).
+
+* The loop path (a kind with more than accel.UNROLL_MAX objects: one symbolic loop, screen-space
+  bins for rays from the viewpoint) gives bit-identical t and ids to the unrolled code, for
+  camera rays, for secondary rays with ``skip`` and for the shadow test, under every rule
+  variant, in f32 and f64, also on objects placed to defeat the culling (behind the viewpoint,
+  straddling its plane, edge-on, around the window's border).
+* A scene's kernel holds code only for the object kinds present, and only the passes asked for.
+* Scene numbers are data: scenes that differ only in numbers (and, on the loop path, in object
+  counts) reuse the compiled kernels — Dr.Jit's kernel history shows 0 compilations.
+"""
+from __future__ import annotations
+
+import random
+
+import drjit as dr
+import numpy as np
+import pytest
+
+from rt_core import accel, backend
+from rt_core.camera import make_camera, primary_directions
+from rt_core.jitlog import KernelLog
+from rt_core.render import render_geometry
+from rt_core.rules import Rules
+from rt_core.scene import Material, Scene, make_fplane, make_plane, make_sphere, make_tplane
+from rt_core.tracer import closest_hit, occluded, prepare
+from tests.scenegen import random_scene
+
+PRECISIONS = [pytest.param(p, id=p) for p in ("f32", "f64")]
+GREY = Material((1, 1, 1), (2, 2, 2), (0, 0, 0))
+UNROLLED = 10 ** 6          # accel.UNROLL_MAX that unrolls every object
+LOOPED = 0                  # ... that loops over every kind
+
+
+def types(precision):
+    try:
+        return backend.types(precision, "llvm")
+    except backend.BackendError as err:
+        pytest.skip(f"llvm backend unavailable: {err}")
+
+
+def bits(a) -> np.ndarray:
+    """The bit patterns of a Dr.Jit or numpy array (exact comparison, NaN-safe)."""
+    a = np.asarray(a.numpy() if hasattr(a, "numpy") else a)
+    return a.view(np.uint32 if a.dtype == np.float32 else np.uint64 if a.dtype == np.float64
+                  else a.dtype)
+
+
+def hits(scene, T, unroll_max, monkeypatch, d=None, o=None, skip=None, rules=Rules(),
+         columns=96, sampling="corners", maxt=None):
+    """(t, id) of closest_hit, plus the shadow mask when ``maxt`` is given, as numpy."""
+    monkeypatch.setattr(accel, "UNROLL_MAX", unroll_max)
+    ks = prepare(scene, T)
+    if d is None:
+        d = primary_directions(scene, make_camera(scene, columns, None, sampling), T)
+    t, oid, _ = closest_hit(ks, d, o, rules, skip)
+    out = [t, oid]
+    if maxt is not None:
+        out.append(occluded(ks, d, o, maxt, rules, skip))
+    dr.eval(*out)
+    return [bits(x) for x in out]
+
+
+def assert_same(a, b, what):
+    for x, y, name in zip(a, b, ("t", "id", "blocked")):
+        bad = np.flatnonzero(x != y)
+        assert len(bad) == 0, (f"{what}: {name} differs at {len(bad)} rays, first {bad[0]}: "
+                               f"looped {x[bad[0]]} unrolled {y[bad[0]]}")
+
+
+# --- scenes ---------------------------------------------------------------------------------
+
+def adversarial_scene(seed: int) -> Scene:
+    """A random scene plus objects placed where culling by projection could go wrong: behind
+    the viewpoint, straddling its z plane, containing it, edge-on to it, across the window's
+    border, tiny and far, and exact copies (ties)."""
+    base = random_scene(seed, n_objects=24, tie_prob=0.3)
+    rng = random.Random(seed)
+    vx, vy, vz = base.viewpoint
+    extra = [
+        make_fplane(GREY, (0, 0, 1), (vx - 1, vy - 1, vz + 2), (1, 0, 0), (2, 2)),      # behind
+        make_fplane(GREY, (1, 0, 0.1), (vx + 1, vy - 2, vz - 3), (0, 1, 0), (4, 6)),  # straddles
+        make_sphere(GREY, (vx, vy + 0.5, vz), 1.5),                                   # contains V
+        make_sphere(GREY, (vx + 3, vy, vz + 1), 1.5),                                 # straddles
+        make_sphere(GREY, (vx, vy, vz + 5), 1.0),                                     # behind
+        # edge-on: the viewpoint lies in the panel's plane; and one nearly so
+        make_fplane(GREY, (1, 0, 0), (vx, -2, -1), (0, 0, -1), (6, 4)),
+        make_fplane(GREY, (1, 1e-7, 0), (vx + 1e-6, -2, -1), (0, 0, -1), (6, 4)),
+        # across the window border and far off to the side
+        make_fplane(GREY, (0, 0, 1), (3.5, 2.5, -2), (1, 0, 0), (3, 3)),
+        make_sphere(GREY, (-40, 0, -10), 3.0),
+        make_sphere(GREY, (0.5, 0.25, -5000), 0.01),                                  # tiny, far
+        make_plane(GREY, (0, 1, 0.2), (0, -3, 0)),
+        make_tplane(GREY, (0.1, 1, 0), (0, -2.5, 0), (1, 0, 0), (0.5, 0.7), GREY),
+    ]
+    objs = list(base.objects) + extra
+    rng.shuffle(objs)
+    objs += objs[:3]                                        # exact duplicates: ties
+    return Scene(base.window, base.viewpoint, base.lights, tuple(objs), path=f"<adv {seed}>")
+
+
+def secondary_rays(scene, T, n, seed):
+    """Random origins (relative to the viewpoint) near the objects, unit directions, and a
+    skip id per ray (-1 for none)."""
+    rng = np.random.default_rng(seed)
+    o = rng.normal(0, 3, (n, 3)) + np.array([0, 0, -scene.viewpoint[2] - 4])
+    d = rng.normal(0, 1, (n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    skip = rng.integers(-1, len(scene.objects), n)
+    A = T.Array3
+    return (A(*(d[:, i] for i in range(3))), A(*(o[:, i] for i in range(3))),
+            T.Int32(skip.astype(np.int32)), T.Float(rng.uniform(0.5, 30, n)))
+
+
+# --- loops vs unrolled ----------------------------------------------------------------------
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+@pytest.mark.parametrize("seed", range(4))
+def test01_camera_rays_loop_equals_unrolled(seed, precision, monkeypatch):
+    scene = adversarial_scene(seed)
+    T = types(precision)
+    sampling = "corners" if seed % 2 == 0 else "centers"
+    a = hits(scene, T, LOOPED, monkeypatch, sampling=sampling)
+    b = hits(scene, T, UNROLLED, monkeypatch, sampling=sampling)
+    assert_same(a, b, f"adversarial {seed} {precision}")
+    assert (a[1] >= 0).mean() > 0.3, "the scene should cover a good part of the image"
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test02_secondary_rays_loop_equals_unrolled(precision, monkeypatch):
+    scene = adversarial_scene(7)
+    T = types(precision)
+    d, o, skip, maxt = secondary_rays(scene, T, 20000, 7)
+    a = hits(scene, T, LOOPED, monkeypatch, d=d, o=o, skip=skip, maxt=maxt)
+    b = hits(scene, T, UNROLLED, monkeypatch, d=d, o=o, skip=skip, maxt=maxt)
+    assert_same(a, b, f"secondary rays {precision}")
+    assert 0.05 < (a[1] >= 0).mean() and 0.05 < a[2].mean() < 0.95
+
+
+RULES = {"ties-last": Rules(ties="last"), "edges-open": Rules(edges="open"),
+         "t_min": Rules(t_min=1e-4), "clip>=": Rules(screen_clip=">="),
+         "clip-off": Rules(screen_clip="off"), "clip_spheres": Rules(clip_spheres=True)}
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+@pytest.mark.parametrize("name", list(RULES))
+def test03_rule_variants_loop_equals_unrolled(name, precision, monkeypatch):
+    scene = adversarial_scene(11)
+    T = types(precision)
+    rules = RULES[name]
+    a = hits(scene, T, LOOPED, monkeypatch, rules=rules, columns=64)
+    b = hits(scene, T, UNROLLED, monkeypatch, rules=rules, columns=64)
+    assert_same(a, b, f"{name} camera {precision}")
+    d, o, skip, maxt = secondary_rays(scene, T, 4000, 11)
+    a = hits(scene, T, LOOPED, monkeypatch, d=d, o=o, skip=skip, maxt=maxt, rules=rules)
+    b = hits(scene, T, UNROLLED, monkeypatch, d=d, o=o, skip=skip, maxt=maxt, rules=rules)
+    assert_same(a, b, f"{name} secondary {precision}")
+
+
+def test04_mixed_loop_and_unrolled_kinds(monkeypatch):
+    """A looped kind next to unrolled ones (the default threshold): ties across kinds still go
+    by id."""
+    T = types("f32")
+    objs = [make_fplane(GREY, (0, 0, 1), (-4 + 0.5 * i, -3, -2 - 0.1 * i), (1, 0, 0), (1, 5))
+            for i in range(12)]
+    objs.insert(3, make_plane(GREY, (0, 0, 1), (0, 0, -2.3)))         # ties with fplane 3
+    objs.append(make_sphere(GREY, (0, 0, -4), 1.0))
+    scene = Scene((8.0, 6.0), (0.0, 0.0, 3.0), (), tuple(objs))
+    for ties in ("first", "last"):
+        a = hits(scene, T, 8, monkeypatch, rules=Rules(ties=ties))
+        b = hits(scene, T, UNROLLED, monkeypatch, rules=Rules(ties=ties))
+        assert_same(a, b, f"ties={ties}")
+
+
+def test05_bins_are_conservative_where_objects_project(monkeypatch):
+    """Every object that some camera ray hits is listed in that ray's bin."""
+    monkeypatch.setattr(accel, "UNROLL_MAX", LOOPED)
+    T = types("f32")
+    scene = adversarial_scene(3)
+    cam = make_camera(scene, 200)
+    d = primary_directions(scene, cam, T)
+    ks = prepare(scene, T)
+    grid, tabs = accel.binned(ks, cam.size)
+    b = accel.ray_bins(ks, grid, d).numpy()
+    t, oid, hit = closest_hit(ks, d)
+    oid = oid.numpy()
+    assert (b < grid.nbins).mean() > 0.99, "almost every camera ray falls in a grid bin"
+    listed = {}
+    for kind, tab in tabs.items():
+        off = tab.offsets.numpy()
+        rows = tab.rows.numpy().reshape(-1, len(accel.LAYOUT[kind]))
+        idcol = accel.LAYOUT[kind].index("id")
+        for k in range(grid.nbins + 1):
+            listed.setdefault(k, set()).update(rows[off[k]:off[k + 1], idcol].astype(int))
+    hit = np.flatnonzero(oid >= 0)
+    assert len(hit) > 0.3 * len(oid)
+    missing = [i for i in hit if oid[i] not in listed[b[i]]]
+    assert not missing, f"{len(missing)} rays hit an object their bin does not list"
+
+
+# --- what the kernels hold ----------------------------------------------------------------------
+
+def jit_launches(fn):
+    """Run fn with Dr.Jit's kernel history on; its JIT kernel launches."""
+    with KernelLog():
+        fn()
+        return [e for e in dr.kernel_history() if e["type"] == dr.KernelType.JIT]
+
+
+def hit_kernel(scene, T):
+    """The one kernel of closest_hit (t, id) on evaluated camera directions."""
+    d = primary_directions(scene, make_camera(scene, 64), T)
+    dr.eval(d)
+    ks = prepare(scene, T)
+
+    def run():
+        t, oid, _ = closest_hit(ks, d)
+        dr.eval(t, oid)
+    (k,) = jit_launches(run)
+    return k
+
+
+def spheres(n, seed=0):
+    rng = random.Random(seed)
+    return [make_sphere(GREY, (rng.uniform(-3, 3), rng.uniform(-2, 2), rng.uniform(-9, -3)),
+                        rng.uniform(0.3, 1.5)) for _ in range(n)]
+
+
+def fplanes(n, seed=0):
+    rng = random.Random(seed)
+    return [make_fplane(GREY, (rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), 1),
+                        (rng.uniform(-4, 2), rng.uniform(-3, 1), rng.uniform(-9, -2)),
+                        (1, rng.uniform(-0.5, 0.5), 0), (rng.uniform(0.5, 3), rng.uniform(0.5, 3)))
+            for _ in range(n)]
+
+
+def scene_of(objs, seed=0):
+    rng = random.Random(seed)
+    vp = (rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5), rng.uniform(3, 6))
+    return Scene((8.0, 6.0), vp, (), tuple(objs))
+
+
+@pytest.mark.parametrize("counts", [(3, 0), (20, 0)], ids=["unrolled", "looped"])
+def test06_kernel_holds_only_the_kinds_present(counts):
+    """A sphere-only scene compiles sphere code only: its kernel is not the one of a scene with
+    a finite plane added, and has fewer operations; a plane-only kernel has no square root
+    (the sphere test's) — the IR shows it."""
+    T = types("f32")
+    n, _ = counts
+    only = hit_kernel(scene_of(spheres(n)), T)
+    same = hit_kernel(scene_of(spheres(n, seed=5), seed=5), T)
+    more = hit_kernel(scene_of(spheres(n) + fplanes(1 if n < 8 else 12)), T)
+    assert same["hash"] == only["hash"]
+    assert more["hash"] != only["hash"]
+    assert only["operation_count"] < more["operation_count"]
+    planes = hit_kernel(scene_of(fplanes(n)), T)
+    assert "sqrt" not in planes["ir"].getvalue()
+    assert "sqrt" in only["ir"].getvalue()
+
+
+def test07_only_the_passes_asked_for():
+    """The geometry render is one kernel; the closest hit alone (t, id: what a preliminary
+    intersection returns) is a smaller one."""
+    T = types("f32")
+    scene = scene_of(spheres(2) + fplanes(2))
+    full = jit_launches(lambda: render_geometry(scene, 64))
+    assert len(full) == 1
+    prelim = hit_kernel(scene, T)
+    assert prelim["operation_count"] < full[0]["operation_count"]
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+@pytest.mark.parametrize("layout", ["unrolled", "looped"])
+def test08_scenes_differing_in_numbers_reuse_kernels(layout, precision):
+    """Ten scenes with the same kinds (and, unrolled, the same counts) but other numbers: after
+    the first, 0 kernels compiled (every launch found in the in-memory cache).  On the loop
+    path the object counts differ too."""
+    types(precision)
+    scenes = []
+    for i in range(10):
+        if layout == "unrolled":
+            objs = spheres(2, i) + fplanes(3, i) + [make_plane(GREY, (0, 1, 0.1 * i), (0, -3, 0))]
+        else:
+            objs = spheres(9 + i, i) + fplanes(12 + 2 * i, i) + \
+                [make_plane(GREY, (0, 1, 0.1 * i), (0, -3, 0))]
+        scenes.append(scene_of(objs, i))
+    with KernelLog() as log:
+        for i, scene in enumerate(scenes):
+            render_geometry(scene, 48, precision=precision)
+            log.mark(f"scene {i}", "primary", 0, 48 * scene.default_rows(48))
+    first, rest = log.passes[0], log.passes[1:]
+    assert first.kernels >= 1
+    assert all(p.kernels == first.kernels for p in rest)
+    assert sum(p.compiled + p.disk for p in rest) == 0, [(p.compiled, p.disk) for p in rest]
+    assert len({h for p in log.passes for h in p.hashes}) == first.kernels

@@ -1,0 +1,76 @@
+"""rtval bench: rt_core f32/f64 against Mitsuba's preliminary intersection, in one process."""
+from __future__ import annotations
+
+import json
+import os
+import sys
+import tempfile
+
+from .options import positive_int
+
+# mitsuba_ref.bench's DEFAULT_OBJECTS and SCENES (not imported here: importing rt_core loads
+# Dr.Jit, which must see DRJIT_CACHE_DIR first; tests/test_report.py checks they agree)
+DEFAULT_OBJECTS = (1, 16, 64, 256, 1024)
+SCENES = ("fplanes", "spheres", "mixed")
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("bench", help="throughput of rt_core against Mitsuba",
+                       description="Trace identical 1920x1080 camera rays with rt_core (f32, "
+                                   "f64) and Mitsuba 3 (ray_intersect_preliminary) against N "
+                                   "finite planes, N spheres and a mixed scene, interleaved in "
+                                   "one process: Mrays/s, first call (compilation), scene "
+                                   "preparation, peak memory, and the ratio rt_core/Mitsuba. "
+                                   "Compare ratios, not absolute times, on a shared machine.")
+    p.add_argument("--objects", type=positive_int, nargs="+", default=list(DEFAULT_OBJECTS),
+                   metavar="N", help="object counts (default: %(default)s)")
+    p.add_argument("--scenes", nargs="+", choices=SCENES, default=list(SCENES),
+                   help="scene kinds (default: all)")
+    p.add_argument("--columns", type=positive_int, default=1920,
+                   help="rays per row; rows follow the 16:9 window (default 1920 -> 1080)")
+    p.add_argument("--reps", type=positive_int, default=9,
+                   help="timed calls per tracer, round-robin (default 9); the median counts")
+    p.add_argument("--threads", type=positive_int, default=None,
+                   help="Dr.Jit worker threads (default: Dr.Jit's, one per core)")
+    p.add_argument("--brute", action="store_true",
+                   help="also time rt_core f32 without screen-space bins (a loop over every "
+                        "object) and fully unrolled (up to 64 objects)")
+    p.add_argument("--keep-cache", action="store_true",
+                   help="use Dr.Jit's on-disk kernel cache (default: an empty one, so that "
+                        "first calls show compilation)")
+    p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    p.add_argument("-o", "--output", metavar="FILE.json", help="also write the JSON here")
+    p.set_defaults(func=run, before_import=lambda args: fresh_kernel_cache(args.keep_cache))
+
+
+def fresh_kernel_cache(keep: bool) -> None:
+    """Point Dr.Jit at an empty kernel cache (unless ``keep``), so that first calls compile;
+    only possible before Dr.Jit is imported."""
+    if not keep and "drjit" not in sys.modules:
+        import atexit
+        import shutil
+        path = tempfile.mkdtemp(prefix="rtval-kernels-")
+        atexit.register(shutil.rmtree, path, True)      # runs after Dr.Jit's own exit hooks
+        os.environ["DRJIT_CACHE_DIR"] = path
+
+
+def run(args) -> int:
+    from mitsuba_ref.bench import run_bench, table
+    if args.threads:
+        import drjit as dr
+        dr.set_thread_count(args.threads)
+
+    def progress(case):
+        f32 = case["tracers"].get("rt_core-f32", {})
+        print(f"bench: {case['scene']} N={case['objects']}: rt_core f32 "
+              f"{f32.get('mrays_per_s', 0):.0f} Mrays/s, "
+              f"{case.get('ratio_f32_vs_mitsuba', 0):.2f}x Mitsuba", file=sys.stderr)
+    result = run_bench(args.objects, args.scenes, args.columns, args.reps, args.brute,
+                       progress=progress)
+    text = json.dumps(result, indent=1)
+    if args.output:
+        from pathlib import Path
+        from rt_core.exrio import atomic_write
+        atomic_write(args.output, lambda tmp: Path(tmp).write_text(text + "\n"))
+    print(text if args.json else table(result))
+    return 0

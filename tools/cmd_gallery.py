@@ -1,0 +1,131 @@
+"""rtval gallery: every supported scene, shaded, as PNGs plus an HTML page and a contact sheet.
+
+Scenes: ``scenes/*.txt`` of the repository and ``../shared/course-scenes/**/*.txt`` beside it
+(or the files given).  A file the parser rejects (an object kind out of scope, say) is
+skipped and listed on stderr with the parser's one-line message.
+"""
+from __future__ import annotations
+
+import html
+import sys
+from pathlib import Path
+
+from .options import positive_int
+
+REPO = Path(__file__).resolve().parents[1]
+SOURCES = (("scenes", REPO / "scenes"), ("course", REPO.parent / "shared" / "course-scenes"))
+THUMBS_PER_ROW = 6
+LABEL_HEIGHT = 14
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("gallery", help="render every supported scene to PNGs, an HTML page and "
+                                       "a contact sheet",
+                       description="Render every supported scene in scenes/ and "
+                                   "../shared/course-scenes/ (or the SCENE files given) with "
+                                   "the course shading: one PNG each, index.html and "
+                                   "contact.png.  Unsupported files are listed on stderr.")
+    p.add_argument("scenes", nargs="*", metavar="SCENE",
+                   help="scene files (default: every .txt in the two scene folders)")
+    p.add_argument("-o", "--output", default="out/gallery", metavar="DIR",
+                   help="output folder (default out/gallery)")
+    p.add_argument("--columns", type=positive_int, default=160,
+                   help="image width in pixels (default 160)")
+    p.add_argument("--precision", choices=("f32", "f64"), default="f32")
+    p.set_defaults(func=run)
+
+
+def scene_files(given: list) -> list[tuple[str, Path]]:
+    """(name, path) of the scenes to render; names are unique file stems with their source."""
+    if given:
+        return [(Path(g).stem, Path(g)) for g in given]
+    out = []
+    for label, root in SOURCES:
+        for path in sorted(root.rglob("*.txt")):
+            if path.name.lower() != "readme.txt":
+                out.append((f"{label}/{path.relative_to(root).with_suffix('').as_posix()}",
+                            path))
+    return out
+
+
+def run(args) -> int:
+    import numpy as np
+    from rt_core import backend
+    from rt_core.camera import make_camera
+    from rt_core.errors import InputError
+    from rt_core.exrio import atomic_write
+    from rt_core.imageio import write_png
+    from rt_core.parser import parse_scene
+    from rt_core.render import render_image
+    from rt_core.scene import SceneError
+    from rt_core.shading import quantize
+
+    outdir = Path(args.output)
+    if outdir.exists() and not outdir.is_dir():
+        raise InputError(f"{outdir}: not a directory")
+    T = backend.types(args.precision)
+    done, skipped = [], []
+    for name, path in scene_files(args.scenes):
+        try:
+            scene = parse_scene(str(path))
+            cam = make_camera(scene, args.columns)
+        except (SceneError, InputError) as e:
+            why = str(e) if isinstance(e, SceneError) else f"{path}: {e}"
+            skipped.append((name, why))
+            print(f"rtval gallery: skipped {why}", file=sys.stderr)
+            continue
+        images, res = render_image(scene, cam, T, geometry=False, shade=True)
+        pixels = quantize(np.stack([images[c] for c in "RGB"], -1))
+        file = name.replace("/", "__") + ".png"
+        write_png(str(outdir / file), pixels, {"rtval.scene": str(path)})
+        done.append((name, file, pixels, res.bounces))
+    page = outdir / "index.html"
+    sheet = outdir / "contact.png"
+    atomic_write(str(page), lambda tmp: Path(tmp).write_text(_html(done, skipped, args)))
+    write_png(str(sheet), _contact_sheet(done, args.columns))
+    print(f"rtval gallery: {len(done)} scenes rendered, {len(skipped)} skipped", file=sys.stderr)
+    print(page)
+    print(sheet)
+    return 0
+
+
+def _html(done, skipped, args) -> str:
+    """One page: a figure per image, then the skipped files with their reason."""
+    figs = "\n".join(
+        f'<figure><img src="{html.escape(f)}" alt="{html.escape(n)}">'
+        f"<figcaption>{html.escape(n)}<br>{p.shape[1]}×{p.shape[0]}, "
+        f"{b} reflection bounces</figcaption></figure>" for n, f, p, b in done)
+    skips = "\n".join(f"<li><b>{html.escape(n)}</b>: {html.escape(e)}</li>" for n, e in skipped)
+    return f"""<!DOCTYPE html>
+<html><head><meta charset="utf-8"><title>rtval gallery</title>
+<style>body{{font-family:sans-serif;background:#222;color:#ddd}}
+figure{{display:inline-block;margin:6px;vertical-align:top}}
+figcaption{{font-size:12px;max-width:{args.columns}px;overflow-wrap:anywhere}}
+img{{image-rendering:pixelated}}</style></head><body>
+<h1>rtval gallery</h1>
+<p>{len(done)} scenes, {args.columns} columns, {args.precision}: ambient, diffuse with shadows,
+reflections, tiled planes (the course shading).</p>
+{figs}
+<h2>Skipped ({len(skipped)})</h2>
+<ul>{skips}</ul>
+</body></html>
+"""
+
+
+def _contact_sheet(done, columns: int):
+    """All images on one grid, each with its name under it (uint8 array)."""
+    import numpy as np
+    from PIL import Image, ImageDraw
+    n = max(len(done), 1)
+    per_row = min(THUMBS_PER_ROW, n)
+    cell_h = max((p.shape[0] for _, _, p, _ in done), default=1) + LABEL_HEIGHT
+    sheet = Image.new("RGB", (per_row * columns, ((n + per_row - 1) // per_row) * cell_h),
+                      (32, 32, 32))
+    draw = ImageDraw.Draw(sheet)
+    for i, (name, _, pixels, _) in enumerate(done):
+        x, y = (i % per_row) * columns, (i // per_row) * cell_h
+        sheet.paste(Image.fromarray(pixels), (x, y))
+        label = name.rsplit("/", 1)[-1]
+        draw.text((x + 2, y + pixels.shape[0] + 1), label[: max(columns // 6, 4)],
+                  fill=(220, 220, 220))
+    return np.asarray(sheet)

@@ -1,0 +1,58 @@
+"""rtval report: error against run time for rt_core f32/f64 and Mitsuba, every scene, several
+resolutions."""
+from __future__ import annotations
+
+import sys
+
+from .cmd_bench import fresh_kernel_cache
+from .options import positive_int
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("report", help="error against run time, rt_core and Mitsuba",
+                       description="Trace each scene (default scenes/*.txt) with rt_core f32, "
+                                   "rt_core f64 and Mitsuba (preliminary and full "
+                                   "intersection) at several resolutions; measure the error "
+                                   "against the float64 oracle at sampled pixels, the first "
+                                   "and steady-state run time and the peak memory. Writes "
+                                   "report.md, report.json and error_vs_time.png.")
+    p.add_argument("scenes", nargs="*", help="course scene files (default: scenes/*.txt)")
+    p.add_argument("--quick", action="store_true",
+                   help="3 resolutions (160, 640, 1920), 400 oracle pixels, 2 timed calls: "
+                        "the whole run in under a minute")
+    p.add_argument("--columns", type=positive_int, nargs="+", metavar="W",
+                   help="resolutions (default 160 320 640 1280 1920)")
+    p.add_argument("--sample", type=positive_int,
+                   help="oracle pixels per scene and resolution (default 4000)")
+    p.add_argument("--reps", type=positive_int, help="timed calls after the first (default 7)")
+    p.add_argument("--keep-cache", action="store_true",
+                   help="use Dr.Jit's on-disk kernel cache (default: an empty one, so that "
+                        "first calls show compilation)")
+    p.add_argument("-o", "--output", default="out/report", metavar="DIR")
+    p.set_defaults(func=run, before_import=lambda args: fresh_kernel_cache(args.keep_cache))
+
+
+def run(args) -> int:
+    from dataclasses import replace
+    from pathlib import Path
+    from rt_core.parser import parse_scene
+    from mitsuba_ref.report import QUICK, Settings, run_report, write_report
+    from mitsuba_ref.validate import REPO
+    paths = args.scenes or sorted((REPO / "scenes").glob("*.txt"))
+    scenes = [parse_scene(p) for p in paths]
+    s = QUICK if args.quick else Settings()
+    s = replace(s, **{k: v for k, v in (("columns", tuple(args.columns or ()) or None),
+                                        ("sample", args.sample), ("reps", args.reps))
+                      if v is not None})
+
+    def progress(rows):
+        r = rows[0]
+        print(f"report: {Path(r['scene']).name} {r['columns']}x{r['rows']}: "
+              + ", ".join(f"{x['config']} {x['steady_ms']:.2f} ms" for x in rows),
+              file=sys.stderr)
+    result = run_report(scenes, s, progress)
+    md, js, png = write_report(result, args.output)
+    print(f"{md}\n{js}\n{png}")
+    print(f"report: {len(scenes)} scenes x {len(s.columns)} resolutions in "
+          f"{result['meta']['run_s']} s", file=sys.stderr)
+    return 0
