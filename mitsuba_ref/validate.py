@@ -22,6 +22,11 @@ def default_scene_paths() -> list[Path]:
     return paths
 
 
+def is_course_scene(path) -> bool:
+    """Is ``path`` one of ../shared/course-scenes (symlinks resolved on both sides)?"""
+    return COURSE_SCENES.resolve() in Path(path).resolve().parents
+
+
 @dataclass
 class Skipped:
     path: str
@@ -37,7 +42,7 @@ def load_supported(paths, explicit: bool):
         try:
             scenes.append(parse_scene(p))
         except SceneError as e:
-            if explicit or COURSE_SCENES not in Path(p).resolve().parents:
+            if explicit or not is_course_scene(p):
                 raise
             skipped.append(Skipped(str(p), str(e)))
     return scenes, skipped
