@@ -6,7 +6,9 @@ pixel centres, ``((x+½)/W·ww - ww/2, ...)``.  Image row 0 is the top (y = H-1)
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from fractions import Fraction
 
 import drjit as dr
 
@@ -64,16 +66,48 @@ def pixel_grid(cam: Camera, T: Types):
     return x, y
 
 
+def _axis_offsets(cam: Camera, scene: Scene, axis: int):
+    """World − viewpoint along one axis is (i − c)·s for pixel index i, with s the sample
+    spacing and c the (fractional) index of the viewpoint's foot, both exact from the
+    scene's numbers.  Returns (s, c_hi, c_lo·s) as floats: c_hi = round(c) is an integer, so
+    (i − c_hi) is exact in the kernel and (i − c_hi)·s − c_lo·s is one fma, accurate to its
+    own size even for the pixel right below a far-off viewpoint (where x·sx + (ox − vx)
+    cancels to the ulp of ox − vx)."""
+    n = cam.columns if axis == 0 else cam.rows
+    size = Fraction(scene.window[axis])
+    if cam.sampling == "corners":
+        step, origin = size / (n - 1), -size / 2
+    else:
+        step = size / n
+        origin = -size / 2 + step / 2
+    c = (Fraction(scene.viewpoint[axis]) - origin) / step
+    hi = round(c)
+    return step, hi, -(c - hi) * step
+
+
 def primary_directions(scene: Scene, cam: Camera, T: Types):
     """Unit ray directions (Array3 of T) for every pixel; the origin is the viewpoint.
 
-    Scene numbers enter as opaque values, so scenes that differ only in numbers share the
-    compiled kernel."""
-    x, y = pixel_grid(cam, T)
-    vx, vy, vz = scene.viewpoint
+    world − viewpoint = ((x − cx)·sx, (y − cy)·sy, −vz), with cx, cy the viewpoint's foot in
+    pixel units split into an integer and a fraction on the host (``_axis_offsets``), all
+    three scaled by one power of two so that squaring cannot overflow or underflow.  Scene
+    numbers enter as opaque values, so scenes that differ only in numbers share the compiled
+    kernel."""
     F = T.Float
-    # world − viewpoint, with the offsets (ox − vx) summed on the host in float64
-    wx = dr.fma(F(x), dr.opaque(F, cam.sx), dr.opaque(F, cam.ox - vx))
-    wy = dr.fma(F(y), dr.opaque(F, cam.sy), dr.opaque(F, cam.oy - vy))
-    wz = dr.opaque(F, -vz) + dr.zeros(F, cam.size)
+    i = dr.arange(T.UInt32, cam.size)
+    r = i // cam.columns                    # image row; course row y = rows − 1 − r
+    x = i - r * cam.columns
+    sx, hx, cx = _axis_offsets(cam, scene, 0)
+    sy, hy, cy = _axis_offsets(cam, scene, 1)
+    vz = Fraction(scene.viewpoint[2])
+    # one exact power of two brings the largest offset near 1
+    big = max(abs(vz), abs(hx * sx) + abs(cx) + sx * cam.columns,
+              abs(hy * sy) + abs(cy) + sy * cam.rows)
+    k = -math.frexp(float(big))[1] if big else 0
+    sc = Fraction(2) ** k
+    op = lambda v: dr.opaque(F, float(v * sc))
+    # x − c = (x − c_hi) − c_lo and y − c = ((rows − 1 − c_hi) − r) − c_lo: integers first
+    wx = dr.fma(F(x) - dr.opaque(F, float(hx)), op(sx), op(cx))
+    wy = dr.fma(dr.opaque(F, float(cam.rows - 1 - hy)) - F(r), op(sy), op(cy))
+    wz = op(-vz) + dr.zeros(F, cam.size)
     return dr.normalize(T.Array3(wx, wy, wz))

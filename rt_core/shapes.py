@@ -15,9 +15,11 @@ hit = o + t·d with t = n·q'/(n·d) and q' = q − o (Binet–Cauchy identity),
 
 which never forms the absolute hit point, so it does not cancel catastrophically when the
 plane is small and far away.  The bounds are tested without dividing, ``0 <= u·|n·d| <=
-w·|n·d|``, i.e. ``ŷ·(q'×d)`` between 0 and ``w·(n·d)``: every comparison is then monotone in one
+w·|n·d|`` with ``u·|n·d| = ŷ·(q'×d)·sign(n·d)``: every comparison is then monotone in one
 rounded quantity, so a ray exactly through an edge that the arithmetic represents exactly is
-decided exactly (``u·(1/(n·d))`` rounds twice and can land past w).
+decided exactly (``u·(1/(n·d))`` rounds twice and can land past w).  For rays from the
+viewpoint a hit has sign(n·d) = sign(n·q) (t > 0), a host constant: the sign is folded into
+ŷ, x̂, w, h (and the screen clip's constants) and costs nothing per ray.
 
 Numerical choices measured against the exact oracle (rt_core/exact.py, mitsuba_ref/stability.py):
 
@@ -28,11 +30,12 @@ Numerical choices measured against the exact oracle (rt_core/exact.py, mitsuba_r
   (Same operation count: n.x d.x + n.y d.y is the first part of n·d.)
 * sphere: the distance of the centre from the ray is |q × d|/|d|, not |q − d(q·d)/|d|²|, whose
   error along the ray adds in quadrature (for a ray along an axis the cross product is exact);
-* host constants: n·q is rounded once from exact products (``math.fsum`` of exact
-  ``Fraction`` terms); |n·q| within its float64 uncertainty of 0 is 0 (a plane through the
-  viewpoint: t = 0, a miss, instead of a hit at t ~ 1e-17); planes whose unit normals agree
-  (up to sign) and whose n·q agree within that uncertainty share n and n·q exactly, so
-  coplanar objects tie exactly and the tie rule decides, as in exact arithmetic.
+* host constants: n·q, g and the sphere's |q|² − r² are rounded once from exact values
+  (``Fraction``); |n·q| within its float64 uncertainty of 0 is 0 (a plane through the
+  viewpoint: t = 0, a miss, instead of a hit at t ~ 1e-17); planes with the same unit normal
+  (up to sign) and n·q within that uncertainty share n and n·q exactly, so coplanar objects
+  tie exactly and the tie rule decides, as in exact arithmetic;
+* a parallel ray (n·d = 0) gives t = ±inf or NaN, rejected by ``t < inf`` (no separate test).
 """
 from __future__ import annotations
 
@@ -70,11 +73,6 @@ class ObjectConstants:
 SNAP = 8 * 2.0 ** -53
 
 
-def _exact_dot(a, b) -> float:
-    """a·b rounded once (exact products, exact sum)."""
-    return float(sum(Fraction(x) * Fraction(y) for x, y in zip(a, b)))
-
-
 def _exact_nq(n, point, v) -> tuple[float, float]:
     """(n·(point − v) rounded once, its uncertainty from the rounding of n)."""
     q = [Fraction(p) - Fraction(c) for p, c in zip(point, v)]
@@ -86,7 +84,7 @@ def _exact_nq(n, point, v) -> tuple[float, float]:
 def object_constants(scene: Scene) -> list[ObjectConstants]:
     v = scene.viewpoint
     out = []
-    planes = []                 # (n, nq, tolerance) of the plane kinds seen so far
+    planes = {}                 # unit normal -> [(n·q, tolerance)] of the planes seen so far
     for i, o in enumerate(scene.objects):
         if isinstance(o, Sphere):
             q = sub(o.center, v)
@@ -100,17 +98,17 @@ def object_constants(scene: Scene) -> list[ObjectConstants]:
         nq, tol = _exact_nq(n, o.point, v)
         if abs(nq) <= tol:
             nq = 0.0                                 # through the viewpoint
-        for m, mq, mtol in planes:
-            for s in (1.0, -1.0):
-                if max(abs(a - s * b) for a, b in zip(n, m)) <= SNAP and \
-                        abs(nq - s * mq) <= tol + mtol:
-                    n, nq = tuple(s * b for b in m), s * mq      # coplanar: tie exactly
-                    break
-            else:
-                continue
-            break
+        # the same plane as an earlier one (same unit normal, up to sign, and n·q within
+        # rounding): share its numbers, so that the two tie exactly
+        for sg in (1.0, -1.0):
+            key = tuple(sg * c + 0.0 for c in n)
+            match = next((mq for mq, mtol in planes.get(key, ())
+                          if abs(sg * nq - mq) <= tol + mtol), None)
+            if match is not None:
+                n, nq = tuple(sg * c + 0.0 for c in key), sg * match
+                break
         else:
-            planes.append((n, nq, tol))
+            planes.setdefault(n, []).append((nq, tol))
         xd = getattr(o, "xdir", (0.0, 0.0, 0.0))
         yd = getattr(o, "ydir", (0.0, 0.0, 0.0))
         size = getattr(o, "size", (0.0, 0.0))
@@ -166,21 +164,29 @@ def _plane(d, o, obj, rules: Rules, vz: float):
     den = dr.fma(n.z, d.z, nd_xy)
     inv_den = dr.rcp(den)
     t = nq * inv_den
-    hit = (den != 0) & (t > dr.opaque(F, rules.t_min)) & dr.isfinite(t)
+    # n·d = 0 (parallel) gives t = ±inf or NaN: '< inf' rejects it with the non-finite t's
+    hit = (t > dr.opaque(F, rules.t_min)) & (t < dr.inf)
     if rules.screen_clip != "off":
         # hit z = zn/den with zn = vz'·den + n·q'·d.z = vz'·(n.x d.x + n.y d.y) + g'·d.z,
         # g' = n·q' + n.z·vz' (host constant g; see the module docstring): nothing cancels
         # that is not the answer (exact 0 for a plane in z = 0)
-        vzo = dr.opaque(F, vz) if o is None else dr.opaque(F, vz) + o.z
         g = getattr(obj, "g", None)
-        if g is None:               # constants without g (older tables): the plain form
-            zn = vzo * den + nq * d.z
+        if o is None and g is not None and isinstance(obj.nq, (int, float)):
+            # rays from the viewpoint: a hit has sign(den) = sign(nq) (t > 0), known here;
+            # fold it into the constants: z·|den| with no work per ray
+            sg = -1.0 if obj.nq < 0 else 1.0
+            zs = dr.fma(dr.opaque(F, sg * vz), nd_xy, dr.opaque(F, sg * g) * d.z)
         else:
-            g = opaque(F, g)
-            if o is not None:
-                g = g - dr.fma(n.x, o.x, n.y * o.y)
-            zn = dr.fma(vzo, nd_xy, g * d.z)
-        hit &= clip_ok(dr.select(den > 0, zn, -zn), rules)
+            vzo = dr.opaque(F, vz) if o is None else dr.opaque(F, vz) + o.z
+            if g is None:           # constants without g (older tables): the plain form
+                zn = vzo * den + nq * d.z
+            else:
+                g = opaque(F, g)
+                if o is not None:
+                    g = g - dr.fma(n.x, o.x, n.y * o.y)
+                zn = dr.fma(vzo, nd_xy, g * d.z)
+            zs = dr.mulsign(zn, den)
+        hit &= clip_ok(zs, rules)
     return t, hit, den, inv_den, q
 
 
