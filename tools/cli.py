@@ -12,7 +12,7 @@ import argparse
 import importlib
 import sys
 
-COMMANDS = ["render", "convert", "compare", "validate", "exr", "gallery", "bench", "report"]
+COMMANDS = ["render", "convert", "compare", "validate", "exr", "gallery", "bench", "report", "stability"]
 USAGE_EXIT = 64
 
 

@@ -1,0 +1,603 @@
+"""Exact per-ray oracle: rational arithmetic on the scene numbers as written in the file and on
+the ray direction as actually traced.
+
+Every number of a scene file is a decimal, read here exactly (``Fraction(Decimal(text))``);
+a ray direction is a float32 or float64 triple, converted exactly (``as_integer_ratio``).  The
+course's hit rules are then decided in integer arithmetic, without any rounding:
+
+* plane:  t = n·(P − V) / n·d, a ratio of integers; ``n·d = 0`` is a miss; the screen clip
+  decides the sign of the hit's z = V.z + t·d.z exactly;
+* finite plane: with the *unnormalised* frame p = o(n·n) − (o·n)n (the projected orient),
+  y = n × p, the seed's ``newhit`` is  u = y·(q×d) / (|p|·n·d·s),  v = −p·(q×d)·|n| / (...)
+  (q = P − V): its sign is an integer sign and ``u <= w`` is ``(y·(q×d))² <= w²|p|²(n·d)²``,
+  so even a ray exactly through an edge or a corner is decided exactly;
+* sphere: the discriminant a(r² − |q⊥|²) = (q·d)² − |d|²(|q|² − r²) is an integer, so
+  tangency is decided exactly; the near root needs one square root, taken with
+  ``math.isqrt`` to >= 100 significant bits.
+
+Beside the verdicts the oracle reports, per object and per decision, the exact margin (the
+signed distance of the decided quantity from its threshold, in world units: distance of the
+hit to each edge, of the hit to the window plane, of the ray to the sphere's outline, ...)
+and that quantity's *condition* ``S``: its first-order change under a relative perturbation
+of every input number (every scene number as given, the viewpoint and the ray's direction
+components) by one unit, ``S = |f| + Σ_j |x_j ∂f/∂x_j|`` (computed with float64 dual numbers).
+A tracer working in precision p with unit roundoff u_p can flip a decision only if
+``|margin| <= K·u_p·S``: a disagreement with the oracle there is *explained*; elsewhere it is
+a bug.  K = ``K_ROUNDING`` = 16 rounding steps.  This is the componentwise (backward-error)
+bound: an implementation whose answer is exact for inputs perturbed by a few units of u_p
+each — input rounding and a handful of roundings per operation — stays within it.
+
+The condition number of the distance t (ray parameter of the hit, as traced) is the
+componentwise relative one, ``kappa_t = S_t / |t|``, with S_t over the viewpoint, the
+object's numbers as written (normal, point; centre, radius) and the ray's components; for a
+plane kappa_t = 1 + [Σ|n_i|(|P_i| + |V_i|)]/|n·q| + [Σ|n_i d_i|]/|n·d| + [Σ|n_i||q_i −
+t d_i|]/|n·q|.  A tracer's relative depth error is expected within a small multiple of
+kappa_t·u_p (rt_core: <= 1.25 measured on every family, both precisions).
+"""
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+from decimal import Decimal
+from fractions import Fraction
+
+import numpy as np
+
+from .rules import Rules
+
+U = {"f32": 2.0 ** -24, "f64": 2.0 ** -53}
+K_ROUNDING = 16.0
+SQRT_BITS = 104           # significant bits of every integer square root
+
+
+# --- the scene, exactly as written ------------------------------------------------------------
+
+@dataclass(frozen=True)
+class XObject:
+    """One object's numbers as written in the file (Fractions); ``index`` is its object id."""
+    kind: str
+    index: int
+    normal: tuple = ()
+    point: tuple = ()
+    orient: tuple = ()
+    size: tuple = ()
+    center: tuple = ()
+    radius: Fraction | None = None
+
+
+@dataclass(frozen=True)
+class XScene:
+    window: tuple
+    viewpoint: tuple
+    objects: tuple
+
+
+# field groups after the keyword, and which of them the geometry uses (name, count)
+_LAYOUT = {
+    "pointlight": ((None, 3), (None, 3)),
+    "sphere": ((None, 9), ("center", 3), ("radius", 1)),
+    "plane": ((None, 9), ("normal", 3), ("point", 3)),
+    "fplane": ((None, 9), ("normal", 3), ("point", 3), ("orient", 3), ("size", 2)),
+    "tplane": ((None, 9), ("normal", 3), ("point", 3), ("orient", 3), ("size", 2), (None, 9)),
+}
+
+
+def exact_number(text: str) -> Fraction:
+    """A decimal literal of the scene format, exactly."""
+    return Fraction(Decimal(text))
+
+
+def parse_exact(text: str) -> XScene:
+    """The keyword dialect's numbers, exactly (the file must already parse with
+    ``rt_core.parser``, which reports errors; this reader only extracts numbers)."""
+    toks = []
+    for line in re.split(r"\r\n|\r|\n", text):
+        toks += line.split("#", 1)[0].split()
+    pos = 0
+
+    def take(n):
+        nonlocal pos
+        vals = tuple(exact_number(s) for s in toks[pos:pos + n])
+        if len(vals) != n:
+            raise ValueError("truncated scene text")
+        pos += n
+        return vals
+
+    window, viewpoint = take(2), take(3)
+    objects = []
+    while pos < len(toks):
+        kind = toks[pos].lower()
+        pos += 1
+        if kind not in _LAYOUT:
+            raise ValueError(f"parse_exact reads the keyword dialect only, not {kind!r}")
+        fields = {}
+        for name, n in _LAYOUT[kind]:
+            vals = take(n)
+            if name:
+                fields[name] = vals[0] if name == "radius" else vals
+        if kind != "pointlight":
+            objects.append(XObject(kind, len(objects), **fields))
+    return XScene(window, viewpoint, tuple(objects))
+
+
+# --- integer helpers ----------------------------------------------------------------------------
+
+def _lcm_den(*vals) -> int:
+    out = 1
+    for v in vals:
+        out = math.lcm(out, v.denominator)
+    return out
+
+
+def _ints(vals, L):
+    return tuple(int(v * L) for v in vals)
+
+
+def _dot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _cross(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def _isqrt_scaled(x: int, k: int) -> int:
+    """floor(sqrt(x) · 2^k) for x >= 0."""
+    return math.isqrt(x << (2 * k))
+
+
+def _sqrt_k(*xs) -> int:
+    """A scale 2^k giving every sqrt(x)·2^k at least SQRT_BITS bits."""
+    return max(0, max(SQRT_BITS - x.bit_length() // 2 for x in xs))
+
+
+def _ratio(num: int, den: int) -> float:
+    """num/den correctly rounded (Python's integer true division), +-inf on overflow."""
+    try:
+        return num / den
+    except OverflowError:
+        return math.copysign(math.inf, num) * (1 if den > 0 else -1)
+
+
+def ray_ints(d) -> tuple:
+    """A float direction exactly as integers (D, Dd): d = D / Dd, Dd a power of two."""
+    r = [float(c).as_integer_ratio() for c in d]
+    den = max(q for _, q in r)
+    return tuple(p * (den // q) for p, q in r), den
+
+
+# --- per-object constants -------------------------------------------------------------------------
+
+class _Prep:
+    """Integer constants of one object relative to the viewpoint."""
+
+    def __init__(self, obj: XObject, V: tuple, rules: Rules):
+        self.obj, self.kind = obj, obj.kind
+        anchor = obj.center if obj.kind == "sphere" else obj.point
+        self.L = _lcm_den(*V, *anchor)                    # positions: integers / L
+        self.Q = tuple(int((a - v) * self.L) for a, v in zip(anchor, V))
+        self.VZ = int(V[2] * self.L)
+        if obj.kind == "sphere":
+            r = obj.radius
+            self.R, self.Lr = r.numerator, r.denominator
+            self.QQ = _dot(self.Q, self.Q)
+            self.CC = self.QQ * self.Lr ** 2 - self.R ** 2 * self.L ** 2   # (|q|²−r²)·L²Lr²
+            return
+        Ln = _lcm_den(*obj.normal)
+        self.N = _ints(obj.normal, Ln)
+        self.Ln = Ln
+        self.NN = _dot(self.N, self.N)
+        self.NQ = _dot(self.N, self.Q)                     # n·q · Ln·L
+        if obj.kind == "fplane":
+            Lo = _lcm_den(*obj.orient)
+            O = _ints(obj.orient, Lo)
+            on = _dot(O, self.N)
+            self.Pv = tuple(o * self.NN - on * n for o, n in zip(O, self.N))   # ∝ projected orient
+            self.Y = _cross(self.N, self.Pv)                                  # ∝ n × p
+            self.PP = _dot(self.Pv, self.Pv)
+            w, h = obj.size
+            self.W, self.Lw, self.H, self.Lh = w.numerator, w.denominator, h.numerator, \
+                h.denominator
+            self.k = _sqrt_k(self.PP, self.NN)
+            self.sP = _isqrt_scaled(self.PP, self.k)
+            self.sN = _isqrt_scaled(self.NN, self.k)
+        tmin = Fraction(rules.t_min)
+        self.tmin_n, self.tmin_d = tmin.numerator, tmin.denominator
+
+
+# --- per-ray, per-object evaluation (scalar Python, integers) ---------------------------------
+
+DECISIONS = {
+    "plane": ("parallel", "t", "clip"),
+    "tplane": ("parallel", "t", "clip"),
+    "fplane": ("parallel", "t", "clip", "u>=0", "u<=w", "v>=0", "v<=h"),
+    "sphere": ("outline", "outside", "front", "clip"),
+}
+
+
+def _clip_pass(zsign: int, rules: Rules) -> bool:
+    if rules.screen_clip == ">":
+        return zsign <= 0
+    if rules.screen_clip == ">=":
+        return zsign < 0
+    return True
+
+
+def _eval_plane(p: _Prep, D, Dd, rules: Rules):
+    """(t as (num, den) or None, {decision: (passed, margin)})."""
+    ND = _dot(p.N, D)
+    if ND == 0:
+        tests = {"parallel": (False, 0.0), "t": (False, 0.0), "clip": (False, 0.0)}
+        if p.kind == "fplane":
+            tests.update({k: (False, 0.0) for k in ("u>=0", "u<=w", "v>=0", "v<=h")})
+        return None, tests
+    sg = 1 if ND > 0 else -1
+    tn, td = p.NQ * Dd * sg, p.L * ND * sg                  # t = tn/td, td > 0
+    tests = {"parallel": (True, _ratio(abs(ND), p.Ln * Dd))}
+    slack_n = tn * p.tmin_d - p.tmin_n * td
+    tests["t"] = (slack_n > 0, _ratio(slack_n, td * p.tmin_d))
+    if rules.screen_clip != "off":
+        zint = p.VZ * Dd * td + tn * D[2] * p.L             # z · (L·Dd·td)
+        zs = (zint > 0) - (zint < 0)
+        tests["clip"] = (_clip_pass(zs, rules), -_ratio(zint, p.L * Dd * td))
+    else:
+        tests["clip"] = (True, math.inf)
+    if p.kind == "fplane":
+        tests.update(_eval_edges(p, D, ND, sg, rules))
+    return (tn, td), tests
+
+
+def _eval_edges(p: _Prep, D, ND, sg, rules: Rules):
+    """u >= 0, u <= w, v >= 0, v <= h exactly, with margins (u, w − u, v, h − v)."""
+    qxd = _cross(p.Q, D)
+    a = _dot(p.Y, qxd) * sg                 # u = a / (b·|Pv|)
+    bb = -_dot(p.Pv, qxd) * sg              # v = bb·|N| / (b·|Pv|)
+    b = p.L * abs(ND)
+    k, sP, sN = p.k, p.sP, p.sN
+    closed = rules.edges == "closed"
+    ge = (lambda x: x >= 0) if closed else (lambda x: x > 0)
+    out = {}
+    # u and w − u (conjugate form where they cancel)
+    out["u>=0"] = (ge(a), _ratio(a << k, b * sP))
+    num = p.W ** 2 * b * b * p.PP - a * a * p.Lw ** 2
+    if a <= 0:
+        out["u<=w"] = (True, _ratio(p.W * b * sP + (-a) * p.Lw * (1 << k), p.Lw * b * sP))
+    else:
+        out["u<=w"] = (ge(num), _ratio(num << (2 * k),
+                                       p.Lw * (p.W * b * sP + a * p.Lw * (1 << k)) * b * sP))
+    out["v>=0"] = (ge(bb), _ratio(bb * sN, b * sP))
+    num = p.H ** 2 * b * b * p.PP - bb * bb * p.NN * p.Lh ** 2
+    if bb <= 0:
+        out["v<=h"] = (True, _ratio(p.H * b * sP + (-bb) * sN * p.Lh, p.Lh * b * sP))
+    else:
+        out["v<=h"] = (ge(num), _ratio(num << (2 * k),
+                                       p.Lh * (p.H * b * sP + bb * sN * p.Lh) * b * sP))
+    return out
+
+
+def _eval_sphere(p: _Prep, D, Dd, rules: Rules):
+    DD = _dot(D, D)
+    QD = _dot(p.Q, D)
+    X = QD * QD * p.Lr ** 2 - DD * p.CC     # (b'² − ac)·(L·Lr·Dd)²: > 0 iff two roots
+    tests = {}
+    if X > 0:
+        k = _sqrt_k(X)
+        sX = _isqrt_scaled(X, k)
+        if QD > 0:
+            tn, td = p.CC * Dd << k, p.L * p.Lr * ((QD * p.Lr << k) + sX)
+        else:
+            tn, td = ((QD * p.Lr << k) - sX) * Dd, p.L * p.Lr * DD << k
+    else:
+        tn, td = QD * Dd, p.L * DD                           # where a flip would put the hit
+    # distance of the centre from the ray line, and r − it (exact numerator)
+    cx = _cross(p.Q, D)
+    perp = math.sqrt(_ratio(_dot(cx, cx), p.L ** 2 * DD))
+    r = p.R / p.Lr
+    tests["outline"] = (X > 0, _ratio(X, p.L ** 2 * p.Lr ** 2 * DD) / (r + perp))
+    qn = math.sqrt(_ratio(p.QQ, p.L ** 2))
+    tests["outside"] = (p.CC > 0, _ratio(p.CC, p.L ** 2 * p.Lr ** 2) / (qn + r))
+    tests["front"] = (QD > 0, _ratio(QD, p.L * math.isqrt(DD << 64)) * 2.0 ** 32)
+    if rules.clip_spheres and rules.screen_clip != "off":
+        zint = p.VZ * Dd * td + tn * D[2] * p.L
+        zs = (zint > 0) - (zint < 0)
+        tests["clip"] = (_clip_pass(zs, rules), -_ratio(zint, p.L * Dd * td))
+    else:
+        tests["clip"] = (True, math.inf)
+    return (tn, td), tests
+
+
+# --- condition of every decided quantity (float64 dual numbers) -----------------------------------
+
+class _Dual:
+    """Value v (N,) and derivatives g (N, M) with respect to relative input perturbations."""
+    __slots__ = ("v", "g")
+
+    def __init__(self, v, g):
+        self.v, self.g = v, g
+
+    @staticmethod
+    def of(x, like):
+        if isinstance(x, _Dual):
+            return x
+        return _Dual(np.broadcast_to(np.asarray(x, np.float64), like.v.shape),
+                     np.zeros_like(like.g))
+
+    def __add__(self, o):
+        o = _Dual.of(o, self)
+        return _Dual(self.v + o.v, self.g + o.g)
+
+    __radd__ = __add__
+
+    def __neg__(self):
+        return _Dual(-self.v, -self.g)
+
+    def __sub__(self, o):
+        return self + (-_Dual.of(o, self))
+
+    def __rsub__(self, o):
+        return _Dual.of(o, self) - self
+
+    def __mul__(self, o):
+        o = _Dual.of(o, self)
+        return _Dual(self.v * o.v, self.g * o.v[:, None] + o.g * self.v[:, None])
+
+    __rmul__ = __mul__
+
+    def __truediv__(self, o):
+        o = _Dual.of(o, self)
+        q = self.v / o.v
+        return _Dual(q, (self.g - o.g * q[:, None]) / o.v[:, None])
+
+    def __rtruediv__(self, o):
+        return _Dual.of(o, self) / self
+
+    def sqrt(self):
+        s = np.sqrt(self.v)
+        return _Dual(s, self.g / (2 * s)[:, None])
+
+    def cond(self) -> np.ndarray:
+        return np.abs(self.v) + np.sum(np.abs(self.g), axis=1)
+
+
+def _ddot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _dcross(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def _inputs(values, n: int):
+    """Dual inputs, each seeded with its own value (d f / d(relative perturbation))."""
+    M = len(values)
+    out = []
+    for j, x in enumerate(values):
+        v = np.broadcast_to(np.asarray(x, np.float64), (n,)).astype(np.float64)
+        g = np.zeros((n, M))
+        g[:, j] = v
+        out.append(_Dual(v, g))
+    return out
+
+
+def _conditions(obj: XObject, V, d: np.ndarray, rules: Rules) -> dict:
+    """{decision or 't': S} for one object along rays d (N, 3)."""
+    n = len(d)
+    fl = lambda vals: [float(x) for x in vals]
+    base = fl(V) + [d[:, 0], d[:, 1], d[:, 2]]
+    with np.errstate(all="ignore"):
+        if obj.kind == "sphere":
+            x = _inputs(base + fl(obj.center) + [float(obj.radius)], n)
+            Vv, dv, C, r = x[0:3], x[3:6], x[6:9], x[9]
+            q = tuple(c - v for c, v in zip(C, Vv))
+            a = _ddot(dv, dv)
+            bh = _ddot(q, dv)
+            cx = _dcross(q, dv)
+            perp = (_ddot(cx, cx) / a).sqrt()
+            qn = _ddot(q, q).sqrt()
+            disc = (r - perp) * (r + perp)
+            s = disc.sqrt()
+            t = (bh - s * a.sqrt()) / a
+            z = Vv[2] + t * dv[2]
+            out = {"outline": (r - perp).cond(), "outside": (qn - r).cond(),
+                   "front": (bh / a.sqrt()).cond(), "clip": z.cond(), "t": t.cond()}
+        else:
+            x = _inputs(base + fl(obj.normal) + fl(obj.point) +
+                        (fl(obj.orient) + fl(obj.size) if obj.kind == "fplane" else []), n)
+            Vv, dv, N, P = x[0:3], x[3:6], x[6:9], x[9:12]
+            q = tuple(pp - v for pp, v in zip(P, Vv))
+            nd = _ddot(N, dv)
+            t = _ddot(N, q) / nd
+            z = Vv[2] + t * dv[2]
+            out = {"parallel": nd.cond(), "t": t.cond(), "clip": z.cond()}
+            if obj.kind == "fplane":
+                O, w, h = x[12:15], x[15], x[16]
+                nn = _ddot(N, N)
+                nl = nn.sqrt()
+                nh = tuple(c / nl for c in N)
+                on = _ddot(O, nh)
+                p = tuple(o - on * c for o, c in zip(O, nh))
+                pl = _ddot(p, p).sqrt()
+                xh = tuple(c / pl for c in p)
+                yh = _dcross(nh, xh)
+                qxd = _dcross(q, dv)
+                ndh = _ddot(nh, dv)
+                u = _ddot(yh, qxd) / ndh
+                v = -_ddot(xh, qxd) / ndh
+                out.update({"u>=0": u.cond(), "u<=w": (w - u).cond(), "v>=0": v.cond(),
+                            "v<=h": (h - v).cond()})
+    return {k: np.nan_to_num(c, nan=np.inf) for k, c in out.items()}
+
+
+# --- results --------------------------------------------------------------------------------------
+
+@dataclass
+class ObjectVerdicts:
+    """One object along every ray: exact verdict, t, and each decision's test and margin."""
+    kind: str
+    valid: np.ndarray                 # bool (N,)
+    t: np.ndarray                     # float64 (N,), correctly rounded; nan where undefined
+    tq: list                          # exact (num, den) per ray, or None
+    passed: dict                      # decision -> bool (N,)
+    margin: dict                      # decision -> float64 (N,), signed world units
+    cond: dict = field(default_factory=dict)   # decision or 't' -> S (N,)
+
+    def ratio(self, name: str, u: float) -> np.ndarray:
+        """|margin| / (K·u·S): <= 1 means the decision may flip in that precision."""
+        m = np.abs(self.margin[name])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = m / (K_ROUNDING * u * self.cond[name])
+        return np.where(np.isinf(m), np.inf, np.where(m == 0, 0.0, np.nan_to_num(r, nan=0.0)))
+
+    def risk(self, u: float) -> np.ndarray:
+        """Per ray, how far the verdict is from flipping (<= 1: at risk): the nearest
+        decision of a valid hit; for a miss, the farthest failed decision (all must flip)."""
+        names = list(self.margin)
+        R = np.stack([self.ratio(k, u) for k in names])
+        P = np.stack([self.passed[k] for k in names])
+        lose = np.min(R, axis=0)
+        gain = np.max(np.where(P, 0.0, R), axis=0)
+        return np.where(self.valid, lose, gain)
+
+    @property
+    def kappa_t(self) -> np.ndarray:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return self.cond["t"] / np.abs(self.t)
+
+
+@dataclass
+class ExactResult:
+    """The exact answer for rays d (N, 3): closest valid hit, file order breaking exact ties
+    (``rules.ties``)."""
+    d: np.ndarray
+    hit: np.ndarray                    # bool
+    id: np.ndarray                     # int, -1 on a miss
+    t: np.ndarray                      # float64, 0 on a miss
+    objects: list
+
+    @property
+    def kappa_t(self) -> np.ndarray:
+        """Relative condition number of the winner's t (inf on a miss)."""
+        out = np.full(len(self.hit), np.inf)
+        for i, ob in enumerate(self.objects):
+            sel = self.hit & (self.id == i)
+            out[sel] = ob.kappa_t[sel]
+        return out
+
+    def explained(self, other_id: np.ndarray, u: float) -> np.ndarray:
+        """Per ray: is a tracer's answer ``other_id`` (-1 = miss) within reach of rounding in
+        precision u?  True where it agrees; where it does not, True if a decision of either
+        object involved (the exact winner, the tracer's) is within K·u·S of its threshold, or
+        the two lie at the same depth within their bounds (a tie)."""
+        other_id = np.asarray(other_id).astype(np.int64)
+        ok = other_id == self.id
+        bad = np.nonzero(~ok)[0]
+        if not len(bad):
+            return ok
+        risks = [ob.risk(u) for ob in self.objects]
+        out = ok.copy()
+        for r in bad:
+            ids = {i for i in (int(self.id[r]), int(other_id[r])) if i >= 0}
+            if any(risks[i][r] <= 1.0 for i in ids):
+                out[r] = True
+                continue
+            if len(ids) == 2:
+                a, b = self.objects[int(self.id[r])], self.objects[int(other_id[r])]
+                gap = abs(_tq_diff(a.tq[r], b.tq[r]))
+                if gap <= K_ROUNDING * u * (a.cond["t"][r] + b.cond["t"][r]):
+                    out[r] = True
+        return out
+
+
+def _tq_less(a, b) -> bool:
+    return a[0] * b[1] < b[0] * a[1]
+
+
+def _tq_diff(a, b) -> float:
+    return _ratio(a[0] * b[1] - b[0] * a[1], a[1] * b[1])
+
+
+def trace_exact(xs: XScene, d: np.ndarray, rules: Rules = Rules()) -> ExactResult:
+    """The exact closest hit of every ray from the viewpoint along ``d`` ((N, 3) float32 or
+    float64, taken exactly as given)."""
+    d = np.asarray(d)
+    n = len(d)
+    V = xs.viewpoint
+    preps = [_Prep(o, V, rules) for o in xs.objects]
+    rays = [ray_ints(row) for row in d.astype(np.float64).tolist()]
+    verdicts = []
+    for p in preps:
+        names = DECISIONS[p.kind]
+        valid = np.zeros(n, bool)
+        t = np.full(n, np.nan)
+        tq = [None] * n
+        passed = {k: np.zeros(n, bool) for k in names}
+        margin = {k: np.zeros(n) for k in names}
+        for i, (D, Dd) in enumerate(rays):
+            if p.kind == "sphere":
+                q, tests = _eval_sphere(p, D, Dd, rules)
+            else:
+                q, tests = _eval_plane(p, D, Dd, rules)
+            for k in names:
+                passed[k][i], margin[k][i] = tests[k]
+            if q is not None:
+                tq[i] = q
+                t[i] = _ratio(*q)
+            valid[i] = all(tests[k][0] for k in names)
+        ov = ObjectVerdicts(p.kind, valid, t, tq, passed, margin)
+        ov.cond = _conditions(p.obj, V, d.astype(np.float64), rules)
+        verdicts.append(ov)
+    hit = np.zeros(n, bool)
+    ids = np.full(n, -1, np.int64)
+    tbest = np.zeros(n)
+    for i in range(n):
+        best = None
+        for j, ov in enumerate(verdicts):
+            if not ov.valid[i]:
+                continue
+            if best is None or _tq_less(ov.tq[i], verdicts[best].tq[i]) or (
+                    rules.ties == "last" and not _tq_less(verdicts[best].tq[i], ov.tq[i])):
+                best = j
+        if best is not None:
+            hit[i], ids[i], tbest[i] = True, best, verdicts[best].t[i]
+    return ExactResult(d, hit, ids, tbest, verdicts)
+
+
+# --- the camera, exactly ----------------------------------------------------------------------
+
+def camera_offsets(window, viewpoint, columns: int, rows: int, sampling: str = "corners"):
+    """Exact world − viewpoint of every pixel, image order (top row first), as integer
+    triples E with a common positive denominator: a list of E and the denominator.
+    ``window`` and ``viewpoint``: numbers (Fractions, or floats taken exactly)."""
+    ww, wh = (Fraction(c) for c in window)
+    vx, vy, vz = (Fraction(c) for c in viewpoint)
+    out = []
+    for i in range(columns * rows):
+        r = i // columns
+        x, y = i - r * columns, rows - 1 - r
+        if sampling == "corners":
+            wx = Fraction(x, columns - 1) * ww - ww / 2
+            wy = Fraction(y, rows - 1) * wh - wh / 2
+        else:
+            wx = Fraction(2 * x + 1, 2 * columns) * ww - ww / 2
+            wy = Fraction(2 * y + 1, 2 * rows) * wh - wh / 2
+        out.append((wx - vx, wy - vy, -vz))
+    L = 1
+    for e in out:
+        L = math.lcm(L, *(c.denominator for c in e))
+    return [tuple(int(c * L) for c in e) for e in out], L
+
+
+def direction_error(window, viewpoint, columns: int, rows: int, d: np.ndarray,
+                    sampling: str = "corners") -> np.ndarray:
+    """Angle (radians) between each traced direction d and the exact course direction
+    unit(world − viewpoint) of its pixel, for the given window and viewpoint numbers (pass
+    the float64 values a tracer received to judge its camera arithmetic alone)."""
+    E, _ = camera_offsets(window, viewpoint, columns, rows, sampling)
+    out = np.empty(len(E))
+    for i, (e, row) in enumerate(zip(E, np.asarray(d, np.float64).tolist())):
+        D, _ = ray_ints(row)
+        c = _cross(D, e)
+        s2 = _ratio(_dot(c, c), _dot(D, D) * _dot(e, e))
+        out[i] = math.asin(min(1.0, math.sqrt(s2))) if _dot(D, e) >= 0 else math.pi
+    return out
