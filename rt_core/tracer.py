@@ -39,7 +39,10 @@ class KernelScene:
         """Per-object Dr.Jit array of one constant (for gathers by object id)."""
         cache = self.__dict__.setdefault("_tables", {})
         if name not in cache:
-            vals = [getattr(c, name) for c in self.consts]
+            if name in ("w", "h"):          # finite-plane width / height (tile size)
+                vals = [c.size[name == "h"] for c in self.consts]
+            else:
+                vals = [getattr(c, name) for c in self.consts]
             if name == "kind":
                 cache[name] = self.T.UInt32([KIND_CODE[v] for v in vals])
             elif isinstance(vals[0], tuple):
@@ -112,12 +115,21 @@ def surface(ks: KernelScene, d, t, oid, hit, o=None):
         normal = ns if kind is None else dr.select(kind == KIND_CODE["sphere"], ns, normal)
     if "fplane" in kinds or "tplane" in kinds:
         planar = True if kind is None else (kind >= KIND_CODE["fplane"])
+        # the seed's newhit.xy as u·(n·d) = ŷ·(q×d), v·(n·d) = −x̂·(q×d) (see shapes.py),
+        # one correctly rounded division each
         c = dr.cross(q, d)
-        inv = dr.rcp(dr.dot(n, d))
+        den = dr.dot(n, d)
         xd = dr.gather(T.Array3, ks.table("xdir"), idx, hit)
         yd = dr.gather(T.Array3, ks.table("ydir"), idx, hit)
-        u = dr.select(planar, dr.dot(yd, c) * inv, 0)
-        v = dr.select(planar, -dr.dot(xd, c) * inv, 0)
+        u = dr.select(planar, dr.dot(yd, c) / den, 0)
+        v = dr.select(planar, -dr.dot(xd, c) / den, 0)
+        if "fplane" in kinds:
+            # the inside test decided without dividing: keep the quotient in the rectangle
+            fp = True if kind is None else (kind == KIND_CODE["fplane"])
+            w = dr.gather(T.Float, ks.table("w"), idx, hit)
+            h = dr.gather(T.Float, ks.table("h"), idx, hit)
+            u = dr.select(fp, dr.clip(u, 0, w), u)
+            v = dr.select(fp, dr.clip(v, 0, h), v)
     normal = dr.select(hit, normal, zero)
     return normal, dr.select(hit, u, 0), dr.select(hit, v, 0)
 

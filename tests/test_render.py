@@ -132,3 +132,28 @@ def test08_old_llvm_is_a_clear_error_not_an_abort(lib, tmp_path):
     assert r.returncode == 2, (r.returncode, r.stderr)
     assert "libllvm19" in r.stderr and "Traceback" not in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+@pytest.mark.parametrize("k", [-40, -3, 0, 5])
+def test09_uv_stays_in_the_rectangle_at_exact_edges(k, precision):
+    """Rays exactly through a finite plane's corners and edges (and ±1 ulp) that hit it get
+    0 <= u <= w, 0 <= v <= h. (u as (ŷ·c)·rcp(n·d) rounded twice and came out past w.)"""
+    from mitsuba_ref.stability import make_case
+    from rt_core import backend
+    from rt_core.parser import parse_text
+    from rt_core.tracer import closest_hit, prepare, surface
+    case = make_case("edges", 2.0 ** k)
+    scene = parse_text(case.text)
+    T = backend.types(precision)
+    a = np.asarray(case.rays, np.float32 if precision == "f32" else np.float64)
+    d = T.Array3(*(T.Float(a[:, i]) for i in range(3)))
+    ks = prepare(scene, T)
+    t, oid, hit = closest_hit(ks, d)
+    _, u, v = surface(ks, d, t, oid, hit)
+    u, v, oid = (np.asarray(x.numpy()) for x in (u, v, oid))
+    assert np.count_nonzero(oid >= 0) > 50
+    for i, o in enumerate(scene.objects):
+        m = oid == i
+        w, h = (a.dtype.type(x) for x in o.size)
+        assert ((u[m] >= 0) & (u[m] <= w) & (v[m] >= 0) & (v[m] <= h)).all(), (i, u[m].max(), w)
