@@ -74,10 +74,12 @@ def _numpy3(v):
     return np.stack([np.asarray(c.numpy(), np.float64) for c in (v.x, v.y, v.z)], 1)
 
 
-def _trace_group(g: Group, V, d32, full: bool):
-    """Flat channels of one group for rays from the viewpoint along d32."""
+def group_rays(g: Group, V, d32):
+    """Mitsuba rays of one group for directions d32 from the viewpoint V: plane kinds on the
+    z <= 0 side of the window only (from the window when V is in front of it, else ending
+    there with maxt), spheres whole.  Returns (ray, s, valid): s is the distance from V to
+    the ray's origin, valid is False for rays that never reach the window's far side."""
     mi = mitsuba()
-    import drjit as dr
     d64 = d32.astype(np.float64)
     n = len(d64)
     s = window_distance(V, d64)
@@ -96,6 +98,13 @@ def _trace_group(g: Group, V, d32, full: bool):
                    mi.Vector3f(*(d32[:, i] for i in range(3))))
     if maxt is not None:
         ray.maxt = mi.Float(maxt)
+    return ray, s, valid
+
+
+def _trace_group(g: Group, V, d32, full: bool):
+    """Flat channels of one group for rays from the viewpoint along d32."""
+    import drjit as dr
+    ray, s, valid = group_rays(g, V, d32)
     pi = g.mi_scene.ray_intersect_preliminary(ray)
     si = g.mi_scene.ray_intersect(ray) if full else None
     dr.eval(pi, si) if full else dr.eval(pi)

@@ -93,31 +93,14 @@ def _rt_calls(scene, cam, precision):
 
 
 def _mitsuba_rays(ms, d32: np.ndarray):
-    """Per group of the MitsubaScene: its Mitsuba rays, set up as reference._trace_group
-    sets them up (planes from the window plane z = 0, or up to it; spheres from the
-    viewpoint), evaluated, so that timing sees the intersection kernels only."""
+    """Per group of the MitsubaScene: its rays (reference.group_rays), evaluated, so that
+    timing sees the intersection kernels only."""
     import drjit as dr
-    from .convert import mitsuba
-    from .reference import window_distance
-    mi = mitsuba()
+    from .reference import group_rays
     V = np.asarray(ms.scene.viewpoint, np.float64)
-    d64 = d32.astype(np.float64)
-    n = len(d64)
     out = []
     for g in ms.groups:
-        s = window_distance(V, d64)
-        maxt = None
-        if g.clip and V[2] > 0:
-            o = np.where(np.isfinite(s)[:, None], V[None, :] + s[:, None] * d64, 0.0)
-        else:
-            o = np.tile(V, (n, 1))
-            if g.clip:
-                maxt = s.astype(np.float32)
-        o = o.astype(np.float32)
-        ray = mi.Ray3f(mi.Point3f(*(o[:, i] for i in range(3))),
-                       mi.Vector3f(*(d32[:, i] for i in range(3))))
-        if maxt is not None:
-            ray.maxt = mi.Float(maxt)
+        ray, _, _ = group_rays(g, V, d32)
         dr.eval(ray)
         out.append((g, ray))
     return out
@@ -176,7 +159,6 @@ def errors(hit, oid, depth, orc: dict, precision: str, modelled=None) -> dict:
 
 def measure(scene, columns: int, settings: Settings, progress=None) -> list[dict]:
     """Every configuration of ``scene`` at ``columns``: rows for the report."""
-    import drjit as dr
     from rt_core import backend
     from rt_core.camera import make_camera, primary_directions
     from rt_core.oracle import oracle_pixels

@@ -46,7 +46,7 @@ from fractions import Fraction
 import drjit as dr
 
 from .rules import Rules
-from .scene import FPlane, Plane, Scene, Sphere, TPlane, cross, dot, sub
+from .scene import Scene, Sphere, sub
 
 KIND_CODE = {"sphere": 0, "plane": 1, "fplane": 2, "tplane": 3}
 PLANE_KINDS = ("plane", "fplane", "tplane")
@@ -143,15 +143,13 @@ def _check(d):
 # --- level 1: t and mask ---------------------------------------------------------------------
 
 def plane_t(d, o, obj: ObjectConstants, rules: Rules, vz: float):
-    """Ray–plane distance: t = n·q'/(n·d). Miss if n·d = 0, t <= t_min, or screen-clipped.
-
-    Returns (t, hit, inv_den, q') — the last two let ``fplane_t`` reuse this work."""
-    t, hit, den, inv_den, q = _plane(d, o, obj, rules, vz)
-    return t, hit, inv_den, q
+    """Ray–plane distance: t = n·q'/(n·d). Miss if n·d = 0, t <= t_min, or screen-clipped."""
+    t, hit, _, _ = _plane(d, o, obj, rules, vz)
+    return t, hit
 
 
 def _plane(d, o, obj, rules: Rules, vz: float):
-    """plane_t's work: (t, hit, n·d, 1/(n·d), q')."""
+    """plane_t's work, shared with fplane_t: (t, hit, n·d, q')."""
     F, B = _check(d)
     n = opaque3(type(d), obj.n)
     q = opaque3(type(d), obj.q)
@@ -187,7 +185,7 @@ def _plane(d, o, obj, rules: Rules, vz: float):
                 zn = dr.fma(vzo, nd_xy, g * d.z)
             zs = dr.mulsign(zn, den)
         hit &= clip_ok(zs, rules)
-    return t, hit, den, inv_den, q
+    return t, hit, den, q
 
 
 def clip_ok(z, rules: Rules):
@@ -197,19 +195,10 @@ def clip_ok(z, rules: Rules):
     return (z <= 0) if rules.screen_clip == ">" else (z < 0)
 
 
-def fplane_uv(d, q, inv_den, obj: ObjectConstants):
-    """The seed's newhit.xy, without forming the hit point (see the module docstring)."""
-    Array3 = type(d)
-    c = dr.cross(q, d)
-    u = dr.dot(opaque3(Array3, obj.ydir), c) * inv_den
-    v = -dr.dot(opaque3(Array3, obj.xdir), c) * inv_den
-    return u, v
-
-
 def fplane_t(d, o, obj: ObjectConstants, rules: Rules, vz: float):
     """plane_t, then the bounds test 0 <= u <= w, 0 <= v <= h (strict with open edges)."""
     F, B = _check(d)
-    t, hit, den, _, q = _plane(d, o, obj, rules, vz)
+    t, hit, den, q = _plane(d, o, obj, rules, vz)
     Array3 = type(d)
     c = dr.cross(q, d)
     # u·|den| in [0, w·|den|], v·|den| in [0, h·|den|] (see the module docstring): no
@@ -270,5 +259,4 @@ def object_t(d, o, obj: ObjectConstants, rules: Rules, vz: float):
         return sphere_t(d, o, obj, rules, vz)
     if obj.kind == "fplane":
         return fplane_t(d, o, obj, rules, vz)
-    t, hit, _, _ = plane_t(d, o, obj, rules, vz)     # plane, tplane
-    return t, hit
+    return plane_t(d, o, obj, rules, vz)              # plane, tplane

@@ -18,7 +18,7 @@ from . import accel, backend
 from .backend import Types
 from .rules import Rules
 from .scene import Scene
-from .shapes import KIND_CODE, PLANE_KINDS, ObjectConstants, fplane_uv, object_constants, object_t
+from .shapes import KIND_CODE, PLANE_KINDS, object_constants, object_t
 
 backend.require("llvm")     # fail early, with a message, on an LLVM that would abort kernels
 

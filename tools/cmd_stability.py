@@ -2,7 +2,6 @@
 oracle (mitsuba_ref.stability does the work)."""
 from __future__ import annotations
 
-import json
 import os
 import sys
 
