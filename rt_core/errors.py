@@ -9,5 +9,5 @@ class InputError(Exception):
     exit_code = 2
 
 
-USER_ERRORS = (SceneError, GeometryError, ExrError, BackendError, InputError,
-               FileNotFoundError, IsADirectoryError, PermissionError)
+# OSError: a missing input, an output path under a file, a full disk, ... (one line each)
+USER_ERRORS = (SceneError, GeometryError, ExrError, BackendError, InputError, OSError)

@@ -5,7 +5,9 @@ failed or interrupted write never leaves a partial file.
 """
 from __future__ import annotations
 
+import errno
 import os
+import stat
 import tempfile
 
 import numpy as np
@@ -20,15 +22,30 @@ class ExrError(Exception):
 
 
 def atomic_write(path: str, write) -> None:
-    """Call ``write(tmp_path)`` and rename the result to ``path`` only if it succeeded."""
-    path = os.fspath(path)
-    directory = os.path.dirname(os.path.abspath(path))
+    """Call ``write(tmp_path)`` and rename the result to ``path`` only if it succeeded.
+
+    A symlink is written through (its target is replaced); an existing non-regular file
+    (``/dev/null``, a pipe) is written directly, since it cannot be replaced; the new file
+    gets the mode of the file it replaces, or 0666 less the umask."""
+    path = os.path.realpath(os.fspath(path))
+    if os.path.isdir(path):
+        raise IsADirectoryError(errno.EISDIR, "is a directory, expected a file name", path)
+    if os.path.exists(path) and not os.path.isfile(path):
+        write(path)
+        return
+    directory = os.path.dirname(path)
     os.makedirs(directory, exist_ok=True)
-    suffix = os.path.splitext(path)[1]
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=suffix, dir=directory)
+    if os.path.exists(path):
+        mode = stat.S_IMODE(os.stat(path).st_mode)
+    else:
+        umask = os.umask(0)
+        os.umask(umask)
+        mode = 0o666 & ~umask
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=os.path.splitext(path)[1], dir=directory)
     os.close(fd)
     try:
         write(tmp)
+        os.chmod(tmp, mode)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -44,7 +61,8 @@ def write_exr(path: str, channels: dict, attrs: dict | None = None,
     for name, arr in channels.items():
         a = np.asarray(arr)
         if a.dtype != np.uint32:
-            a = a.astype(np.float32)
+            with np.errstate(over="ignore", invalid="ignore"):   # counted by the caller
+                a = a.astype(np.float32)
         if a.ndim != 2 or (shape is not None and a.shape != shape):
             raise ExrError(f"{path}: channel {name} has shape {a.shape}, expected {shape}")
         shape = a.shape

@@ -97,7 +97,11 @@ def render_geometry(scene: Scene, columns: int, rows: int | None = None, precisi
 
 
 def nonfinite_count(images: dict) -> int:
-    return int(sum(np.count_nonzero(~np.isfinite(a)) for a in images.values()))
+    """Non-finite values as written: every output holds float32 (a float64 value beyond
+    float32's range becomes inf there)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        return int(sum(np.count_nonzero(~np.isfinite(np.asarray(a, np.float32)))
+                       for a in images.values()))
 
 
 def versions() -> dict:

@@ -173,9 +173,10 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
                                    f"L{j}.blocked": blocked}, rays))
         # shade pass: divide by the path length, add to the pixel, spawn reflections
         local = I / total
-        # (each pixel appears at most once per wavefront: a plain read-modify-write suffices)
-        dr.scatter_add(image, local if weight is None else weight * local, pixel, hit,
-                       mode=dr.ReduceMode.NoConflicts)
+        # each pixel appears at most once per wavefront: a plain read-modify-write (not
+        # dr.scatter_add, which drops NaN: a NaN must reach the image, to be counted)
+        add = local if weight is None else weight * local
+        dr.scatter(image, dr.gather(T.Array3, image, pixel, hit) + add, pixel, hit)
         if not reflect:
             dr.eval(image)
             log.mark("shade", "shade", bounce, rays)
@@ -234,4 +235,6 @@ def quantize(rgb: np.ndarray) -> np.ndarray:
     """The course's pixel value: floor(255 · clamp(I, 0, 1)) per channel, in I's precision
     (float32 arithmetic for f32 renders, as a float32 tracer would do it)."""
     a = np.asarray(rgb)
+    # NaN (counted and reported by the caller) becomes 0; ±inf clamps like any value
+    a = np.where(np.isnan(a), a.dtype.type(0), a)
     return np.floor(a.dtype.type(255) * np.clip(a, 0, 1)).astype(np.uint8)

@@ -10,15 +10,19 @@ per-object constants gathered by object id.
 """
 from __future__ import annotations
 
+import dataclasses
+import math
 from dataclasses import dataclass, field
+
+import numpy as np
 
 import drjit as dr
 
 from . import accel, backend
 from .backend import Types
 from .rules import Rules
-from .scene import Scene
-from .shapes import KIND_CODE, PLANE_KINDS, object_constants, object_t
+from .scene import Scene, SceneError
+from .shapes import KIND_CODE, PLANE_KINDS, ObjectConstants, object_constants, object_t
 
 backend.require("llvm")     # fail early, with a message, on an LLVM that would abort kernels
 
@@ -53,10 +57,56 @@ class KernelScene:
         return cache[name]
 
 
+FLOAT_MAX = {"f32": float(np.finfo(np.float32).max), "f64": float(np.finfo(np.float64).max)}
+
+
 def prepare(scene: Scene, T: Types) -> KernelScene:
-    consts = object_constants(scene)
+    """Host constants of the scene for one backend/precision.
+
+    Raises SceneError (naming the object's line) when a constant overflows float64 or does
+    not fit the kernel's precision: a float32 kernel would turn it into inf and silently
+    lose the object."""
+    try:
+        consts = object_constants(scene)
+    except OverflowError:
+        consts = None
+    if consts is None or any(not _finite(c) for c in consts):
+        bad = next((o for o in scene.objects if not _finite_obj(scene, o)), scene.objects[0])
+        raise SceneError(f"{bad.kind}: its distance from the viewpoint overflows float64; "
+                         "numbers this large are out of range", scene.path, bad.line or None)
+    limit = FLOAT_MAX[T.precision]
+    for c in consts:
+        big = max(_magnitudes(c))
+        if big > limit:
+            o = scene.objects[c.id]
+            raise SceneError(f"{o.kind}: a constant of its intersection test ({big:.3g}) "
+                             f"exceeds the {T.precision} range ({limit:.3g})"
+                             + ("; render with --precision f64" if T.precision == "f32" else ""),
+                             scene.path, o.line or None)
     by_kind = {k: [c for c in consts if c.kind == k] for k in KIND_CODE}
     return KernelScene(scene, T, consts, by_kind)
+
+
+def _magnitudes(c: ObjectConstants):
+    """Absolute values of every number a kernel receives for object constants ``c``."""
+    for f in dataclasses.fields(c):
+        v = getattr(c, f.name)
+        if isinstance(v, tuple):
+            yield from (abs(x) for x in v)
+        elif isinstance(v, float):
+            yield abs(v)
+
+
+def _finite(c: ObjectConstants) -> bool:
+    return all(math.isfinite(x) for x in _magnitudes(c))
+
+
+def _finite_obj(scene: Scene, obj) -> bool:
+    try:
+        return all(_finite(c) for c in object_constants(
+            dataclasses.replace(scene, objects=(obj,))))
+    except OverflowError:
+        return False
 
 
 def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None):

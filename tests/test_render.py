@@ -157,3 +157,74 @@ def test09_uv_stays_in_the_rectangle_at_exact_edges(k, precision):
         m = oid == i
         w, h = (a.dtype.type(x) for x in o.size)
         assert ((u[m] >= 0) & (u[m] <= w) & (v[m] >= 0) & (v[m] <= h)).all(), (i, u[m].max(), w)
+
+
+# --- numbers at the edge of the precision, output paths (review findings) -----------------
+
+SPHERE_AT = "8 6\n0 0 3\nsphere\n1 1 1\n1 1 1\n0 0 0\n0 0 {z}\n{r}\n"
+
+
+def test10_constants_beyond_float32_are_an_error_not_an_empty_image(tmp_path):
+    scene = tmp_path / "big.txt"
+    scene.write_text(SPHERE_AT.format(z="-2e20", r="1.5e20"))     # |q|² − r² ~ 1.8e40
+    r = rtval("render", scene, "--columns", 16, "-o", tmp_path / "a.exr")
+    assert r.returncode == 2 and "big.txt:3" in r.stderr and "--precision f64" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "a.exr").exists()
+    r = rtval("render", scene, "--columns", 16, "--precision", "f64", "-o", tmp_path / "b.exr")
+    assert r.returncode == 0 and read_exr(tmp_path / "b.exr")[0]["hit.mask"].sum() > 0
+
+
+def test11_float64_overflow_is_one_line(tmp_path):
+    scene = tmp_path / "huge.txt"
+    scene.write_text(SPHERE_AT.format(z="-1e200", r="1"))          # |q|² overflows float64
+    r = rtval("render", scene, "--columns", 16, "--precision", "f64", "-o", tmp_path / "a.exr")
+    assert r.returncode == 2 and "huge.txt:3" in r.stderr and "Traceback" not in r.stderr
+
+
+def test12_values_beyond_float32_in_an_f64_render_are_counted(tmp_path):
+    scene = tmp_path / "far.txt"
+    scene.write_text("8 6\n0 0 3\nplane\n1 1 1\n1 1 1\n0 0 0\n0 1 1\n0 0 -1e300\n")
+    out = tmp_path / "far.exr"
+    r = rtval("render", scene, "--columns", 16, "--precision", "f64", "-o", out)
+    ch, hdr = read_exr(out)
+    n = sum(int(np.count_nonzero(~np.isfinite(v))) for v in ch.values())
+    assert n > 0 and hdr["rtval.nonfinite"] == str(n)                 # the file's own count
+    assert r.returncode == 1 and "NON-FINITE" in r.stderr
+
+
+def test13_nan_in_shading_reaches_the_image_and_is_counted(tmp_path):
+    """inf·0 in the diffuse term is NaN; Dr.Jit's scatter_add would drop it silently."""
+    scene = tmp_path / "nan.txt"
+    scene.write_text("8 6\n0 0 3\npointlight\n1e30 1e30 1e30\n0 0 2\npointlight\n"
+                     "-1e30 -1e30 -1e30\n0 1 2\nplane\n0 0 0\n1e30 1e30 1e30\n0 0 0\n"
+                     "0 0 1\n0 0 -5\n")
+    r = rtval("render", scene, "--columns", 16, "--png", tmp_path / "n.png",
+              "-o", tmp_path / "n.exr")
+    assert r.returncode == 1 and "NON-FINITE" in r.stderr and "Warning" not in r.stderr
+    ch, hdr = read_exr(tmp_path / "n.exr")
+    assert np.isnan(ch["R"]).any() and int(hdr["rtval.nonfinite"]) > 0
+
+
+def test14_output_paths(tmp_path):
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    for out in (afile / "x.exr", tmp_path):                       # under a file; a directory
+        r = rtval("render", "scenes/sphere.txt", "--columns", 8, "-o", out)
+        assert r.returncode == 2 and "Traceback" not in r.stderr
+        assert len(r.stderr.strip().splitlines()) == 1
+    # a symlink is written through; a new file gets 0666 less the umask
+    target, link = tmp_path / "target.exr", tmp_path / "link.exr"
+    link.symlink_to(target)
+    old = os.umask(0o022)
+    try:
+        assert rtval("render", "scenes/sphere.txt", "--columns", 8, "-o", link).returncode == 0
+    finally:
+        os.umask(old)
+    assert link.is_symlink() and target.is_file()
+    assert (target.stat().st_mode & 0o777) == 0o644
+    assert not glob.glob(str(tmp_path / ".tmp-*"))
+
+
+def test15_usage_errors_are_one_line():
+    r = rtval("render", "scenes/sphere.txt", "--columns", "nan", "-o", "x.exr")
+    assert r.returncode == 64 and len(r.stderr.strip().splitlines()) == 1

@@ -18,8 +18,8 @@ USAGE_EXIT = 64
 
 class Parser(argparse.ArgumentParser):
     def error(self, message):
-        self.print_usage(sys.stderr)
-        print(f"{self.prog}: error: {message}", file=sys.stderr)
+        # one line, like every other error (the usage is one --help away)
+        print(f"{self.prog}: error: {message} (see {self.prog} --help)", file=sys.stderr)
         sys.exit(USAGE_EXIT)
 
 
@@ -39,8 +39,10 @@ def main(argv=None) -> int:
     try:
         return int(args.func(args) or 0)
     except USER_ERRORS as e:
-        msg = f"{e.filename}: {e.strerror.lower()}" if isinstance(e, OSError) and e.filename \
-            else str(e)
+        if isinstance(e, OSError) and e.filename:
+            msg = f"{e.filename}: {(e.strerror or str(e)).lower()}"
+        else:
+            msg = str(e).splitlines()[0] if str(e) else type(e).__name__
         print(f"rtval {args.command}: {msg}", file=sys.stderr)
         return getattr(e, "exit_code", 2)
     except KeyboardInterrupt:
