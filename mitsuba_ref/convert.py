@@ -213,7 +213,43 @@ def scene_dict(scene: Scene, columns: int, rows: int | None = None, sampling: st
     if integrator:
         d["integrator"] = ({"type": "path", "max_depth": 2} if shading else
                            {"type": "aov", "aovs": AOVS})
+    _check_float32(scene, d)
     return d
+
+
+F32_MAX = 3.4028234663852886e38
+
+
+def _numbers(v):
+    """Every number in a scene-dict value (matrices, vectors, nested dicts)."""
+    if isinstance(v, bool) or isinstance(v, str):
+        return
+    if isinstance(v, (int, float)):
+        yield float(v)
+    elif isinstance(v, dict):
+        for x in v.values():
+            yield from _numbers(x)
+    elif isinstance(v, (list, tuple)):
+        for x in v:
+            yield from _numbers(x)
+    elif hasattr(v, "matrix"):
+        m = v.matrix
+        yield from (float(m[i][j]) for i in range(4) for j in range(4))
+
+
+def _check_float32(scene: Scene, d: dict) -> None:
+    """Mitsuba works in float32: a number beyond its range would become inf or nan in the
+    scene (and in the XML), so refuse it, naming the object."""
+    for key, value in d.items():
+        big = max((abs(x) for x in _numbers(value)), default=0.0)
+        if not big <= F32_MAX:          # also catches nan
+            where = ""
+            if key.startswith("obj"):
+                o = scene.objects[course_id(key)]
+                where = f"{o.kind} (line {o.line}): "
+            raise InputError(f"{scene.path}: {where}{key} needs the number {big:.3g}, beyond "
+                             "the float32 range of Mitsuba's llvm_ad_rgb variant; this scene "
+                             "can be rendered by rt_core in f64 but not converted")
 
 
 # --- XML ---------------------------------------------------------------------------------------

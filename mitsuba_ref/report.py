@@ -28,7 +28,6 @@ the process's resident set (VmHWM, reset through /proc/self/clear_refs).
 """
 from __future__ import annotations
 
-import json
 import os
 import statistics
 import time
@@ -273,13 +272,16 @@ def summary(rows) -> list[dict]:
                     "depth_max_rel": max(r["depth_max_rel"] for r in rs),
                     "jit_peak_bytes": max(r["jit_peak_bytes"] for r in rs),
                     "rss_peak_bytes": max(r["rss_peak_bytes"] for r in rs)})
+        p = out[-1]
+        # one error per configuration: a wrong pixel counts, not only the depth of right ones
+        p["error"] = max(p["depth_p99_rel"], p["mask_mismatch_unflagged"] / max(p["sample"], 1))
     return out
 
 
 ERROR_FLOOR = 1e-17          # zero errors are drawn here on the log axis
 
 
-def pareto(points, x: str = "ns_per_ray", y: str = "depth_p99_rel") -> list[int]:
+def pareto(points, x: str = "ns_per_ray", y: str = "error") -> list[int]:
     """Indices of the points no other point beats in both x and y (both minimized)."""
     front = []
     for i, p in enumerate(points):
@@ -290,9 +292,9 @@ def pareto(points, x: str = "ns_per_ray", y: str = "depth_p99_rel") -> list[int]
 
 
 def plot(result: dict, path: str) -> None:
-    """Log-log PNG: worst depth p99 relative error against steady time per ray (summed over
-    the scenes), one point per configuration and resolution, the Pareto front joined and
-    ringed."""
+    """Log-log PNG: error (worst depth p99 relative error, or the fraction of unflagged
+    mismatching pixels if larger) against steady time per ray (summed over the scenes), one
+    point per configuration and resolution, the Pareto front joined and ringed."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -305,25 +307,27 @@ def plot(result: dict, path: str) -> None:
         tracer, mode = p["config"].rsplit("-", 1)
         label = p["config"] if p["config"] not in seen else None
         seen.add(p["config"])
-        y = max(p["depth_p99_rel"], ERROR_FLOOR)
+        y = max(p["error"], ERROR_FLOOR)
         ax.scatter(p["ns_per_ray"], y, c=colors[tracer], marker="o" if mode == "prelim" else "s",
                    s=28, label=label, zorder=3)
         ax.annotate(str(p["columns"]), (p["ns_per_ray"], y), fontsize=6,
                     xytext=(3, 3), textcoords="offset points")
         if i in front:
             ax.scatter(p["ns_per_ray"], y, s=140, facecolors="none", edgecolors="k", zorder=4)
-    fr = sorted((pts[i]["ns_per_ray"], max(pts[i]["depth_p99_rel"], ERROR_FLOOR)) for i in front)
+    fr = sorted((pts[i]["ns_per_ray"], max(pts[i]["error"], ERROR_FLOOR)) for i in front)
     if fr:
         ax.step(*zip(*fr), where="post", color="k", lw=0.8, label="Pareto front")
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("steady-state time per ray (ns): medians summed over the scenes / their rays")
-    ax.set_ylabel("depth error: worst p99 relative error over the scenes")
+    ax.set_ylabel("error: max(worst depth p99 rel., unflagged mismatch fraction)")
     ax.set_title("Error against time (labels: columns; o preliminary, s full)", fontsize=9)
     ax.grid(True, which="both", lw=0.3)
     ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path)
+    from rt_core.outputs import save_figure
+    save_figure(fig, path, {f"rtval.{k}": v for k, v in result["meta"].items()
+                            if isinstance(v, (str, int, float))})
     plt.close(fig)
 
 
@@ -362,7 +366,8 @@ def markdown(result: dict, png: str) -> str:
          " compare ratios within this run, not absolute times.", "",
          f"![error against time]({os.path.basename(png)})", "",
          "## Summary (per configuration and resolution, over all scenes)", "",
-         "Pareto front (time per ray, worst depth p99) marked ★.", "",
+         "Pareto front (time per ray, error) marked ★; error = the worst depth p99, or the "
+         "fraction of sampled pixels with an unflagged mismatch if that is larger.", "",
          "| config | columns | ns/ray | steady ms (sum) | first ms (sum) | compile ms | mismatches / "
          "sampled | unflagged | modelled | depth p99 (worst) | depth max (worst) | Dr.Jit peak "
          "MiB | RSS peak MiB |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -394,12 +399,11 @@ def markdown(result: dict, png: str) -> str:
 
 def write_report(result: dict, outdir: str) -> tuple[str, str, str]:
     """report.json, report.md and error_vs_time.png under ``outdir``; returns their paths."""
-    from rt_core.exrio import atomic_write
-    os.makedirs(outdir, exist_ok=True)
+    from rt_core.outputs import atomic_write, write_json
     js = os.path.join(outdir, "report.json")
     md = os.path.join(outdir, "report.md")
     png = os.path.join(outdir, "error_vs_time.png")
     plot(result, png)
-    atomic_write(js, lambda tmp: Path(tmp).write_text(json.dumps(result, indent=1) + "\n"))
+    write_json(js, result)
     atomic_write(md, lambda tmp: Path(tmp).write_text(markdown(result, png)))
     return md, js, png

@@ -42,7 +42,6 @@ terms), so it does not distort any family.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import random
 import time
@@ -772,13 +771,12 @@ def summary(results) -> dict:
 
 
 def write_json(results, path: str, meta: dict | None = None) -> None:
-    with open(path, "w") as fh:
-        json.dump({"meta": meta or {}, "summary": summary(results),
-                   "headline": headline(results),
-                   "cases": [r.to_json() for r in results]}, fh, indent=1, default=float)
+    from rt_core.outputs import write_json as write
+    write(path, {"meta": meta or {}, "summary": summary(results),
+                 "headline": headline(results), "cases": [r.to_json() for r in results]})
 
 
-def write_plot(results, path: str) -> None:
+def write_plot(results, path: str, provenance: dict | None = None) -> None:
     """One log-log subplot per family: max relative depth error against the parameter, per
     tracer (over seeds); the title counts each tracer's unexplained mismatches."""
     import matplotlib
@@ -818,5 +816,6 @@ def write_plot(results, path: str) -> None:
     fig.suptitle("rtval stability: max relative depth error against the exact oracle, per "
                  "parameter value; unexplained mask/id mismatches per tracer", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    from rt_core.outputs import save_figure
+    save_figure(fig, path, provenance, dpi=110)
     plt.close(fig)

@@ -39,13 +39,17 @@ def make_camera(scene: Scene, columns: int, rows: int | None = None,
                 sampling: str = "corners") -> Camera:
     if sampling not in SAMPLINGS:
         raise InputError(f"sampling must be corners or centers, not {sampling!r}")
+    given_rows = rows is not None
     if rows is None:
         rows = scene.default_rows(columns)
+    if columns * rows >= 2 ** 31:
+        raise InputError(f"image {columns}x{rows} has {columns * rows} pixels; Dr.Jit indexes "
+                         "at most 2^31 rays in one kernel")
     least = 2 if sampling == "corners" else 1
     if columns < least or rows < least:
         raise InputError(f"image {columns}x{rows} is too small: {sampling} sampling needs at "
                          f"least {least} columns and rows"
-                         + ("" if rows >= least or columns < least else
+                         + ("" if given_rows or rows >= least or columns < least else
                             f" (rows = int(h/w·columns) = {rows}; give --rows)"))
     ww, wh = scene.window
     if sampling == "corners":

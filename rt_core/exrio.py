@@ -5,52 +5,18 @@ failed or interrupted write never leaves a partial file.
 """
 from __future__ import annotations
 
-import errno
 import os
-import stat
-import tempfile
 
 import numpy as np
 import OpenEXR
 
 from .native import native_output_captured
+from .outputs import atomic_write  # noqa: F401  (re-exported: EXR writers use it)
 
 
 class ExrError(Exception):
     """An EXR that cannot be read or written; ``str(err)`` is one line naming the file."""
     exit_code = 4
-
-
-def atomic_write(path: str, write) -> None:
-    """Call ``write(tmp_path)`` and rename the result to ``path`` only if it succeeded.
-
-    A symlink is written through (its target is replaced); an existing non-regular file
-    (``/dev/null``, a pipe) is written directly, since it cannot be replaced; the new file
-    gets the mode of the file it replaces, or 0666 less the umask."""
-    path = os.path.realpath(os.fspath(path))
-    if os.path.isdir(path):
-        raise IsADirectoryError(errno.EISDIR, "is a directory, expected a file name", path)
-    if os.path.exists(path) and not os.path.isfile(path):
-        write(path)
-        return
-    directory = os.path.dirname(path)
-    os.makedirs(directory, exist_ok=True)
-    if os.path.exists(path):
-        mode = stat.S_IMODE(os.stat(path).st_mode)
-    else:
-        umask = os.umask(0)
-        os.umask(umask)
-        mode = 0o666 & ~umask
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=os.path.splitext(path)[1], dir=directory)
-    os.close(fd)
-    try:
-        write(tmp)
-        os.chmod(tmp, mode)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def write_exr(path: str, channels: dict, attrs: dict | None = None,

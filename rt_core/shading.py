@@ -136,10 +136,10 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
     # path length so far, product of the speculars on the way (None: start values), and
     # which lanes are real (None: all)
     pixel, o, skip, dist, weight, live = dr.arange(T.UInt32, n), None, None, None, None, None
-    bounce = 0
+    bounce, count = 0, n          # count: real rays in the wavefront
     while True:
         group = "primary" if bounce == 0 else "reflection"
-        rays = dr.width(d) if live is None else count
+        rays = count
         # hit pass: closest hit, surface, material
         t, oid, hit = closest_hit(ks, d, o, rules, skip)
         if live is not None:

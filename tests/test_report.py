@@ -17,7 +17,21 @@ def test01_pareto_front():
            {"ns_per_ray": 3.0, "depth_p99_rel": 1e-15},    # front: most accurate
            {"ns_per_ray": 3.0, "depth_p99_rel": 1e-14},    # dominated by 2
            {"ns_per_ray": 2.5, "depth_p99_rel": 1e-10}]    # front: in between
-    assert report.pareto(pts) == [0, 2, 4]
+    assert report.pareto(pts, y="depth_p99_rel") == [0, 2, 4]
+
+
+def test01b_wrong_pixels_keep_a_config_off_the_front():
+    """A configuration that gets every pixel wrong has no same-object depth error (0); its
+    error must still count the mismatches (it used to be marked best)."""
+    rows = [{"config": c, "columns": 160, "rays": 100, "steady_ms": ms, "first_ms": 1,
+             "compile_ms": 1, "sample": 100, "mask_mismatch": mm,
+             "mask_mismatch_unflagged": mm, "depth_p99_rel": d, "depth_max_rel": d,
+             "jit_peak_bytes": 0, "rss_peak_bytes": 0}
+            for c, ms, mm, d in (("fast-wrong", 1.0, 100, 0.0), ("slow-right", 2.0, 0, 1e-7))]
+    summ = report.summary(rows)
+    assert [p["error"] for p in summ] == [1.0, 1e-7]
+    assert report.pareto(summ) == [0, 1]       # neither dominates: fast but wrong, slow but right
+    assert report.pareto([summ[0], dict(summ[1], steady_ms=0.5, ns_per_ray=0.1)]) == [1]
 
 
 def test02_sample_index():

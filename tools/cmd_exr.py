@@ -152,19 +152,9 @@ def _channels(args):
 
 # ----------------------------------------------------------------------------- output
 
-def _jsonable(x):
-    """NaN and Inf become the strings "nan", "inf", "-inf" so that the output is strict JSON."""
-    if isinstance(x, float) and not math.isfinite(x):
-        return "nan" if math.isnan(x) else ("inf" if x > 0 else "-inf")
-    if isinstance(x, dict):
-        return {k: _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    return x
-
-
 def _print_json(data) -> None:
-    print(json.dumps(_jsonable(data), indent=2, allow_nan=False))
+    from rt_core.outputs import json_text
+    print(json_text(data, indent=2), end="")
 
 
 def _g(v, width: int = 0) -> str:

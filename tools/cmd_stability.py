@@ -74,12 +74,13 @@ def run(args) -> int:
         for row in head:
             print(f"  D = {row['distance']:<8g} exact hits {row['exact_hits']:4d}:  "
                   + "  ".join(f"{k} {row[k]:.1%}" for k in S.TRACERS if k in row))
-    os.makedirs(args.output, exist_ok=True)
+    meta = dict(mode=mode, seeds=list(seeds), backend="llvm", precisions="f32 f64",
+                reference="mitsuba llvm_ad_rgb", **versions())
     plot = os.path.join(args.output, "stability.png")
-    S.write_plot(results, plot)
+    S.write_plot(results, plot, {f"rtval.{k}": v for k, v in meta.items()})
     print(f"plot: {plot}", file=sys.stderr)
     if args.json:
-        S.write_json(results, args.json, dict(mode=mode, seeds=list(seeds), **versions()))
+        S.write_json(results, args.json, meta)
         print(f"json: {args.json}", file=sys.stderr)
     bad = [fam for fam, f in summ.items() if not f["ok"]]
     if bad:
