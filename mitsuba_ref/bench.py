@@ -137,7 +137,9 @@ class MemoryProbe:
         dr.sync_thread()
         self.jit_peak = dr.detail.malloc_watermark(dr.JitBackend.LLVM) - self.jit0
         hwm = vm_kib("VmHWM")
-        self.rss_peak = (hwm - self.rss0) * 1024 if self.hwm_ok and hwm >= 0 else -1
+        # VmHWM is updated lazily and can read a few pages below the VmRSS taken just after
+        # the reset: growth within that noise is 0, not negative
+        self.rss_peak = max(hwm - self.rss0, 0) * 1024 if self.hwm_ok and hwm >= 0 else -1
         return False
 
 

@@ -98,8 +98,9 @@ class ObjectEval:
         else:
             # beyond the reference's stand-in square (half-size extent, its own axes)
             ax, ay, foot = stand_in_frame(obj, scene.viewpoint)
-            rel = O + t[:, None] * d - np.asarray(foot)
-            far = np.maximum(np.abs(rel @ np.asarray(ax)), np.abs(rel @ np.asarray(ay)))
+            with np.errstate(invalid="ignore"):        # t = inf on rays parallel to it
+                rel = O + t[:, None] * d - np.asarray(foot)
+                far = np.maximum(np.abs(rel @ np.asarray(ax)), np.abs(rel @ np.asarray(ay)))
             self.beyond = valid & (far > extent * (1 - 1e-6))
             size = extent       # the stand-in's float32 vertices lie ~extent away
         self.valid = valid

@@ -54,8 +54,13 @@ def stem_of(path: str) -> str:
 
 
 def validate(scenes, columns: int, precisions, modes, outdir: str, progress=None):
-    """Run every comparison; write EXRs, report.md and report.json under ``outdir``."""
-    os.makedirs(outdir, exist_ok=True)
+    """Run every comparison; write EXRs, report.md and report.json under ``outdir``.
+
+    Evidence of an earlier run in ``outdir/failures`` and ``outdir/exr`` is removed first,
+    so what is there belongs to this run."""
+    for sub in ("failures", "exr"):
+        for old in Path(outdir, sub).glob("*.exr"):
+            old.unlink()
     results = []
     for scene in scenes:
         for mode in modes:
@@ -99,7 +104,8 @@ def write_report(results, skipped, outdir: str, meta: dict) -> tuple[str, str]:
     bad = [r for r in results if not r["ok"]]
     lines += ["", f"{len(results)} comparisons, {len(bad)} failed."]
     if skipped:
-        lines += ["", f"## Skipped ({len(skipped)} course files with unsupported object kinds)", ""]
+        lines += ["", f"## Skipped ({len(skipped)} course files that do not parse: object kinds "
+                  "out of scope, or errors in the file)", ""]
         lines += [f"- {s.reason}" for s in skipped]
     atomic_write(mpath, lambda tmp: Path(tmp).write_text("\n".join(lines) + "\n"))
     return mpath, jpath

@@ -28,8 +28,8 @@ class Rules:
             if getattr(self, name) not in allowed:
                 raise ValueError(f"rules: {name} must be one of {', '.join(allowed)}, "
                                  f"not {getattr(self, name)!r}")
-        if not (self.t_min >= 0.0):
-            raise ValueError(f"rules: t_min must be >= 0, not {self.t_min!r}")
+        if not (0.0 <= self.t_min < float("inf")):
+            raise ValueError(f"rules: t_min must be a finite number >= 0, not {self.t_min!r}")
 
     def describe(self) -> str:
         return ",".join(f"{k}={v}" for k, v in asdict(self).items())
@@ -43,9 +43,18 @@ class Rules:
             if not sep or key not in cls.__dataclass_fields__:
                 raise ValueError(f"rules: expected name=value with name in "
                                  f"{', '.join(cls.__dataclass_fields__)}, got {item!r}")
+            if key in kw:
+                raise ValueError(f"rules: {key} is given twice")
             if key == "t_min":
-                val = float(val)
+                try:
+                    val = float(val)
+                except ValueError:
+                    raise ValueError(f"rules: t_min must be a number, not {val!r}") from None
             elif key == "clip_spheres":
-                val = val.lower() in ("1", "true", "yes", "on")
+                flag = {"1": True, "true": True, "yes": True, "on": True,
+                        "0": False, "false": False, "no": False, "off": False}
+                if val.lower() not in flag:
+                    raise ValueError(f"rules: clip_spheres must be true or false, not {val!r}")
+                val = flag[val.lower()]
             kw[key] = val
         return cls(**kw)

@@ -42,11 +42,22 @@ def test01_every_scene(tmp_path):
 
 
 def test02_given_files(tmp_path):
+    """A scene named on the command line must render (as in validate): an unsupported one is
+    an error, not a skip; two named files with one stem get distinct images."""
     bad = tmp_path / "spot.txt"
     bad.write_text("8 6\n0 0 5\n11\n1 1 1\n")
     r = rtval("gallery", "-o", tmp_path / "g", "--columns", 16, REPO / "scenes" / "sphere.txt",
               bad)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert r.stderr.strip().endswith(f"{bad}:3:1: 11 (spotlight) is not supported "
+                                     "(supported codes: 10 pointlight, 13 sphere, 14 plane, "
+                                     "15 fplane, 16 tplane)")
+    for sub, src in (("a", "sphere.txt"), ("b", "plane.txt")):
+        (tmp_path / sub).mkdir()
+        (tmp_path / sub / "s.txt").write_text((REPO / "scenes" / src).read_text())
+    r = rtval("gallery", "-o", tmp_path / "g2", "--columns", 16, tmp_path / "a" / "s.txt",
+              tmp_path / "b" / "s.txt")
     assert r.returncode == 0, r.stderr
-    assert (tmp_path / "g" / "sphere.png").exists()
-    assert f"skipped {bad}:3:1: 11 (spotlight) is not supported" in r.stderr
-    assert "Traceback" not in r.stderr
+    pngs = sorted(p.name for p in (tmp_path / "g2").glob("*s.png"))
+    assert len(pngs) == 2, pngs
+

@@ -284,6 +284,9 @@ def test41_bad_scene_is_one_line_and_no_output(tmp_path):
 
 
 def test42_validate_writes_report(tmp_path):
+    stale = tmp_path / "failures" / "old.ours.exr"          # evidence of an earlier run
+    stale.parent.mkdir()
+    stale.write_bytes(b"")
     r = _cli("validate", "scenes/sphere.txt", "scenes/plane.txt", "--columns", "32",
              "-o", str(tmp_path))
     assert r.returncode == 0, r.stderr
@@ -293,3 +296,4 @@ def test42_validate_writes_report(tmp_path):
     assert len(rep["results"]) == 2 * 2 * 2 and all(x["ok"] for x in rep["results"])
     assert "drjit" in rep["meta"] and "mitsuba" in rep["meta"]
     assert "sphere" in r.stdout and "unexpl" in r.stdout
+    assert not stale.exists()

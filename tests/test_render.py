@@ -99,6 +99,9 @@ def test04_bad_input_is_one_line_no_output(name, text, phrase, tmp_path):
     (["--columns", "x"], "whole number"),
     (["--columns", "8", "--rules", "edges=ajar"], "edges"),
     (["--columns", "8", "--precision", "f16"], "invalid choice"),
+    (["--columns", "8", "--rules", "t_min=inf"], "finite"),
+    (["--columns", "8", "--rules", "clip_spheres=maybe"], "true or false"),
+    (["--columns", "8", "--rules", "ties=first,ties=last"], "twice"),
 ])
 def test05_bad_options_are_usage_errors(args, phrase, tmp_path):
     r = rtval("render", "scenes/sphere.txt", *args, "-o", tmp_path / "o.exr")

@@ -65,7 +65,8 @@ def run(args) -> int:
         print(f"bench: {case['scene']} N={case['objects']}: rt_core f32 "
               f"{f32.get('mrays_per_s', 0):.0f} Mrays/s, "
               f"{case.get('ratio_f32_vs_mitsuba', 0):.2f}x Mitsuba", file=sys.stderr)
-    result = run_bench(args.objects, args.scenes, args.columns, args.reps, args.brute,
+    objects = list(dict.fromkeys(args.objects))          # each count once
+    result = run_bench(objects, args.scenes, args.columns, args.reps, args.brute,
                        progress=progress)
     text = json.dumps(result, indent=1)
     if args.output:

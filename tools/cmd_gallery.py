@@ -36,9 +36,12 @@ def add_parser(sub) -> None:
 
 
 def scene_files(given: list) -> list[tuple[str, Path]]:
-    """(name, path) of the scenes to render; names are unique file stems with their source."""
+    """(name, path) of the scenes to render; names are unique (a given file's name gains its
+    folder when two given files share a stem)."""
     if given:
-        return [(Path(g).stem, Path(g)) for g in given]
+        stems = [Path(g).stem for g in given]
+        return [(Path(g).stem if stems.count(Path(g).stem) == 1 else
+                 Path(g).with_suffix("").as_posix().lstrip("./"), Path(g)) for g in given]
     out = []
     for label, root in SOURCES:
         for path in sorted(root.rglob("*.txt")):
@@ -56,7 +59,9 @@ def run(args) -> int:
     from rt_core.exrio import atomic_write
     from rt_core.imageio import write_png
     from rt_core.parser import parse_scene
-    from rt_core.render import render_image
+    from rt_core.render import provenance, render_image, versions
+    from rt_core.rules import Rules
+    from rt_core.shading import DEFAULT_MAX_DIST
     from rt_core.scene import SceneError
     from rt_core.shading import quantize
 
@@ -69,20 +74,27 @@ def run(args) -> int:
         try:
             scene = parse_scene(str(path))
             cam = make_camera(scene, args.columns)
+            images, res = render_image(scene, cam, T, geometry=False, shade=True)
         except (SceneError, InputError) as e:
+            if args.scenes:
+                raise              # a scene named on the command line must render
             why = str(e) if isinstance(e, SceneError) else f"{path}: {e}"
             skipped.append((name, why))
             print(f"rtval gallery: skipped {why}", file=sys.stderr)
             continue
-        images, res = render_image(scene, cam, T, geometry=False, shade=True)
         pixels = quantize(np.stack([images[c] for c in "RGB"], -1))
         file = name.replace("/", "__") + ".png"
-        write_png(str(outdir / file), pixels, {"rtval.scene": str(path)})
+        write_png(str(outdir / file), pixels,
+                  provenance(scene, cam, args.precision, "llvm", Rules(), shading="on",
+                             max_dist=repr(DEFAULT_MAX_DIST)))
         done.append((name, file, pixels, res.bounces))
     page = outdir / "index.html"
     sheet = outdir / "contact.png"
     atomic_write(str(page), lambda tmp: Path(tmp).write_text(_html(done, skipped, args)))
-    write_png(str(sheet), _contact_sheet(done, args.columns))
+    write_png(str(sheet), _contact_sheet(done, args.columns),
+              {"rtval.gallery": f"{len(done)} scenes", "rtval.precision": args.precision,
+               "rtval.backend": "llvm", "rtval.columns": str(args.columns),
+               "rtval.versions": " ".join(f"{k}={v}" for k, v in versions().items())})
     print(f"rtval gallery: {len(done)} scenes rendered, {len(skipped)} skipped", file=sys.stderr)
     print(page)
     print(sheet)

@@ -50,5 +50,5 @@ def run(args) -> int:
               + ("" if r["ok"] else "  FAIL"))
     bad = [r for r in results if not r["ok"]]
     print(f"{len(results)} comparisons on {len(scenes)} scenes ({len(skipped)} course files "
-          f"skipped as unsupported): {len(bad)} failed. Report: {md}, {js}", file=sys.stderr)
+          f"skipped: they do not parse): {len(bad)} failed. Report: {md}, {js}", file=sys.stderr)
     return 1 if bad else 0

@@ -7,12 +7,17 @@ set -euo pipefail
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "$root"
 
+sudo=""; [ "$(id -u)" = 0 ] || sudo="sudo"
+apt_updated=""
+apt_install() {
+    [ -n "$apt_updated" ] || { $sudo apt-get update -qq >&2; apt_updated=1; }
+    DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq "$@" >&2
+}
+
 have_llvm() { ldconfig -p 2>/dev/null | grep -Eq 'libLLVM(-(1[6-9]|[2-9][0-9])|\.so\.(1[6-9]|[2-9][0-9]))'; }
 if ! have_llvm; then
-    sudo=""; [ "$(id -u)" = 0 ] || sudo="sudo"
     echo "in-env: installing libllvm19 (Dr.Jit needs LLVM >= 16)" >&2
-    $sudo apt-get update -qq >&2
-    DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq libllvm19 >&2
+    apt_install libllvm19
     have_llvm || { echo "in-env: libllvm19 did not install; Dr.Jit cannot run" >&2; exit 1; }
 fi
 
@@ -20,7 +25,14 @@ if [ -n "${VIRTUAL_ENV:-}" ]; then
     venv="$VIRTUAL_ENV"
 else
     venv="$root/.venv"
-    [ -x "$venv/bin/python" ] || python3 -m venv "$venv"
+    if [ ! -x "$venv/bin/python" ]; then
+        # Debian's python3 makes venvs only with python3-venv (ensurepip) installed
+        if ! python3 -c 'import ensurepip' 2>/dev/null; then
+            echo "in-env: installing python3-venv" >&2
+            apt_install python3-venv
+        fi
+        python3 -m venv "$venv"
+    fi
 fi
 # reinstall only when the project's metadata changed
 stamp="$venv/.rtval-installed"
