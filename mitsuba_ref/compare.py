@@ -56,7 +56,9 @@ class Comparison:
         return self.unexplained == 0 and self.depth["over_bound"] == 0
 
     def summary(self) -> dict:
-        return {"scene": self.scene.path, "mode": self.mode, "precision": self.precision,
+        return {"scene": self.scene.path, "scene_sha256": self.scene.sha256,
+                "mode": self.mode, "precision": self.precision, "backend": self.backend,
+                "sampling": self.sampling, "rules": self.rules.describe(),
                 "columns": self.columns, "rows": self.rows, "pixels": self.columns * self.rows,
                 "classes": self.counts, "explained": self.explained,
                 "unexplained": self.unexplained, "depth": self.depth,

@@ -2,9 +2,11 @@
 provenance, and EXR."""
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import platform
+import subprocess
 from importlib import metadata
 
 import drjit as dr
@@ -104,14 +106,26 @@ def nonfinite_count(images: dict) -> int:
                        for a in images.values()))
 
 
+@functools.lru_cache(maxsize=None)
 def versions() -> dict:
+    """Versions of Python and the packages that made an output, and rtval's git commit when
+    it runs from a checkout ('+dirty' with uncommitted changes)."""
     out = {"python": platform.python_version()}
     for pkg in ("rtval", "drjit", "mitsuba", "numpy", "OpenEXR"):
         try:
             out[pkg] = metadata.version(pkg)
         except metadata.PackageNotFoundError:
             out[pkg] = "not installed"
-    return out
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    try:
+        git = lambda *a: subprocess.run(["git", "-C", repo, *a], capture_output=True,
+                                        text=True, timeout=5).stdout.strip()
+        commit = git("rev-parse", "--short=12", "HEAD")
+        if commit:
+            out["commit"] = commit + ("+dirty" if git("status", "--porcelain", "-uno") else "")
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return dict(out)
 
 
 def provenance(scene: Scene, cam: Camera, precision: str, backend_name: str, rules: Rules,

@@ -42,3 +42,14 @@ def test03_figure_carries_provenance(tmp_path):
     plt.close(fig)
     info = Image.open(tmp_path / "f.png").info
     assert info["rtval.scene"] == "s.txt" and info["rtval.precision"] == "f32"
+
+
+def test04_preview_png_carries_the_sources_provenance(tmp_path):
+    from PIL import Image
+    from tools.cli import main
+    assert main(["render", "scenes/sphere.txt", "--columns", "16", "-o",
+                 str(tmp_path / "s.exr")]) == 0
+    assert main(["exr", "preview", str(tmp_path / "s.exr"), "-o", str(tmp_path / "p.png")]) == 0
+    info = Image.open(tmp_path / "p.png").info
+    assert info["rtval.scene"].endswith("sphere.txt") and info["rtval.precision"] == "f32"
+    assert "depth.Z" in info["rtval.preview_of"] and "drjit=" in info["rtval.versions"]

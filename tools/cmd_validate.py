@@ -38,7 +38,8 @@ def run(args) -> int:
     results = validate(scenes, args.columns, precisions, modes, args.output,
                        progress=lambda row: bar.update(1))
     bar.close()
-    meta = dict(columns=args.columns, **versions())
+    meta = dict(columns=args.columns, backend="llvm", reference="mitsuba llvm_ad_rgb",
+                **versions())
     md, js = write_report(results, skipped, args.output, meta)
     head = (f"{'scene':34s} {'mode':6s} {'prec':4s} {'pixels':>7s} {'explained':>9s} "
             f"{'unexpl':>6s} {'depth max rel':>13s} {'rt_core ms':>10s} {'Mitsuba ms':>10s}")

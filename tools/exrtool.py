@@ -552,7 +552,14 @@ def preview(path, out, channel: str | None = None) -> dict:
     canvas.paste(_legend_strip(W * scale, legend, ids), (0, H * scale))
     out = os.fspath(out)
     try:
-        atomic_write(out, lambda tmp: canvas.save(tmp, format="PNG"))
+        # provenance: the source file and its own rtval.* header attributes
+        from PIL.PngImagePlugin import PngInfo
+        info = PngInfo()
+        info.add_text("rtval.preview_of", f"{os.path.abspath(path)} channel {channel}")
+        for k, v in img.header.items():
+            if str(k).startswith("rtval."):
+                info.add_text(str(k), str(v))
+        atomic_write(out, lambda tmp: canvas.save(tmp, format="PNG", pnginfo=info))
     except Exception as e:
         raise ExrError(f"{out}: cannot write the PNG ({_oneline(e)})") from None
     legend.update(file=img.path, output=out, width=canvas.width, height=canvas.height,
