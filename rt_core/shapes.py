@@ -246,8 +246,10 @@ def sphere_t(d, o, obj: ObjectConstants, rules: Rules, vz: float):
     ra = r * dr.sqrt(a)
     disc = (ra - cn) * (ra + cn)
     s = dr.sqrt(dr.maximum(disc, 0))
-    t = dr.select(bh > 0, c / (bh + s), (bh - s) / a)
-    hit = (disc > 0) & (t > 0) & dr.isfinite(t)
+    # near root c/(b' + √disc): with b' <= 0 both roots are <= 0 (origin outside, c > 0) or
+    # the near one is (origin inside, c <= 0), a miss either way, so no second branch
+    t = c / (bh + s)
+    hit = (disc > 0) & (bh > 0) & (t > 0) & dr.isfinite(t)
     if rules.clip_spheres:
         z = dr.fma(t, d.z, dr.opaque(F, vz))
         hit &= clip_ok(z if o is None else z + o.z, rules)
