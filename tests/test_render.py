@@ -231,3 +231,13 @@ def test14_output_paths(tmp_path):
 def test15_usage_errors_are_one_line():
     r = rtval("render", "scenes/sphere.txt", "--columns", "nan", "-o", "x.exr")
     assert r.returncode == 64 and len(r.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux /proc")
+def test16_one_unwritable_output_leaves_no_other(tmp_path):
+    """-o good.exr --png <where no file can be created>: refused before rendering, so the
+    good EXR is not written either (outputs are all or nothing)."""
+    good = tmp_path / "good.exr"
+    r = rtval("render", "scenes/sphere.txt", "--columns", 8, "-o", good, "--png", "/proc/x.png")
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
+    assert not good.exists() and not glob.glob(str(tmp_path / ".tmp-*"))

@@ -8,6 +8,7 @@ floor(255·clamp(I, 0, 1)) is the 8-bit image.
 from __future__ import annotations
 
 import os
+import tempfile
 import sys
 
 from .options import add_image_options, nonneg_float
@@ -64,6 +65,16 @@ def _check_writable(path: str) -> None:
         parent = os.path.dirname(parent)
     if not os.path.isdir(parent):
         raise InputError(f"{path}: {parent} is not a directory")
+    # can a file be created there? (permissions, read-only or pseudo file systems): checked
+    # before rendering, so that one bad path among -o/--ppm/--png leaves no file written
+    if os.path.isfile(path) or not os.path.exists(path):
+        try:
+            fd, probe = tempfile.mkstemp(prefix=".tmp-", dir=parent)
+        except OSError as e:
+            raise InputError(f"{path}: cannot create a file in {parent} "
+                             f"({(e.strerror or str(e)).lower()})") from None
+        os.close(fd)
+        os.unlink(probe)
 
 
 def run(args) -> int:
