@@ -12,7 +12,7 @@ from importlib import metadata
 import drjit as dr
 import numpy as np
 
-from . import backend
+from . import backend as backends
 from .camera import Camera, make_camera, primary_directions
 from .exrio import write_exr
 from .rules import Rules
@@ -44,7 +44,7 @@ def _empty_geometry(T, n: int) -> dict:
     return out
 
 
-def trace_geometry(scene: Scene, cam: Camera, T: backend.Types, rules: Rules = Rules(),
+def trace_geometry(scene: Scene, cam: Camera, T: backends.Types, rules: Rules = Rules(),
                    log=None):
     """Dr.Jit arrays (flat, image order) of the primary-ray geometry AOVs, evaluated."""
     ks = prepare(scene, T)
@@ -60,7 +60,7 @@ def trace_geometry(scene: Scene, cam: Camera, T: backend.Types, rules: Rules = R
     return out
 
 
-def render_image(scene: Scene, cam: Camera, T: backend.Types, rules: Rules = Rules(), *,
+def render_image(scene: Scene, cam: Camera, T: backends.Types, rules: Rules = Rules(), *,
                  geometry: bool = True, shade: bool = False,
                  max_dist: float = DEFAULT_MAX_DIST, log=None, record: int = 0):
     """One render: the geometry channels (``geometry``) and/or the shaded image (``shade``:
@@ -85,15 +85,12 @@ def to_images(flat: dict, cam: Camera) -> dict:
 
 
 def render_geometry(scene: Scene, columns: int, rows: int | None = None, precision: str = "f32",
-                    backend_name: str = "llvm", sampling: str = "corners",
-                    rules: Rules = Rules(), **kw) -> dict:
+                    backend: str = "llvm", sampling: str = "corners",
+                    rules: Rules = Rules()) -> dict:
     """Geometry AOVs of the primary rays as numpy arrays (rows, columns), row 0 = top.
 
     Keys: GEOMETRY_CHANNELS. Arrays are float32 or float64 per ``precision``."""
-    backend_name = kw.pop("backend", backend_name)
-    if kw:
-        raise TypeError(f"unexpected arguments {sorted(kw)}")
-    T = backend.types(precision, backend_name)
+    T = backends.types(precision, backend)
     cam = make_camera(scene, columns, rows, sampling)
     return to_images(trace_geometry(scene, cam, T, rules), cam)
 
