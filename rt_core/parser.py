@@ -270,6 +270,14 @@ def _check_window(ctx: _Ctx, window: list, where: list) -> None:
                         "positive (w h)", where[0] if not window[0] > 0 else where[1])
 
 
+def _read_header(ctx: _Ctx, group):
+    """The two header groups (window w h, viewpoint x y z) with the dialect's reader."""
+    window, wloc = group("header", *_HEADER[0])
+    _check_window(ctx, window, wloc)
+    viewpoint, _ = group("header", *_HEADER[1])
+    return window, viewpoint
+
+
 def _read_object(ctx: _Ctx, kind: str, start: _Tok, group, lights: list, objects: list):
     """Read the number groups of one object with the dialect's ``group`` reader, build it and
     append it to ``lights`` or ``objects``."""
@@ -304,9 +312,7 @@ def _parse_keyword(ctx: _Ctx):
             pos += 1
         return vals, locs
 
-    window, wloc = group("header", *_HEADER[0])
-    _check_window(ctx, window, wloc)
-    viewpoint, _ = group("header", *_HEADER[1])
+    window, viewpoint = _read_header(ctx, group)
     lights, objects = [], []
     while pos < len(toks):
         start = toks[pos]
@@ -353,9 +359,7 @@ def _parse_numeric(ctx: _Ctx):
                             f"{_numbers(k)}", (toks[-1].line, toks[-1].end))
         return [ctx.number(t, what) for t in toks[:n]], toks[:n]
 
-    window, wloc = group("header", *_HEADER[0])
-    _check_window(ctx, window, wloc)
-    viewpoint, _ = group("header", *_HEADER[1])
+    window, viewpoint = _read_header(ctx, group)
     lights, objects = [], []
     while idx < len(content):
         toks = content[idx]
