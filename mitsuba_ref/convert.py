@@ -14,13 +14,16 @@ the wheel has no double variants).
 """
 from __future__ import annotations
 
+from typing import Any as Scene  # a parsed course scene (duck-typed: window, viewpoint, objects)
+
 import math
 from dataclasses import dataclass
 from xml.sax.saxutils import quoteattr
 
-from rt_core.camera import make_camera
-from rt_core.errors import InputError
-from rt_core.scene import FPlane, Plane, Scene, Sphere, TPlane, dot, sub
+from rt_core.usererror import InputError
+from rt_core.kinds import KINDS, dispatch
+
+from .geometry import corners, cross, dot, frame, normal, sub, unit
 
 VARIANT = "llvm_ad_rgb"
 AOVS = "dd:depth,pp:position,nn:geo_normal,uv:uv"
@@ -52,14 +55,14 @@ def scene_scale(scene: Scene) -> float:
     v = scene.viewpoint
     r = math.hypot(*scene.window) / 2 + math.sqrt(dot(v, v))
     for o in scene.objects:
-        if isinstance(o, Sphere):
+        if o.kind == "sphere":
             r = max(r, math.sqrt(dot(sub(o.center, v), sub(o.center, v))) + o.radius)
-        elif isinstance(o, FPlane):
-            for c in o.corners():
+        elif o.kind == "fplane":
+            for c in corners(o):
                 r = max(r, math.sqrt(dot(sub(c, v), sub(c, v))))
         else:
             q = sub(o.point, v)
-            r = max(r, abs(dot(o.normal, q)), math.sqrt(dot(q, q)))
+            r = max(r, abs(dot(normal(o), q)), math.sqrt(dot(q, q)))
     return r
 
 
@@ -75,36 +78,44 @@ def plane_extent(scene: Scene) -> float:
 
 def far_clip(scene: Scene) -> float:
     """Far beyond everything: 4 × the largest plane extent / scene scale."""
-    has_infinite = any(isinstance(o, (Plane, TPlane)) for o in scene.objects)
+    has_infinite = any(not KINDS[o.kind].bounded for o in scene.objects)
     return 4.0 * (plane_extent(scene) if has_infinite else scene_scale(scene))
 
 
-def rectangle_matrix(obj: FPlane) -> list:
-    """4×4 ``to_world`` of the rectangle equivalent to a finite plane."""
+def rectangle_matrix(obj) -> list:
+    """4×4 ``to_world`` of the rectangle equivalent to a finite plane (its frame computed
+    here from the numbers as written)."""
     w, h = obj.size
-    x, y = obj.xdir, obj.ydir
+    x, y, n = frame(obj)
     c = tuple(obj.point[i] + 0.5 * w * x[i] + 0.5 * h * y[i] for i in range(3))
-    return _matrix(x, y, obj.normal, c, 0.5 * w, 0.5 * h)
+    return _matrix(x, y, n, c, 0.5 * w, 0.5 * h)
 
 
 def infinite_matrix(obj, viewpoint, R: float) -> list:
     """A square of half-size R standing in for an infinite or tiled plane, centred on the
     viewpoint's foot point on the plane (a tiled plane keeps its tile axes)."""
     x, y, c = stand_in_frame(obj, viewpoint)
-    return _matrix(x, y, obj.normal, c, R, R)
+    return _matrix(x, y, normal(obj), c, R, R)
+
+
+_SHAPES = {   # Mitsuba shape dict per kind
+    "sphere": lambda o, v, R, T: {"type": "sphere", "center": list(o.center), "radius": o.radius},
+    "fplane": lambda o, v, R, T: {"type": "rectangle", "to_world": T(rectangle_matrix(o))},
+    "plane": lambda o, v, R, T: {"type": "rectangle", "to_world": T(infinite_matrix(o, v, R))},
+    "tplane": lambda o, v, R, T: {"type": "rectangle", "to_world": T(infinite_matrix(o, v, R))},
+}
 
 
 def stand_in_frame(obj, viewpoint):
     """Axes and centre of the square standing in for an infinite or tiled plane: the tile
     axes (or any in-plane pair) and the viewpoint's foot point on the plane."""
-    n = obj.normal
-    x, y = (obj.xdir, obj.ydir) if isinstance(obj, TPlane) else _any_frame(n)
+    n = normal(obj)
+    x, y = frame(obj)[:2] if obj.kind == "tplane" else _any_frame(n)
     s = dot(n, sub(obj.point, viewpoint))
     return x, y, tuple(viewpoint[i] + s * n[i] for i in range(3))
 
 
 def _any_frame(n):
-    from rt_core.scene import cross, unit
     a = (1.0, 0.0, 0.0) if abs(n[0]) < 0.9 else (0.0, 1.0, 0.0)
     x = unit(cross(a, n))
     return x, cross(n, x)
@@ -132,11 +143,32 @@ class SensorSetup:
     facing: int            # -1: looks down -z (viewpoint z > 0); +1: looks up +z (mirrored)
 
 
+@dataclass(frozen=True)
+class _Grid:
+    columns: int
+    rows: int
+    sx: float
+    sy: float
+
+
+def _grid(scene, columns: int, rows: int | None, sampling: str) -> _Grid:
+    """The course's sample grid (notes: rows = int(h/w·columns) by default; corner samples
+    are ww/(W−1) apart, centre samples ww/W), computed here rather than by rt_core."""
+    ww, wh = scene.window
+    if rows is None:
+        rows = int(wh / ww * columns)
+    least = 2 if sampling == "corners" else 1
+    if columns < least or rows < least:
+        raise InputError(f"image {columns}x{rows} is too small for {sampling} sampling")
+    k = 1 if sampling == "corners" else 0
+    return _Grid(columns, rows, ww / (columns - k), wh / (rows - k))
+
+
 def sensor_setup(scene: Scene, columns: int, rows: int | None, sampling: str = "corners",
                  clip: bool = True) -> SensorSetup:
     """The sensor; ``clip`` False drops the screen clip (near clip ~0: for spheres, which the
     course does not clip)."""
-    cam = make_camera(scene, columns, rows, sampling)
+    cam = _grid(scene, columns, rows, sampling)
     vx, vy, vz = scene.viewpoint
     if vz == 0 or not math.isfinite(vz):
         raise InputError(f"{scene.path}: viewpoint z = {vz:g} lies in the window plane; no "
@@ -182,12 +214,7 @@ def scene_dict(scene: Scene, columns: int, rows: int | None = None, sampling: st
         if only is not None and o.kind not in only:
             continue
         sid = shape_id(oid, o.kind)
-        if isinstance(o, Sphere):
-            shape = {"type": "sphere", "center": list(o.center), "radius": o.radius}
-        elif isinstance(o, FPlane):
-            shape = {"type": "rectangle", "to_world": T(rectangle_matrix(o))}
-        else:
-            shape = {"type": "rectangle", "to_world": T(infinite_matrix(o, scene.viewpoint, R))}
+        shape = dispatch(_SHAPES, o.kind)(o, scene.viewpoint, R, T)
         shape["id"] = sid
         if shading:
             # closest Mitsuba equivalent (approximate): diffuse reflectance ~ course diffuse

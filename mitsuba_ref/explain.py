@@ -21,7 +21,9 @@ from __future__ import annotations
 import numpy as np
 
 from rt_core.rules import Rules
-from rt_core.scene import FPlane, Scene, Sphere
+from typing import Any as Scene
+
+from .geometry import frame, normal
 from .convert import stand_in_frame
 
 K_ROUNDING = 16.0
@@ -50,7 +52,7 @@ class ObjectEval:
         self.beyond = np.zeros(n, bool)
         self.cos = np.ones(n)
         origin = _norm(O) + np.sqrt(V @ V)
-        if isinstance(obj, Sphere):
+        if obj.kind == "sphere":
             q = np.asarray(obj.center) - O
             a = np.sum(d * d, 1)
             bh = np.sum(q * d, 1)
@@ -68,7 +70,7 @@ class ObjectEval:
             self.margin = np.abs(pn - obj.radius)          # distance from the outline
             self.scale = origin + qn + obj.radius
             return
-        nrm = np.asarray(obj.normal)
+        nrm = np.asarray(normal(obj))
         q = np.asarray(obj.point) - O
         den = d @ nrm
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -82,10 +84,11 @@ class ObjectEval:
             valid &= z < 0
         self.cos = np.abs(den)
         self.t = t
-        if isinstance(obj, FPlane):
+        if obj.kind == "fplane":
             w, h = obj.size
             rel = t[:, None] * d - q
-            u, v = rel @ np.asarray(obj.xdir), rel @ np.asarray(obj.ydir)
+            fx, fy, _ = frame(obj)
+            u, v = rel @ np.asarray(fx), rel @ np.asarray(fy)
             inside = ((u >= 0) & (u <= w) & (v >= 0) & (v <= h)) if rules.edges == "closed" \
                 else ((u > 0) & (u < w) & (v > 0) & (v < h))
             # distance to the border (inside: >0; outside: distance to the rectangle)

@@ -5,9 +5,5 @@ from .native import native_output_captured
 # backend.require() reports that case as one clear error and passes anything else on
 with native_output_captured() as DRJIT_IMPORT_MESSAGES:
     import drjit  # noqa: F401
-from .scene import (Scene, SceneError, Material, PointLight, Sphere, Plane, FPlane, TPlane,
-                    KINDS)
-from .rules import Rules
-
-__all__ = ["Scene", "SceneError", "Material", "PointLight", "Sphere", "Plane", "FPlane",
-           "TPlane", "KINDS", "Rules"]
+# nothing else is imported here: the references import rt_core.kinds and rt_core.rules alone,
+# without the tracer's scene model, parser, camera or kernels (tests/test_independence.py)

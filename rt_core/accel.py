@@ -13,7 +13,7 @@ only be hit by rays that cross the window plane z = 0 inside its projection from
 A grid of bins covers the window; each bin lists, per kind and in ascending object id, the
 objects whose (conservatively enlarged) projected bounding box overlaps it, as copies of their
 table rows, so a ray reads its bin's rows in sequence.  With ~32 bins per object a camera ray
-visits 2-4 rows in the benchmark scenes (mitsuba_ref/bench.py) whatever N: time grows as
+visits 2-4 rows in the benchmark scenes (tools/harness/bench.py) whatever N: time grows as
 ~N^0.1-0.3 from 16 to 1024 objects, against N^1 for the unrolled or unbinned search.  A ray computes its
 bin from its own direction and loops over that bin's list only; rays that cross the plane
 outside the grid (or not at all) take a last bin that lists every object.  The per-object test
@@ -53,13 +53,12 @@ MARGIN = 2.0 ** -12
 # the object id rides along as a float (exact below 2**24).  (Scalar gathers: Dr.Jit's
 # packet gathers of Array4f were no faster here, and chose between packet and scalar code
 # from call to call, which broke kernel reuse.)
-LAYOUT = {"sphere": ("qx", "qy", "qz", "radius", "c", "id"),
-          "plane": ("qx", "qy", "qz", "nq", "nx", "ny", "nz", "g", "id"),
+LAYOUT = {"sphere": ("qx", "qy", "qz", "radius", "c", "id", "grp"),
+          "plane": ("qx", "qy", "qz", "nq", "nx", "ny", "nz", "g", "id", "grp"),
           "fplane": ("qx", "qy", "qz", "nq", "nx", "ny", "nz", "g", "w", "xx", "xy", "xz", "h",
-                     "yx", "yy", "yz", "id")}
+                     "yx", "yy", "yz", "id", "grp")}
 LAYOUT["tplane"] = LAYOUT["plane"]
 BOUNDED = ("sphere", "fplane")
-HAS_G = "g" in ObjectConstants.__dataclass_fields__     # the screen-clip constant of planes
 
 
 def configure(ks, unroll_max: int | None = None, bins: bool | None = None):
@@ -85,7 +84,8 @@ def looped(ks, kind: str) -> bool:
 
 def _row(c) -> dict:
     """The numbers of one ObjectConstants by slot name (float64, host)."""
-    r = {"id": float(c.id), "radius": c.radius, "c": c.c, "nq": c.nq, "g": getattr(c, "g", 0.0)}
+    r = {"id": float(c.id), "grp": float(c.grp), "radius": c.radius, "c": c.c, "nq": c.nq,
+         "g": c.g}
     for name, v in (("q", c.q), ("n", c.n), ("x", c.xdir), ("y", c.ydir)):
         r[name + "x"], r[name + "y"], r[name + "z"] = v
     r["w"], r["h"] = c.size
@@ -108,14 +108,13 @@ class KindTable:
         base = k * len(names)
         v = {name: dr.gather(T.Float, self.rows, base + j) for j, name in enumerate(names)}
         A3 = T.Array3
-        out = SimpleNamespace(kind=self.kind, id=T.Int32(v["id"]),
+        out = SimpleNamespace(kind=self.kind, id=T.Int32(v["id"]), grp=T.Int32(v["grp"]),
                               q=A3(v["qx"], v["qy"], v["qz"]))
         if self.kind == "sphere":
             out.radius, out.c = v["radius"], v["c"]
         else:
             out.n, out.nq = A3(v["nx"], v["ny"], v["nz"]), v["nq"]
-            if HAS_G:
-                out.g = v["g"]
+            out.g = v["g"]
         if self.kind == "fplane":
             out.xdir = A3(v["xx"], v["xy"], v["xz"])
             out.ydir = A3(v["yx"], v["yy"], v["yz"])
@@ -308,28 +307,29 @@ def _range(ks, kind: str, d, o):
     return tab, dr.gather(U, tab.offsets, k), dr.gather(U, tab.offsets, k + 1)
 
 
-def closest_kind(ks, kind: str, d, o, rules: Rules, skip, best_t, best_id):
-    """Fold every object of ``kind`` into the running closest hit (best_t, best_id) with the
-    same test and tie rule as the unrolled code: smaller t wins; an exact tie goes to the
-    smaller id ('first') or the larger ('last')."""
+def closest_kind(ks, kind: str, d, o, rules: Rules, skip, st):
+    """Fold every object of ``kind`` into the running closest hit ``st`` (tracer.Best), with
+    the same test, tie rule and certification as the unrolled code."""
     T = ks.T
     vz = ks.scene.viewpoint[2]
     tab, start, end = _range(ks, kind, d, o)
+    cert = st.cert
 
-    def body(i, bt, bid):
+    def body(i, *state):
         obj = tab.view(T, i)
-        t, hit = object_t(d, o, obj, rules, vz)
+        res = object_t(d, o, obj, rules, vz, cert)
+        hit = res[1]
         if skip is not None:
             hit &= obj.id != skip
-        tie = (obj.id < bid) if rules.ties == "first" else (obj.id > bid)
-        upd = hit & ((t < bt) | ((t == bt) & tie))
-        return i + 1, dr.select(upd, t, bt), dr.select(upd, obj.id, bid)
+        s = st.set(state)
+        s.fold(res[0], hit, obj.id, rules, False, *((res[2], res[3], obj.grp) if cert else ()))
+        return (i + 1, *s.state())
 
-    _, best_t, best_id = dr.while_loop((start, best_t, best_id),
-                                       lambda i, bt, bid: i < end, body,
-                                       labels=("i", "best_t", "best_id"),
-                                       label=f"closest_{kind}")
-    return best_t, best_id
+    names = st.STATE if cert else st.STATE[:2]
+    out = dr.while_loop((start, *st.state()), lambda i, *state: i < end, body,
+                        labels=("i",) + tuple("best_" + k for k in names),
+                        label=f"closest_{kind}")
+    return st.set(out[1:])
 
 
 def occluded_kind(ks, kind: str, d, o, maxt, rules: Rules, skip, blocked):

@@ -11,10 +11,11 @@ from dataclasses import dataclass
 from fractions import Fraction
 
 import drjit as dr
+import numpy as np
 
 from .backend import Types
 from .errors import InputError
-from .scene import Scene
+from .scene import Scene, exact
 
 SAMPLINGS = ("corners", "centers")
 
@@ -24,11 +25,8 @@ class Camera:
     columns: int
     rows: int
     sampling: str
-    # world = (x·sx + ox, y·sy + oy, 0), host float64
-    sx: float
-    ox: float
+    sx: float               # sample spacing in world units (host float64)
     sy: float
-    oy: float
 
     @property
     def size(self) -> int:
@@ -54,20 +52,9 @@ def make_camera(scene: Scene, columns: int, rows: int | None = None,
     ww, wh = scene.window
     if sampling == "corners":
         sx, sy = ww / (columns - 1), wh / (rows - 1)
-        ox, oy = -ww / 2, -wh / 2
     else:
         sx, sy = ww / columns, wh / rows
-        ox, oy = -ww / 2 + sx / 2, -wh / 2 + sy / 2
-    return Camera(columns, rows, sampling, sx, ox, sy, oy)
-
-
-def pixel_grid(cam: Camera, T: Types):
-    """Course column x and row y (0 = bottom) of every pixel, in image order (top row first)."""
-    i = dr.arange(T.UInt32, cam.size)
-    r = i // cam.columns                    # literal divisor: a multiply-shift, vectorized
-    x = i - r * cam.columns
-    y = (cam.rows - 1) - r
-    return x, y
+    return Camera(columns, rows, sampling, sx, sy)
 
 
 def _axis_offsets(cam: Camera, scene: Scene, axis: int):
@@ -78,40 +65,68 @@ def _axis_offsets(cam: Camera, scene: Scene, axis: int):
     own size even for the pixel right below a far-off viewpoint (where x·sx + (ox − vx)
     cancels to the ulp of ox − vx)."""
     n = cam.columns if axis == 0 else cam.rows
-    size = Fraction(scene.window[axis])
+    size = exact(scene.window[axis])
     if cam.sampling == "corners":
         step, origin = size / (n - 1), -size / 2
     else:
         step = size / n
         origin = -size / 2 + step / 2
-    c = (Fraction(scene.viewpoint[axis]) - origin) / step
+    c = (exact(scene.viewpoint[axis]) - origin) / step
     hi = round(c)
     return step, hi, -(c - hi) * step
 
 
-def primary_directions(scene: Scene, cam: Camera, T: Types):
-    """Unit ray directions (Array3 of T) for every pixel; the origin is the viewpoint.
+def _split(v: Fraction, precision: str) -> tuple[float, float]:
+    """v as hi + lo in the kernel's precision (hi = v rounded, lo = the rest rounded)."""
+    rnd = (lambda f: float(np.float32(float(f)))) if precision == "f32" else float
+    hi = rnd(v)
+    return hi, rnd(v - Fraction(hi))
+
+
+def primary_offsets(scene: Scene, cam: Camera, T):
+    """world − viewpoint of every pixel (Array3 of T, image order), scaled by one exact power
+    of two so that squaring cannot overflow or underflow.
 
     world − viewpoint = ((x − cx)·sx, (y − cy)·sy, −vz), with cx, cy the viewpoint's foot in
-    pixel units split into an integer and a fraction on the host (``_axis_offsets``), all
-    three scaled by one power of two so that squaring cannot overflow or underflow.  Scene
-    numbers enter as opaque values, so scenes that differ only in numbers share the compiled
-    kernel."""
+    pixel units split into an integer and a fraction on the host (``_axis_offsets``).  The
+    step is a double-float (hi + lo), so each offset is within two roundings of the exact
+    value, and the window's edge samples (−ww/2 and ww/2 − vx with corner sampling), where
+    the course's formula is exact, are the exact values rounded once.  Scene numbers enter as
+    opaque values, so scenes that differ only in numbers share the compiled kernel."""
     F = T.Float
     i = dr.arange(T.UInt32, cam.size)
     r = i // cam.columns                    # image row; course row y = rows − 1 − r
     x = i - r * cam.columns
     sx, hx, cx = _axis_offsets(cam, scene, 0)
     sy, hy, cy = _axis_offsets(cam, scene, 1)
-    vz = Fraction(scene.viewpoint[2])
+    vz = exact(scene.viewpoint[2])
     # one exact power of two brings the largest offset near 1
     big = max(abs(vz), abs(hx * sx) + abs(cx) + sx * cam.columns,
               abs(hy * sy) + abs(cy) + sy * cam.rows)
     k = -math.frexp(float(big))[1] if big else 0
     sc = Fraction(2) ** k
     op = lambda v: dr.opaque(F, float(v * sc))
+
+    def axis(ix, s, c, n, edge0, edge1):
+        # (ix)·s + c with s = hi + lo: the lo product first, then one fma
+        hi, lo = _split(s * sc, T.precision)
+        w = dr.fma(ix, dr.opaque(F, hi), dr.fma(ix, dr.opaque(F, lo), op(c)))
+        if cam.sampling == "corners":
+            w = dr.select(ix == dr.opaque(F, float(edge0[0])), op(edge0[1]), w)
+            w = dr.select(ix == dr.opaque(F, float(edge1[0])), op(edge1[1]), w)
+        return w
+
+    ww, wh = (exact(c) for c in scene.window)
+    vx, vy = exact(scene.viewpoint[0]), exact(scene.viewpoint[1])
     # x − c = (x − c_hi) − c_lo and y − c = ((rows − 1 − c_hi) − r) − c_lo: integers first
-    wx = dr.fma(F(x) - dr.opaque(F, float(hx)), op(sx), op(cx))
-    wy = dr.fma(dr.opaque(F, float(cam.rows - 1 - hy)) - F(r), op(sy), op(cy))
+    ix = F(x) - dr.opaque(F, float(hx))
+    iy = dr.opaque(F, float(cam.rows - 1 - hy)) - F(r)
+    wx = axis(ix, sx, cx, cam.columns, (-hx, -ww / 2 - vx), (cam.columns - 1 - hx, ww / 2 - vx))
+    wy = axis(iy, sy, cy, cam.rows, (-hy, -wh / 2 - vy), (cam.rows - 1 - hy, wh / 2 - vy))
     wz = op(-vz) + dr.zeros(F, cam.size)
-    return dr.normalize(T.Array3(wx, wy, wz))
+    return T.Array3(wx, wy, wz)
+
+
+def primary_directions(scene: Scene, cam: Camera, T: Types):
+    """Unit ray directions (Array3 of T) for every pixel; the origin is the viewpoint."""
+    return dr.normalize(primary_offsets(scene, cam, T))

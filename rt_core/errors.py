@@ -2,11 +2,7 @@
 from .scene import SceneError, GeometryError
 from .exrio import ExrError
 from .backend import BackendError
-
-
-class InputError(Exception):
-    """A bad option value or a missing input file; ``str(err)`` is one line."""
-    exit_code = 2
+from .usererror import InputError
 
 
 # OSError: a missing input, an output path under a file, a full disk, ... (one line each)

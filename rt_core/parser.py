@@ -52,7 +52,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-from .scene import (GeometryError, Material, PointLight, Scene, SceneError, make_fplane,
+from .scene import (GeometryError, Material, Num, PointLight, Scene, SceneError, make_fplane,
                     make_plane, make_sphere, make_tplane)
 
 __all__ = ["parse_scene", "parse_text", "SUPPORTED_KEYWORDS", "SUPPORTED_CODES"]
@@ -168,7 +168,7 @@ class _Ctx:
     def number(self, tok: _Tok, what: str) -> float:
         """The value of a token known to be where a number must be."""
         if _NUMBER.match(tok.text):
-            value = float(tok.text)
+            value = Num(tok.text)
             if math.isfinite(value):
                 return value
             raise self.error(f"{what}: number {_show(tok.text)} is out of range (not finite)",

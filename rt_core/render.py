@@ -51,7 +51,7 @@ def trace_geometry(scene: Scene, cam: Camera, T: backends.Types, rules: Rules = 
     d = primary_directions(scene, cam, T)
     if not scene.objects:
         return _empty_geometry(T, cam.size)
-    t, oid, hit = closest_hit(ks, d, None, rules)
+    t, oid, hit = closest_hit(ks, d, None, rules, cam=cam)
     normal, u, v = surface(ks, d, t, oid, hit)
     out = geometry_channels(ks, d, t, oid, hit, normal, u, v)
     dr.eval(*out.values())
@@ -71,7 +71,7 @@ def render_image(scene: Scene, cam: Camera, T: backends.Types, rules: Rules = Ru
     ks = prepare(scene, T)
     d = primary_directions(scene, cam, T)
     extra = (lambda *a: geometry_channels(ks, d, *a)) if geometry else None
-    res = shading.shade(ks, d, rules, max_dist, log=log, extra=extra, record=record)
+    res = shading.shade(ks, d, rules, max_dist, log=log, extra=extra, record=record, cam=cam)
     flat = dict(res.extra) if geometry else {}
     if geometry and not scene.objects:
         flat = _empty_geometry(T, cam.size)

@@ -8,7 +8,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from decimal import Decimal
+from fractions import Fraction
 from typing import Tuple, Union
+
+from .kinds import KINDS as _KINDS
 
 Vec3 = Tuple[float, float, float]
 
@@ -27,6 +31,23 @@ class SceneError(Exception):
 class GeometryError(ValueError):
     """Invalid geometry (zero normal, orient parallel to the normal, ...); the parser adds
     the location and re-raises it as a :class:`SceneError`."""
+
+
+class Num(float):
+    """A scene number: its float64 value, and the decimal text it was read from (``text``),
+    so that the kernels' host constants and the exact decisions (rt_core/decide.py) use the
+    number as written, not its rounding."""
+    __slots__ = ("text",)
+
+    def __new__(cls, text: str):
+        x = float.__new__(cls, text)
+        x.text = text
+        return x
+
+
+def exact(x) -> Fraction:
+    """A scene number exactly as written (a plain float: its binary value)."""
+    return Fraction(Decimal(x.text)) if isinstance(x, Num) else Fraction(x)
 
 
 # --- small float64 vector helpers (host side) ---------------------------------------------
@@ -103,6 +124,7 @@ class Plane:
     normal: Vec3            # unit
     point: Vec3
     line: int = 0
+    given_normal: Vec3 = ()  # as written in the file
     kind = "plane"
 
 
@@ -117,6 +139,7 @@ class FPlane:
     xdir: Vec3              # rotmat row 0
     ydir: Vec3              # rotmat row 1
     line: int = 0
+    given_normal: Vec3 = ()  # as written in the file
     kind = "fplane"
 
     @property
@@ -144,6 +167,7 @@ class TPlane:
     ydir: Vec3
     background: Material
     line: int = 0
+    given_normal: Vec3 = ()  # as written in the file
     kind = "tplane"
 
     @property
@@ -152,7 +176,7 @@ class TPlane:
 
 
 SceneObject = Union[Sphere, Plane, FPlane, TPlane]
-KINDS = ("sphere", "plane", "fplane", "tplane")
+KINDS = tuple(_KINDS)
 
 
 @dataclass(frozen=True)
@@ -180,7 +204,8 @@ def make_fplane(material: Material, normal: Vec3, point: Vec3, orient: Vec3,
     if not (size[0] > 0 and size[1] > 0):
         raise GeometryError(f"size {fmt(size)} must be positive")
     x, y, n = plane_frame(normal, orient)
-    return FPlane(material, n, tuple(point), tuple(orient), tuple(size), x, y, line)
+    return FPlane(material, n, tuple(point), tuple(orient), tuple(size), x, y, line,
+                  tuple(normal))
 
 
 def make_tplane(material: Material, normal: Vec3, point: Vec3, orient: Vec3,
@@ -188,11 +213,12 @@ def make_tplane(material: Material, normal: Vec3, point: Vec3, orient: Vec3,
     if not (size[0] > 0 and size[1] > 0):
         raise GeometryError(f"tile size {fmt(size)} must be positive")
     x, y, n = plane_frame(normal, orient)
-    return TPlane(material, n, tuple(point), tuple(orient), tuple(size), x, y, background, line)
+    return TPlane(material, n, tuple(point), tuple(orient), tuple(size), x, y, background, line,
+                  tuple(normal))
 
 
 def make_plane(material: Material, normal: Vec3, point: Vec3, line: int = 0) -> Plane:
-    return Plane(material, unit(normal, "normal"), tuple(point), line)
+    return Plane(material, unit(normal, "normal"), tuple(point), line, tuple(normal))
 
 
 def make_sphere(material: Material, center: Vec3, radius: float, line: int = 0) -> Sphere:

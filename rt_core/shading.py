@@ -107,14 +107,17 @@ def material(ks: KernelScene, tables: dict, oid, hit, u, v):
 
 
 def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_MAX_DIST, *,
-          log=None, extra=None, record: int = 0, max_bounces: int | None = None) -> ShadeResult:
+          log=None, extra=None, record: int = 0, max_bounces: int | None = None,
+          cam=None) -> ShadeResult:
     """Shade the rays from the viewpoint along ``d`` (one per pixel, image order).
 
     ``extra(t, oid, hit, normal, u, v)``: a dict of further primary-ray outputs to evaluate in
     the primary pass (the geometry channels), returned evaluated in ``ShadeResult.extra``.
     ``record``: keep the rays of the first ``record`` bounces as numpy arrays (validation).
     ``log``: a :class:`~rt_core.jitlog.KernelLog` that gets one mark per pass.
-    ``max_bounces``: the safety cap (default ``MAX_BOUNCES``)."""
+    ``max_bounces``: the safety cap (default ``MAX_BOUNCES``).
+    ``cam``: the camera of ``d``; in float64 the primary hits are then decided exactly
+    (``tracer.closest_hit``)."""
     T = ks.T
     F = T.Float
     assert isinstance(d, T.Array3), f"expected {T.Array3.__name__} directions"
@@ -141,7 +144,7 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
         group = "primary" if bounce == 0 else "reflection"
         rays = count
         # hit pass: closest hit, surface, material
-        t, oid, hit = closest_hit(ks, d, o, rules, skip)
+        t, oid, hit = closest_hit(ks, d, o, rules, skip, cam=cam if bounce == 0 else None)
         if live is not None:
             hit &= live
         normal, u, v = surface(ks, d, t, oid, hit, o)

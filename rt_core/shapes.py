@@ -21,7 +21,7 @@ decided exactly (``u·(1/(n·d))`` rounds twice and can land past w).  For rays 
 viewpoint a hit has sign(n·d) = sign(n·q) (t > 0), a host constant: the sign is folded into
 ŷ, x̂, w, h (and the screen clip's constants) and costs nothing per ray.
 
-Numerical choices measured against the exact oracle (rt_core/exact.py, mitsuba_ref/stability.py):
+Numerical choices measured against the exact oracle (mitsuba_ref/exact.py, tools/harness/stability.py):
 
 * screen clip: the sign of the hit's z·(n·d) = V.z·(n·d) + (n·q)·d.z is taken as
   V.z·(n.x d.x + n.y d.y) + g·d.z with the host constant g = n·q + n.z V.z = n·P − n.x V.x −
@@ -39,6 +39,7 @@ Numerical choices measured against the exact oracle (rt_core/exact.py, mitsuba_r
 """
 from __future__ import annotations
 
+import decimal
 import math
 from dataclasses import dataclass
 from fractions import Fraction
@@ -46,10 +47,9 @@ from fractions import Fraction
 import drjit as dr
 
 from .rules import Rules
-from .scene import Scene, Sphere, sub
+from .scene import Scene, Sphere, exact
 
-KIND_CODE = {"sphere": 0, "plane": 1, "fplane": 2, "tplane": 3}
-PLANE_KINDS = ("plane", "fplane", "tplane")
+from .kinds import KIND_CODE, PLANE_KINDS, dispatch  # noqa: F401  (re-exported)
 
 
 @dataclass(frozen=True)
@@ -66,55 +66,86 @@ class ObjectConstants:
     radius: float = 0.0
     c: float = 0.0           # sphere |q|² − r²
     g: float = 0.0           # plane kinds: n·q + n.z·viewpoint.z, for the screen clip
+    grp: int = 0             # objects of one group are the same plane or sphere: equal t
 
 
-# |n·q| below SNAP · Σ|n_i|(|P_i| + |V_i|) is within float64 rounding of the scene's numbers
-# (the unit normal's rounding, ~3 units of 2^-53 per component): its sign is not known.
-SNAP = 8 * 2.0 ** -53
+_CTX = decimal.Context(prec=40, Emax=10 ** 6, Emin=-10 ** 6)
 
 
-def _exact_nq(n, point, v) -> tuple[float, float]:
-    """(n·(point − v) rounded once, its uncertainty from the rounding of n)."""
-    q = [Fraction(p) - Fraction(c) for p, c in zip(point, v)]
-    nq = float(sum(Fraction(a) * b for a, b in zip(n, q)))
-    scale = math.fsum(abs(a) * (abs(p) + abs(c)) for a, p, c in zip(n, point, v))
-    return nq, SNAP * scale
+def rounded(num: Fraction, den2: Fraction = Fraction(1)) -> float:
+    """num / √den2 from exact rationals, rounded once to float64 (40 digits first: the double
+    rounding is below 10⁻²³ of an ulp).  Equal exact values give equal floats, and opposite
+    ones opposite floats: objects that are the same plane get the same constants."""
+    with decimal.localcontext(_CTX):
+        dec = lambda f: decimal.Decimal(f.numerator) / decimal.Decimal(f.denominator)
+        v = dec(Fraction(num))
+        if den2 != 1:
+            v /= dec(Fraction(den2)).sqrt()
+        return float(v)
+
+
+def _canonical(N):
+    """N scaled so that its largest component is ±1 (sign kept): parallel normals with the
+    same orientation give the same triple."""
+    m = max(abs(c) for c in N)
+    return tuple(c / m for c in N)
 
 
 def object_constants(scene: Scene) -> list[ObjectConstants]:
-    v = scene.viewpoint
+    """Every constant is rounded once from the exact value on the scene's numbers as written
+    (``exact``), so each has a relative error of at most one rounding (unit vectors: two),
+    and a constant that is exactly 0 is 0: the error bounds of the kernels' certified
+    decisions rest on this (module docstring)."""
+    V = tuple(exact(c) for c in scene.viewpoint)
     out = []
-    planes = {}                 # unit normal -> [(n·q, tolerance)] of the planes seen so far
+    groups = {}                 # exact plane or sphere -> group number (same t on every ray)
     for i, o in enumerate(scene.objects):
         if isinstance(o, Sphere):
-            q = sub(o.center, v)
-            # |q|² − r², rounded once from the exact value (q = centre − viewpoint exactly)
-            qx = [Fraction(a) - Fraction(b) for a, b in zip(o.center, v)]
-            c = float(sum(x * x for x in qx) - Fraction(o.radius) ** 2)
-            out.append(ObjectConstants(i, o.kind, q, radius=o.radius, c=c))
+            Q = tuple(exact(c) - v for c, v in zip(o.center, V))
+            r = exact(o.radius)
+            q = tuple(rounded(c) for c in Q)
+            grp = groups.setdefault(("s", Q, r), len(groups))
+            out.append(ObjectConstants(i, o.kind, q, radius=o.radius,
+                                       c=rounded(dot_x(Q, Q) - r * r), grp=grp))
             continue
-        q = sub(o.point, v)
-        n = tuple(o.normal)
-        nq, tol = _exact_nq(n, o.point, v)
-        if abs(nq) <= tol:
-            nq = 0.0                                 # through the viewpoint
-        # the same plane as an earlier one (same unit normal, up to sign, and n·q within
-        # rounding): share its numbers, so that the two tie exactly
-        for sg in (1.0, -1.0):
-            key = tuple(sg * c + 0.0 for c in n)
-            match = next((mq for mq, mtol in planes.get(key, ())
-                          if abs(sg * nq - mq) <= tol + mtol), None)
-            if match is not None:
-                n, nq = tuple(sg * c + 0.0 for c in key), sg * match
-                break
-        else:
-            planes.setdefault(n, []).append((nq, tol))
-        xd = getattr(o, "xdir", (0.0, 0.0, 0.0))
-        yd = getattr(o, "ydir", (0.0, 0.0, 0.0))
+        N = _canonical(tuple(exact(c) for c in (getattr(o, "given_normal", ()) or o.normal)))
+        NN = dot_x(N, N)
+        P = tuple(exact(c) for c in o.point)
+        Q = tuple(c - v for c, v in zip(P, V))
+        n = tuple(rounded(c, NN) for c in N)
+        NQ = dot_x(N, Q)
+        # hit z·(n·d) = V.z (n·d) + (n·q) d.z = V.z (n.x d.x + n.y d.y) + g·d.z
+        g = rounded(NQ + N[2] * V[2], NN)
+        Nk = tuple(_sg(N) * c for c in N)          # orientation dropped: the plane itself
+        grp = groups.setdefault(("p", Nk, dot_x(Nk, P)), len(groups))
+        xd = yd = (0.0, 0.0, 0.0)
+        if o.kind in ("fplane", "tplane"):
+            O = tuple(exact(c) for c in o.orient)
+            p = tuple(c * NN - dot_x(O, N) * nc for c, nc in zip(O, N))
+            PP = dot_x(p, p)
+            y = cross_x(N, p)
+            xd = tuple(rounded(c, PP) for c in p)
+            yd = tuple(rounded(c, PP * NN) for c in y)
         size = getattr(o, "size", (0.0, 0.0))
-        g = float(Fraction(nq) + Fraction(n[2]) * Fraction(v[2]))
-        out.append(ObjectConstants(i, o.kind, q, n, nq, xd, yd, size, g=g))
+        out.append(ObjectConstants(i, o.kind, tuple(rounded(c) for c in Q), n,
+                                   rounded(NQ, NN), xd, yd, size, g=g, grp=grp))
     return out
+
+
+def _first(N) -> int:
+    return next(k for k, c in enumerate(N) if c != 0)
+
+
+def _sg(N) -> int:
+    return 1 if N[_first(N)] > 0 else -1
+
+
+def dot_x(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def cross_x(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
 
 # --- helpers ---------------------------------------------------------------------------------
@@ -140,16 +171,56 @@ def _check(d):
     return F, dr.mask_t(F)
 
 
-# --- level 1: t and mask ---------------------------------------------------------------------
+# --- level 1: t and mask -----------------------------------------------------------------------
+#
+# Certified decisions (``cert=True``, rays from the viewpoint): beside t and the hit mask, each
+# function returns ``unsure`` — the verdict rests on a decision whose computed value lies
+# within its error bound of the threshold — and ``tb``, a bound on the error of t.  A value f
+# computed from inputs with componentwise relative errors (host constants: one rounding from
+# the exact value, rt_core/shapes.object_constants; ray components: at most 6 units, the
+# camera's fma plus the normalisation's product, the common scale factor being irrelevant to
+# every decision) and k rounded operations is within (Σ input errors + k)·u·f_abs of the exact
+# value on the scene's numbers and the ideal ray, where f_abs is f evaluated with every term
+# replaced by its absolute value (the standard forward bound of a polynomial).  Every decision
+# here needs at most 16 units; KB = 32 covers it twice, and the bounds are computed from
+# absolute values only, so a term that is exactly 0 contributes nothing: a decision whose
+# every term is exact (a plane in z = 0, an axis-aligned edge hit by an exact sample) has
+# bound 0 and is certain.  rt_core/decide.py decides the flagged rays exactly.
 
-def plane_t(d, o, obj: ObjectConstants, rules: Rules, vz: float):
+U64 = 2.0 ** -53
+KB = 32.0
+
+
+def _unsure(value, bound):
+    """The exact value may lie on either side of 0 (a computed bound of 0: f is exact)."""
+    return (dr.abs(value) <= bound) & (bound > 0)
+
+
+def _verdict(tests):
+    """(hit, unsure) from [(passed, unsure)]: unsure only if no decision fails for certain."""
+    hit = tests[0][0]
+    uns = tests[0][1]
+    sure_fail = ~tests[0][0] & ~tests[0][1]
+    for p, u in tests[1:]:
+        hit &= p
+        uns |= u
+        sure_fail |= ~p & ~u
+    return hit, uns & ~sure_fail
+
+
+def plane_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = False):
     """Ray–plane distance: t = n·q'/(n·d). Miss if n·d = 0, t <= t_min, or screen-clipped."""
-    t, hit, _, _ = _plane(d, o, obj, rules, vz)
-    return t, hit
+    t, hit, _, _, c = _plane(d, o, obj, rules, vz, cert)
+    if not cert:
+        return t, hit
+    h, uns = _verdict([(c[6], c[0])] + c[1])
+    return t, h, uns, c[2]
 
 
-def _plane(d, o, obj, rules: Rules, vz: float):
-    """plane_t's work, shared with fplane_t: (t, hit, n·d, q')."""
+def _plane(d, o, obj, rules: Rules, vz: float, cert: bool = False):
+    """plane_t's work, shared with fplane_t: (t, hit, n·d, q', certification) with
+    certification = (unsure of t > t_min, [(passed, unsure) of the clip], bound of t, n·d's
+    bound, |n|·|d|) when ``cert``."""
     F, B = _check(d)
     n = opaque3(type(d), obj.n)
     q = opaque3(type(d), obj.q)
@@ -158,12 +229,27 @@ def _plane(d, o, obj, rules: Rules, vz: float):
     else:
         q = q - o
         nq = dr.dot(n, q)
-    nd_xy = dr.fma(n.x, d.x, n.y * d.y)
-    den = dr.fma(n.z, d.z, nd_xy)
+    # n·d as plain products and sums (no unpaired fma): a sum of exactly opposite products
+    # is exactly 0, as it is in exact arithmetic
+    nx, ny, nz = n.x * d.x, n.y * d.y, n.z * d.z
+    nd_xy = nx + ny
+    den = nd_xy + nz
     inv_den = dr.rcp(den)
     t = nq * inv_den
     # n·d = 0 (parallel) gives t = ±inf or NaN: '< inf' rejects it with the non-finite t's
     hit = (t > dr.opaque(F, rules.t_min)) & (t < dr.inf)
+    cinfo = None
+    if cert:
+        assert o is None, "certified decisions are for rays from the viewpoint"
+        a_xy = dr.abs(nx) + dr.abs(ny)
+        A = a_xy + dr.abs(nz)
+        bden = dr.opaque(F, KB * U64) * A
+        # n·q = 0 exactly (a plane through the viewpoint): t = 0, a miss whatever n·d is
+        uns = _unsure(den, bden) & (nq != 0)
+        tb = dr.abs(t) * (bden / dr.abs(den) + dr.opaque(F, KB * U64))
+        if rules.t_min > 0:
+            uns |= _unsure(t - dr.opaque(F, rules.t_min), tb)
+        cinfo = [uns, [], tb, bden, A, a_xy, hit]
     if rules.screen_clip != "off":
         # hit z = zn/den with zn = vz'·den + n·q'·d.z = vz'·(n.x d.x + n.y d.y) + g'·d.z,
         # g' = n·q' + n.z·vz' (host constant g; see the module docstring): nothing cancels
@@ -173,7 +259,7 @@ def _plane(d, o, obj, rules: Rules, vz: float):
             # rays from the viewpoint: a hit has sign(den) = sign(nq) (t > 0), known here;
             # fold it into the constants: z·|den| with no work per ray
             sg = -1.0 if obj.nq < 0 else 1.0
-            zs = dr.fma(dr.opaque(F, sg * vz), nd_xy, dr.opaque(F, sg * g) * d.z)
+            zs = dr.opaque(F, sg * vz) * nd_xy + dr.opaque(F, sg * g) * d.z
         else:
             vzo = dr.opaque(F, vz) if o is None else dr.opaque(F, vz) + o.z
             if g is None:           # constants without g (older tables): the plain form
@@ -181,11 +267,16 @@ def _plane(d, o, obj, rules: Rules, vz: float):
             else:
                 g = opaque(F, g)
                 if o is not None:
-                    g = g - dr.fma(n.x, o.x, n.y * o.y)
-                zn = dr.fma(vzo, nd_xy, g * d.z)
+                    g = g - (n.x * o.x + n.y * o.y)
+                zn = vzo * nd_xy + g * d.z
             zs = dr.mulsign(zn, den)
-        hit &= clip_ok(zs, rules)
-    return t, hit, den, q
+        ok = clip_ok(zs, rules)
+        hit = hit & ok              # not in place: cinfo keeps the unclipped mask
+        if cert:
+            gz = dr.opaque(F, g) if isinstance(g, (int, float)) else g
+            zabs = dr.opaque(F, abs(vz)) * cinfo[5] + dr.abs(gz) * dr.abs(d.z)
+            cinfo[1].append((ok, _unsure(zs, dr.opaque(F, KB * U64) * zabs)))
+    return t, hit, den, q, cinfo
 
 
 def clip_ok(z, rules: Rules):
@@ -195,10 +286,15 @@ def clip_ok(z, rules: Rules):
     return (z <= 0) if rules.screen_clip == ">" else (z < 0)
 
 
-def fplane_t(d, o, obj: ObjectConstants, rules: Rules, vz: float):
+def _abs_cross(a, b):
+    """|a_y b_z| + |a_z b_y|, ...: the absolute terms of a × b (a, b given as |a|, |b|)."""
+    return type(a)(a.y * b.z + a.z * b.y, a.z * b.x + a.x * b.z, a.x * b.y + a.y * b.x)
+
+
+def fplane_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = False):
     """plane_t, then the bounds test 0 <= u <= w, 0 <= v <= h (strict with open edges)."""
     F, B = _check(d)
-    t, hit, den, q = _plane(d, o, obj, rules, vz)
+    t, hit, den, q, ci = _plane(d, o, obj, rules, vz, cert)
     Array3 = type(d)
     c = dr.cross(q, d)
     # u·|den| in [0, w·|den|], v·|den| in [0, h·|den|] (see the module docstring): no
@@ -210,22 +306,37 @@ def fplane_t(d, o, obj: ObjectConstants, rules: Rules, vz: float):
         # here: fold it into the constants (no extra work per ray)
         sg = -1.0 if obj.nq < 0 else 1.0
         X, Y = tuple(sg * c for c in X), tuple(sg * c for c in Y)
-        su = dr.dot(opaque3(Array3, Y), c)
-        sv = -dr.dot(opaque3(Array3, X), c)
-        wd, hd = opaque(F, sg * w) * den, opaque(F, sg * h) * den
+        Xo, Yo = opaque3(Array3, X), opaque3(Array3, Y)
+        su = dr.dot(Yo, c)
+        sv = -dr.dot(Xo, c)
+        wo, ho = opaque(F, sg * w), opaque(F, sg * h)
+        wd, hd = wo * den, ho * den
     else:
-        su = dr.mulsign(dr.dot(opaque3(Array3, Y), c), den)
-        sv = dr.mulsign(-dr.dot(opaque3(Array3, X), c), den)
+        Xo, Yo = opaque3(Array3, X), opaque3(Array3, Y)
+        su = dr.mulsign(dr.dot(Yo, c), den)
+        sv = dr.mulsign(-dr.dot(Xo, c), den)
         aden = dr.abs(den)
-        wd, hd = opaque(F, w) * aden, opaque(F, h) * aden
+        wo, ho = opaque(F, w), opaque(F, h)
+        wd, hd = wo * aden, ho * aden
     if rules.edges == "closed":
-        inside = (su >= 0) & (su <= wd) & (sv >= 0) & (sv <= hd)
+        tests = [(su >= 0), (su <= wd), (sv >= 0), (sv <= hd)]
     else:
-        inside = (su > 0) & (su < wd) & (sv > 0) & (sv < hd)
-    return t, hit & inside
+        tests = [(su > 0), (su < wd), (sv > 0), (sv < hd)]
+    inside = tests[0] & tests[1] & tests[2] & tests[3]
+    if not cert:
+        return t, hit & inside
+    uns_t, clip, tb, bden, A, _, t_ok = ci
+    k = dr.opaque(F, KB * U64)
+    cabs = _abs_cross(dr.abs(q), dr.abs(d))
+    bu, bv = k * dr.dot(dr.abs(Yo), cabs), k * dr.dot(dr.abs(Xo), cabs)
+    bw, bh = bu + 2 * k * dr.abs(wo) * A, bv + 2 * k * dr.abs(ho) * A
+    edges = [(tests[0], _unsure(su, bu)), (tests[1], _unsure(wd - su, bw)),
+             (tests[2], _unsure(sv, bv)), (tests[3], _unsure(hd - sv, bh))]
+    h, uns = _verdict([(t_ok, uns_t)] + clip + edges)
+    return t, h, uns, tb
 
 
-def sphere_t(d, o, obj: ObjectConstants, rules: Rules, vz: float):
+def sphere_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = False):
     """The near root of |o + t·d − centre|² = r²; miss if the discriminant <= 0 or t <= 0.
 
     The discriminant is taken as a·r² − |q' × d|² = (r√a − |q'×d|)(r√a + |q'×d|) (|q'×d|/√a
@@ -249,16 +360,37 @@ def sphere_t(d, o, obj: ObjectConstants, rules: Rules, vz: float):
     # near root c/(b' + √disc): with b' <= 0 both roots are <= 0 (origin outside, c > 0) or
     # the near one is (origin inside, c <= 0), a miss either way, so no second branch
     t = c / (bh + s)
-    hit = (disc > 0) & (bh > 0) & (t > 0) & dr.isfinite(t)
+    outline, front = disc > 0, bh > 0
+    hit = outline & front & (t > 0) & dr.isfinite(t)
     if rules.clip_spheres:
         z = dr.fma(t, d.z, dr.opaque(F, vz))
-        hit &= clip_ok(z if o is None else z + o.z, rules)
-    return t, hit
+        z = z if o is None else z + o.z
+        clip = clip_ok(z, rules)
+        hit &= clip
+    if not cert:
+        return t, hit
+    assert o is None, "certified decisions are for rays from the viewpoint"
+    k = dr.opaque(F, KB * U64)
+    # c <= 0 (the viewpoint inside or on the sphere) is exact on the host: a certain miss
+    inside = c <= 0
+    cabs = dr.norm(_abs_cross(dr.abs(q), dr.abs(d)))
+    bo = k * (ra + cn + cabs)
+    bf = k * dr.dot(dr.abs(q), dr.abs(d))
+    edisc = 4 * bo * (ra + cn + bo)
+    es = dr.minimum(edisc / s, dr.sqrt(edisc))
+    tb = dr.abs(t) * ((bf + es) / (bh + s) + k)
+    tb = dr.select(dr.isfinite(tb), tb, dr.inf)
+    tests = [(outline, _unsure(ra - cn, bo)), (front, _unsure(bh, bf))]
+    if rules.clip_spheres and rules.screen_clip != "off":
+        zabs = dr.opaque(F, abs(vz)) + dr.abs(t * d.z)
+        tests.append((clip, _unsure(z, k * zabs + tb * dr.abs(d.z))))
+    h, uns = _verdict(tests)
+    return t, hit, uns & ~inside, tb
 
 
-def object_t(d, o, obj: ObjectConstants, rules: Rules, vz: float):
-    if obj.kind == "sphere":
-        return sphere_t(d, o, obj, rules, vz)
-    if obj.kind == "fplane":
-        return fplane_t(d, o, obj, rules, vz)
-    return plane_t(d, o, obj, rules, vz)              # plane, tplane
+OBJECT_T = {"sphere": sphere_t, "plane": plane_t, "fplane": fplane_t, "tplane": plane_t}
+
+
+def object_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = False):
+    """The kind's level-1 function (t, hit[, unsure, t bound with ``cert``])."""
+    return dispatch(OBJECT_T, obj.kind)(d, o, obj, rules, vz, cert)

@@ -20,6 +20,7 @@ import drjit as dr
 
 from . import accel, backend
 from .backend import Types
+from .decide import decide
 from .rules import Rules
 from .scene import Scene, SceneError
 from .shapes import KIND_CODE, PLANE_KINDS, ObjectConstants, object_constants, object_t
@@ -109,39 +110,114 @@ def _finite_obj(scene: Scene, obj) -> bool:
         return False
 
 
-def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None):
+def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, cam=None):
     """(t, object id, hit mask) of the closest hit along o + t·d (o relative to the
     viewpoint; None for rays from the viewpoint).  Misses: t = 0, id = -1.
-    ``skip``: per-ray object id to ignore (the surface a secondary ray leaves)."""
+    ``skip``: per-ray object id to ignore (the surface a secondary ray leaves).
+    ``cam``: the camera of the primary rays ``d``; with it, in float64 (``exact_decisions``),
+    every decision is certified and the rays the kernel cannot certify are decided exactly
+    on the scene's numbers and the ideal ray (rt_core/decide.py)."""
     T = ks.T
     assert isinstance(d, T.Array3), f"expected {T.Array3.__name__} directions"
+    cert = cam is not None and o is None and exact_decisions(ks)
     n = dr.width(d)
     vz = ks.scene.viewpoint[2]
-    best_t = dr.full(T.Float, dr.inf, n)
-    best_id = dr.full(T.Int32, -1, n)
+    st = Best(dr.full(T.Float, dr.inf, n), dr.full(T.Int32, -1, n))
+    if cert:
+        st.certify(T, n)
     # file order is id order within one kind: then no tie term is needed for 'first'
     single_kind = len(ks.kinds) == 1
     for kind in ks.kinds:
         if accel.looped(ks, kind):          # many objects: one loop, constants as data
-            best_t, best_id = accel.closest_kind(ks, kind, d, o, rules, skip, best_t, best_id)
+            st = accel.closest_kind(ks, kind, d, o, rules, skip, st)
             continue
         for obj in ks.by_kind[kind]:
-            t, hit = object_t(d, o, obj, rules, vz)
+            res = object_t(d, o, obj, rules, vz, cert)
             oid = dr.opaque(T.Int32, obj.id)
+            hit = res[1]
             if skip is not None:
                 hit &= oid != skip
-            if rules.ties == "first":
-                better = t < best_t
-                if not single_kind:
-                    better |= (t == best_t) & (oid < best_id)
-            else:
-                better = t <= best_t if single_kind else (
-                    (t < best_t) | ((t == best_t) & (oid > best_id)))
-            upd = hit & better
-            best_t = dr.select(upd, t, best_t)
-            best_id = dr.select(upd, oid, best_id)
+            st.fold(res[0], hit, oid, rules, single_kind,
+                    *((res[2], res[3], dr.opaque(T.Int32, obj.grp)) if cert else ()))
+    best_t, best_id = st.t, st.id
+    if cert:
+        best_t, best_id = _decide_flagged(ks, cam, rules, st)
     hit = best_id >= 0
     return dr.select(hit, best_t, 0), best_id, hit
+
+
+def exact_decisions(ks: KernelScene) -> bool:
+    """Whether primary rays get certified, exact decisions: float64 unless turned off."""
+    return ks.T.precision == "f64" and ks.__dict__.get("exact_decisions", True)
+
+
+class Best:
+    """The running closest hit of a batch of rays, and with ``certify`` what proves it: the
+    winner's t bound and group, the least lower bound ``lo2`` of the other hits, and the
+    rays flagged for an exact decision."""
+
+    def __init__(self, t, id):
+        self.t, self.id = t, id
+        self.cert = False
+
+    def certify(self, T, n):
+        self.cert = True
+        self.tb = dr.zeros(T.Float, n)
+        self.grp = dr.full(T.Int32, -1, n)
+        self.lo2 = dr.full(T.Float, dr.inf, n)
+        self.flag = dr.zeros(T.Bool, n)
+
+    STATE = ("t", "id", "tb", "grp", "lo2", "flag")
+
+    def state(self):
+        return tuple(getattr(self, k) for k in (self.STATE if self.cert else self.STATE[:2]))
+
+    def set(self, values):
+        for k, v in zip(self.STATE, values):
+            setattr(self, k, v)
+        return self
+
+    def fold(self, t, hit, oid, rules: Rules, single_kind=False, uns=None, tb=None, grp=None):
+        """Take object ``oid``'s hit at t into the running closest hit: smaller t wins; an
+        exact tie goes to the smaller id ('first') or the larger ('last')."""
+        if rules.ties == "first":
+            better = t < self.t
+            if not single_kind:
+                better |= (t == self.t) & (oid < self.id)
+        else:
+            better = t <= self.t if single_kind else (
+                (t < self.t) | ((t == self.t) & (oid > self.id)))
+        upd = hit & better
+        if self.cert:
+            # a winner is certain when its upper bound is below every other hit's lower
+            # bound, except hits on the same plane or sphere (equal t: the tie rule decides)
+            self.flag |= uns
+            old = dr.select((self.id >= 0) & (self.grp != grp),
+                            dr.minimum(self.lo2, self.t - self.tb), self.lo2)
+            new = dr.select(hit & (grp != self.grp), dr.minimum(self.lo2, t - tb), self.lo2)
+            self.lo2 = dr.select(upd, old, new)
+            self.tb = dr.select(upd, tb, self.tb)
+            self.grp = dr.select(upd, grp, self.grp)
+        self.t = dr.select(upd, t, self.t)
+        self.id = dr.select(upd, oid, self.id)
+
+
+def _decide_flagged(ks: KernelScene, cam, rules: Rules, st: Best):
+    """Replace the flagged rays' answers by the exact ones (rt_core/decide.py)."""
+    T = ks.T
+    flag = st.flag | ((st.id >= 0) & (st.t + st.tb >= st.lo2))
+    dr.eval(st.t, st.id, flag)
+    pix = dr.compress(flag).numpy()
+    ks.__dict__["decided"] = len(pix)
+    if not len(pix):
+        return st.t, st.id
+    ids, ts = decide(ks.scene, cam.columns, cam.rows, cam.sampling, rules, pix)
+    # patched on the host: no kernel, so the compiled kernels do not depend on the count
+    t, oid = st.t.numpy().copy(), st.id.numpy().copy()
+    t[pix] = np.where(ids >= 0, ts, np.inf)
+    oid[pix] = ids
+    t, oid = T.Float(t), T.Int32(oid)
+    return t, oid
 
 
 def surface(ks: KernelScene, d, t, oid, hit, o=None):

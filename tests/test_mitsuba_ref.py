@@ -21,12 +21,12 @@ from rt_core.render import render_geometry
 from rt_core.rules import Rules
 from rt_core.scene import FPlane, Material, Scene, make_fplane
 from rt_core.tracer import closest_hit, prepare
-from mitsuba_ref.compare import compare, write_evidence
+from tools.harness.compare import compare, write_evidence
 from mitsuba_ref.convert import (course_id, mitsuba, plane_extent, scene_dict, scene_xml,
                                  sensor_setup)
 from mitsuba_ref.explain import CLASS_CODE, classify
 from mitsuba_ref.reference import MitsubaScene, trace_rays
-from mitsuba_ref.validate import (COURSE_SCENES, default_scene_paths, is_course_scene,
+from tools.harness.validate import (COURSE_SCENES, default_scene_paths, is_course_scene,
                                   load_supported)
 
 REPO = Path(__file__).resolve().parents[1]
@@ -187,7 +187,7 @@ def test20_moved_plane_is_unexplained(delta):
 
 
 def test21_wrong_depth_exceeds_bound(monkeypatch):
-    import mitsuba_ref.compare as C
+    import tools.harness.compare as C
     real = C.trace_geometry
 
     def biased(*a, **k):

@@ -142,7 +142,7 @@ def test08_old_llvm_is_a_clear_error_not_an_abort(lib, tmp_path):
 def test09_uv_stays_in_the_rectangle_at_exact_edges(k, precision):
     """Rays exactly through a finite plane's corners and edges (and ±1 ulp) that hit it get
     0 <= u <= w, 0 <= v <= h. (u as (ŷ·c)·rcp(n·d) rounded twice and came out past w.)"""
-    from mitsuba_ref.stability import make_case
+    from tools.harness.stability import make_case
     from rt_core import backend
     from rt_core.parser import parse_text
     from rt_core.tracer import closest_hit, prepare, surface

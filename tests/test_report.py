@@ -1,4 +1,4 @@
-"""rtval report and rtval bench (mitsuba_ref/report.py, mitsuba_ref/bench.py): the pieces on
+"""rtval report and rtval bench (tools/harness/report.py, tools/harness/bench.py): the pieces on
 fixed inputs, and small end-to-end runs (no timed assertions: only that times are there)."""
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import os
 import numpy as np
 import pytest
 
-from mitsuba_ref import bench, report
+from tools.harness import bench, report
 
 
 def test01_pareto_front():
@@ -42,7 +42,7 @@ def test02_sample_index():
 
 
 def test03_errors_against_the_oracle():
-    from rt_core.oracle import DIAG_KEYS
+    from mitsuba_ref.oracle import DIAG_KEYS
     n = 6
     orc = {"hit.mask": np.array([1, 1, 1, 0, 0, 1.0]), "object.id": np.array([0, 1, 2, -1, -1, 3.]),
            "depth.Z": np.array([1.0, 2.0, 4.0, 0, 0, 8.0])}

@@ -14,7 +14,7 @@ from rt_core.rules import Rules
 from mitsuba_ref.convert import plane_extent
 from mitsuba_ref.secondary import (CLASS_CODE, SkipScenes, classify_hits, compare_secondary,
                                     reference_hits)
-from mitsuba_ref.validate import default_scene_paths, load_supported
+from tools.harness.validate import default_scene_paths, load_supported
 
 REPO = Path(__file__).resolve().parents[1]
 BUNDLED = sorted((REPO / "scenes").glob("*.txt"))

@@ -211,7 +211,7 @@ def test05_scene_against_oracle(path, precision):
 def test05b_course_scenes_against_oracle(precision):
     # every supported course scene with at most 8 lights (the oracle is slow per light), at
     # 24 columns: no 8-bit difference outside the flags
-    from mitsuba_ref.validate import default_scene_paths, load_supported
+    from tools.harness.validate import default_scene_paths, load_supported
     scenes, _ = load_supported(default_scene_paths(), explicit=False)
     for scene in (s for s in scenes if len(s.lights) <= 8):
         orc = shade_oracle.render_shade_oracle(scene, 24)

@@ -1,4 +1,4 @@
-"""Stiff and extreme cases (mitsuba_ref/stability.py) against the exact oracle (rt_core/exact.py).
+"""Stiff and extreme cases (tools/harness/stability.py) against the exact oracle (mitsuba_ref/exact.py).
 
 * The exact oracle agrees with 60-digit mpmath, and decides rays exactly through corners
   exactly.
@@ -24,8 +24,8 @@ import tempfile
 import numpy as np
 import pytest
 
-from mitsuba_ref import stability as S
-from rt_core.exact import U, direction_error, parse_exact, trace_exact
+from tools.harness import stability as S
+from mitsuba_ref.exact import U, direction_error, parse_exact, trace_exact
 from rt_core.parser import parse_text
 from rt_core.rules import Rules
 

@@ -8,7 +8,7 @@ import tempfile
 
 from .options import positive_int
 
-# mitsuba_ref.bench's DEFAULT_OBJECTS and SCENES (not imported here: importing rt_core loads
+# tools.harness.bench's DEFAULT_OBJECTS and SCENES (not imported here: importing rt_core loads
 # Dr.Jit, which must see DRJIT_CACHE_DIR first; tests/test_report.py checks they agree)
 DEFAULT_OBJECTS = (1, 16, 64, 256, 1024)
 SCENES = ("fplanes", "spheres", "mixed")
@@ -55,7 +55,7 @@ def fresh_kernel_cache(keep: bool) -> None:
 
 
 def run(args) -> int:
-    from mitsuba_ref.bench import run_bench, table
+    from tools.harness.bench import run_bench, table
     if args.threads:
         import drjit as dr
         dr.set_thread_count(args.threads)

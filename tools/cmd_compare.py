@@ -27,8 +27,8 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     from rt_core.parser import parse_scene
     from rt_core.rules import Rules
-    from mitsuba_ref.compare import compare, write_evidence
-    from mitsuba_ref.validate import stem_of
+    from tools.harness.compare import compare, write_evidence
+    from tools.harness.validate import stem_of
 
     scene = parse_scene(args.scene)
     modes = ("rays", "camera") if args.mode == "both" else (args.mode,)

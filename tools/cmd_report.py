@@ -36,8 +36,8 @@ def run(args) -> int:
     from dataclasses import replace
     from pathlib import Path
     from rt_core.parser import parse_scene
-    from mitsuba_ref.report import QUICK, Settings, run_report, write_report
-    from mitsuba_ref.validate import REPO
+    from tools.harness.report import QUICK, Settings, run_report, write_report
+    from tools.harness.validate import REPO
     paths = args.scenes or sorted((REPO / "scenes").glob("*.txt"))
     scenes = [parse_scene(p) for p in paths]
     s = QUICK if args.quick else Settings()

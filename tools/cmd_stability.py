@@ -1,5 +1,5 @@
 """rtval stability: generated stiff and extreme scenes, rt_core and Mitsuba against the exact
-oracle (mitsuba_ref.stability does the work)."""
+oracle (tools.harness.stability does the work)."""
 from __future__ import annotations
 
 import os
@@ -41,7 +41,7 @@ def run(args) -> int:
     from tqdm import tqdm
     from rt_core.errors import InputError
     from rt_core.render import versions
-    from mitsuba_ref import stability as S
+    from tools.harness import stability as S
 
     fams = args.families or list(S.FAMILIES)
     unknown = [f for f in fams if f not in S.FAMILIES]

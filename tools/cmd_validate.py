@@ -24,7 +24,7 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     from tqdm import tqdm
     from rt_core.render import versions
-    from mitsuba_ref.validate import (default_scene_paths, load_supported, stem_of, validate,
+    from tools.harness.validate import (default_scene_paths, load_supported, stem_of, validate,
                                       write_report)
 
     paths = args.scenes or default_scene_paths()

@@ -17,9 +17,9 @@ from rt_core.camera import make_camera, primary_directions
 from rt_core.render import provenance, to_images, trace_geometry, write_images
 from rt_core.rules import Rules
 from rt_core.scene import Scene
-from .convert import plane_extent, sensor_setup
-from .explain import CLASS_CODE, CLASSES, classify, depth_bound
-from .reference import MitsubaScene, render_camera, trace_rays
+from mitsuba_ref.convert import plane_extent, sensor_setup
+from mitsuba_ref.explain import CLASS_CODE, CLASSES, classify, depth_bound
+from mitsuba_ref.reference import MitsubaScene, render_camera, trace_rays
 
 MODES = ("rays", "camera")
 

@@ -223,7 +223,7 @@ def rt_tracer(name, scene, precision, d32, unroll_max=None, bins=None) -> Tracer
 
 def mitsuba_tracer(scene, d32, columns: int) -> Tracer:
     import drjit as dr
-    from .convert import course_id, mitsuba, scene_dict
+    from mitsuba_ref.convert import course_id, mitsuba, scene_dict
     mi = mitsuba()
     t0 = time.perf_counter()
     ms = mi.load_dict(scene_dict(scene, columns, None, integrator=False, clip=False),

@@ -44,7 +44,10 @@ from fractions import Fraction
 
 import numpy as np
 
-from .rules import Rules
+from rt_core.kinds import dispatch
+from rt_core.rules import Rules
+
+from .scenefile import read_text
 
 U = {"f32": 2.0 ** -24, "f64": 2.0 ** -53}
 K_ROUNDING = 16.0
@@ -89,36 +92,16 @@ def exact_number(text: str) -> Fraction:
 
 
 def parse_exact(text: str) -> XScene:
-    """The keyword dialect's numbers, exactly (the file must already parse with
-    ``rt_core.parser``, which reports errors; this reader only extracts numbers)."""
-    toks = []
-    for line in re.split(r"\r\n|\r|\n", text):
-        toks += line.split("#", 1)[0].split()
-    pos = 0
-
-    def take(n):
-        nonlocal pos
-        vals = tuple(exact_number(s) for s in toks[pos:pos + n])
-        if len(vals) != n:
-            raise ValueError("truncated scene text")
-        pos += n
-        return vals
-
-    window, viewpoint = take(2), take(3)
-    objects = []
-    while pos < len(toks):
-        kind = toks[pos].lower()
-        pos += 1
-        if kind not in _LAYOUT:
-            raise ValueError(f"parse_exact reads the keyword dialect only, not {kind!r}")
-        fields = {}
-        for name, n in _LAYOUT[kind]:
-            vals = take(n)
-            if name:
-                fields[name] = vals[0] if name == "radius" else vals
-        if kind != "pointlight":
-            objects.append(XObject(kind, len(objects), **fields))
-    return XScene(window, viewpoint, tuple(objects))
+    """A scene's numbers exactly as written, either dialect (mitsuba_ref/scenefile.py)."""
+    f = read_text(text)
+    objs = []
+    for o in f.objects:
+        x = o.x
+        objs.append(XObject(o.kind, o.index, normal=x.get("normal", ()), point=x.get("point", ()),
+                            orient=x.get("orient", ()), size=x.get("size", ()),
+                            center=x.get("center", ()),
+                            radius=x["radius"][0] if "radius" in x else None))
+    return XScene(f.window, f.viewpoint, tuple(objs))
 
 
 # --- integer helpers ----------------------------------------------------------------------------
@@ -307,6 +290,10 @@ def _eval_sphere(p: _Prep, D, Dd, rules: Rules):
     return (tn, td), tests
 
 
+_EVAL = {"sphere": _eval_sphere, "plane": _eval_plane, "fplane": _eval_plane,
+         "tplane": _eval_plane}
+
+
 # --- condition of every decided quantity (float64 dual numbers) -----------------------------------
 
 class _Dual:
@@ -441,13 +428,17 @@ class ObjectVerdicts:
     passed: dict                      # decision -> bool (N,)
     margin: dict                      # decision -> float64 (N,), signed world units
     cond: dict = field(default_factory=dict)   # decision or 't' -> S (N,)
+    representable: dict = field(default_factory=dict)  # u -> every input exact in that precision
 
     def ratio(self, name: str, u: float) -> np.ndarray:
         """|margin| / (K·u·S): <= 1 means the decision may flip in that precision."""
         m = np.abs(self.margin[name])
         with np.errstate(divide="ignore", invalid="ignore"):
             r = m / (K_ROUNDING * u * self.cond[name])
-        return np.where(np.isinf(m), np.inf, np.where(m == 0, 0.0, np.nan_to_num(r, nan=0.0)))
+        # a margin of exactly 0 on inputs that precision u represents exactly is decided by
+        # the rule, not by rounding: never within reach of it
+        zero = np.inf if self.representable.get(u, False) else 0.0
+        return np.where(np.isinf(m), np.inf, np.where(m == 0, zero, np.nan_to_num(r, nan=0.0)))
 
     def risk(self, u: float) -> np.ndarray:
         """Per ray, how far the verdict is from flipping (<= 1: at risk): the nearest
@@ -509,6 +500,16 @@ class ExactResult:
         return out
 
 
+def _representable(xs: XScene, obj: XObject, u: float) -> bool:
+    """Every number of the object, the window and the viewpoint is exact in precision u."""
+    dtype = np.float32 if u == U["f32"] else np.float64
+    nums = list(xs.window) + list(xs.viewpoint) + [c for f in (obj.normal, obj.point,
+            obj.orient, obj.size, obj.center) for c in f]
+    if obj.radius is not None:
+        nums.append(obj.radius)
+    return all(Fraction(float(dtype(float(c)))) == c for c in nums)
+
+
 def _tq_less(a, b) -> bool:
     return a[0] * b[1] < b[0] * a[1]
 
@@ -517,14 +518,17 @@ def _tq_diff(a, b) -> float:
     return _ratio(a[0] * b[1] - b[0] * a[1], a[1] * b[1])
 
 
-def trace_exact(xs: XScene, d: np.ndarray, rules: Rules = Rules()) -> ExactResult:
+def trace_exact(xs: XScene, d: np.ndarray, rules: Rules = Rules(), rays=None) -> ExactResult:
     """The exact closest hit of every ray from the viewpoint along ``d`` ((N, 3) float32 or
-    float64, taken exactly as given)."""
+    float64, taken exactly as given), or along the exact ``rays`` (a list of integer
+    triples D with a common denominator, as ``(D, Dd)``; ``d`` then only serves the
+    conditions: pass the rays rounded, see ``ideal_rays``)."""
     d = np.asarray(d)
     n = len(d)
     V = xs.viewpoint
     preps = [_Prep(o, V, rules) for o in xs.objects]
-    rays = [ray_ints(row) for row in d.astype(np.float64).tolist()]
+    if rays is None:
+        rays = [ray_ints(row) for row in d.astype(np.float64).tolist()]
     verdicts = []
     for p in preps:
         names = DECISIONS[p.kind]
@@ -534,10 +538,7 @@ def trace_exact(xs: XScene, d: np.ndarray, rules: Rules = Rules()) -> ExactResul
         passed = {k: np.zeros(n, bool) for k in names}
         margin = {k: np.zeros(n) for k in names}
         for i, (D, Dd) in enumerate(rays):
-            if p.kind == "sphere":
-                q, tests = _eval_sphere(p, D, Dd, rules)
-            else:
-                q, tests = _eval_plane(p, D, Dd, rules)
+            q, tests = dispatch(_EVAL, p.kind)(p, D, Dd, rules)
             for k in names:
                 passed[k][i], margin[k][i] = tests[k]
             if q is not None:
@@ -546,6 +547,7 @@ def trace_exact(xs: XScene, d: np.ndarray, rules: Rules = Rules()) -> ExactResul
             valid[i] = all(tests[k][0] for k in names)
         ov = ObjectVerdicts(p.kind, valid, t, tq, passed, margin)
         ov.cond = _conditions(p.obj, V, d.astype(np.float64), rules)
+        ov.representable = {u: _representable(xs, p.obj, u) for u in U.values()}
         verdicts.append(ov)
     hit = np.zeros(n, bool)
     ids = np.full(n, -1, np.int64)
@@ -601,3 +603,29 @@ def direction_error(window, viewpoint, columns: int, rows: int, d: np.ndarray,
         s2 = _ratio(_dot(c, c), _dot(D, D) * _dot(e, e))
         out[i] = math.asin(min(1.0, math.sqrt(s2))) if _dot(D, e) >= 0 else math.pi
     return out
+
+
+def ideal_rays(window, viewpoint, columns: int, rows: int, pixels, sampling: str = "corners"):
+    """The course's ideal rays (exact corner-grid or centre samples − viewpoint) of the given
+    pixel indices (image order), as ``(rays, d)`` for ``trace_exact``: integer triples with
+    their denominator, and the unit directions rounded to float64."""
+    ww, wh = (Fraction(c) for c in window)
+    vx, vy, vz = (Fraction(c) for c in viewpoint)
+    E = []
+    for i in pixels:
+        r, x = divmod(int(i), columns)
+        y = rows - 1 - r
+        if sampling == "corners":
+            wx = Fraction(x, columns - 1) * ww - ww / 2
+            wy = Fraction(y, rows - 1) * wh - wh / 2
+        else:
+            wx = Fraction(2 * x + 1, 2 * columns) * ww - ww / 2
+            wy = Fraction(2 * y + 1, 2 * rows) * wh - wh / 2
+        E.append((wx - vx, wy - vy, -vz))
+    L = 1
+    for e in E:
+        L = math.lcm(L, *(c.denominator for c in e))
+    rays = [(tuple(int(c * L) for c in e), L) for e in E]
+    d = np.array([[float(c) for c in e] for e in E], np.float64).reshape(-1, 3)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return rays, d

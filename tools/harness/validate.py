@@ -10,7 +10,7 @@ from rt_core.parser import parse_scene
 from rt_core.scene import SceneError
 from .compare import compare, write_evidence
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 COURSE_SCENES = REPO.parent / "shared" / "course-scenes"
 
 

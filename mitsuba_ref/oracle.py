@@ -35,7 +35,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from rt_core.kinds import dispatch
 from rt_core.rules import Rules
+
+from .geometry import frame, normal
 
 INF = math.inf
 OFF = 10000.0           # the notes' tile-parity offset
@@ -211,20 +214,29 @@ class _Obj:
     radius: EF | None = None
 
 
+def _sphere_obj(i, o):
+    return _Obj(i, o.kind, o, ("s", tuple(o.center), o.radius),
+                center=vec(o.center), radius=EF(o.radius))
+
+
+def _plane_obj(i, o):
+    """Normal and rotmat computed here from the numbers as written (mitsuba_ref/geometry.py),
+    then taken as inputs rounded once (as a tracer's host would round them)."""
+    n = normal(o)
+    p = _Obj(i, o.kind, o, ("p", n, tuple(o.point)), normal=vec(n), point=vec(o.point))
+    if o.kind in ("fplane", "tplane"):
+        p.rotmat = tuple(vec(r) for r in frame(o))
+        p.size = (EF(o.size[0]), EF(o.size[1]))
+    return p
+
+
+_PREPARE = {"sphere": _sphere_obj, "plane": _plane_obj, "fplane": _plane_obj,
+            "tplane": _plane_obj}
+
+
 def _prepare(scene):
-    out = []
-    for i, o in enumerate(scene.objects):
-        if o.kind == "sphere":
-            out.append(_Obj(i, o.kind, o, ("s", tuple(o.center), o.radius),
-                            center=vec(o.center), radius=EF(o.radius)))
-        else:
-            p = _Obj(i, o.kind, o, ("p", tuple(o.normal), tuple(o.point)),
-                     normal=vec(o.normal), point=vec(o.point))
-            if o.kind in ("fplane", "tplane"):
-                p.rotmat = (vec(o.xdir), vec(o.ydir), vec(o.normal))
-                p.size = (EF(o.size[0]), EF(o.size[1]))
-            out.append(p)
-    return out
+    """The objects' numbers as written, and the normal and frame computed here."""
+    return [dispatch(_PREPARE, o.kind)(i, o) for i, o in enumerate(scene.objects)]
 
 
 _prep_cache: dict = {}

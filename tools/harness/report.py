@@ -9,7 +9,7 @@ Configurations, each at every resolution:
   ``ray_intersect`` on rt_core f32's exact rays (mitsuba_ref/reference.py's same-ray mode:
   plane kinds traced from the window plane, spheres whole, the nearer hit kept).
 
-Reference: the float64 per-ray oracle (rt_core/oracle.py), a plain-Python trace of the notes'
+Reference: the float64 per-ray oracle (mitsuba_ref/oracle.py), a plain-Python trace of the notes'
 formulas, at ``sample`` pixels drawn per (scene, resolution) with a fixed seed (every pixel when
 the image has no more).  Errors at those pixels: mask mismatches (hit or object id differ),
 the same excluding pixels the oracle flags as within reach of rounding of a decision (margin
@@ -95,7 +95,7 @@ def _mitsuba_rays(ms, d32: np.ndarray):
     """Per group of the MitsubaScene: its rays (reference.group_rays), evaluated, so that
     timing sees the intersection kernels only."""
     import drjit as dr
-    from .reference import group_rays
+    from mitsuba_ref.reference import group_rays
     V = np.asarray(ms.scene.viewpoint, np.float64)
     out = []
     for g in ms.groups:
@@ -137,7 +137,7 @@ def errors(hit, oid, depth, orc: dict, precision: str, modelled=None) -> dict:
     ``modelled``: mask of pixels where a mismatch is explained by how the reference models
     the scene (mitsuba_ref.explain classes: a plane's finite stand-in, ...); those are
     counted apart and not as unflagged."""
-    from rt_core.oracle import DIAG_KEYS
+    from mitsuba_ref.oracle import DIAG_KEYS
     o_hit = orc["hit.mask"] > 0
     o_id = orc["object.id"]
     bad = (hit != o_hit) | (np.where(hit, oid, -1) != np.where(o_hit, o_id, -1))
@@ -160,11 +160,11 @@ def measure(scene, columns: int, settings: Settings, progress=None) -> list[dict
     """Every configuration of ``scene`` at ``columns``: rows for the report."""
     from rt_core import backend
     from rt_core.camera import make_camera, primary_directions
-    from rt_core.oracle import oracle_pixels
+    from mitsuba_ref.oracle import oracle_pixels
     from rt_core.rules import Rules
-    from .convert import plane_extent
-    from .explain import CLASS_CODE, classify
-    from .reference import MitsubaScene, trace_rays
+    from mitsuba_ref.convert import plane_extent
+    from mitsuba_ref.explain import CLASS_CODE, classify
+    from mitsuba_ref.reference import MitsubaScene, trace_rays
     cam = make_camera(scene, columns)
     idx = sample_index(cam.size, settings.sample, settings.seed + columns)
     t0 = time.perf_counter()
@@ -240,7 +240,7 @@ def run_report(scenes, settings: Settings = Settings(), progress=None) -> dict:
     summ = summary(rows)
     meta = {"columns": list(settings.columns), "sample": settings.sample,
             "reps": settings.reps, "seed": settings.seed, "scenes": [s.path for s in scenes],
-            "reference": "float64 per-ray oracle (rt_core/oracle.py) at sampled pixels",
+            "reference": "float64 per-ray oracle (mitsuba_ref/oracle.py) at sampled pixels",
             "flag_margin_u": FLAG, "run_s": round(time.perf_counter() - t0, 2),
             **versions(), **machine()}
     return {"meta": meta, "rows": rows, "summary": summ, "pareto": pareto(summ)}
@@ -343,7 +343,7 @@ def markdown(result: dict, png: str) -> str:
          f"Scenes: {len(m['scenes'])}; resolutions (columns): {', '.join(map(str, m['columns']))};"
          f" rows per the scene's window (rows = int(h/w · columns)); {m['reps']} timed calls "
          f"per configuration after the first; whole run {m['run_s']} s.", "",
-         "**Reference**: the float64 per-ray oracle (rt_core/oracle.py: the notes' formulas in "
+         "**Reference**: the float64 per-ray oracle (mitsuba_ref/oracle.py: the notes' formulas in "
          "plain Python, one ray at a time), evaluated at "
          f"**{m['sample']} pixels per scene and resolution** drawn with a fixed seed (all "
          "pixels when the image has fewer). Errors are counted at those pixels only: the "

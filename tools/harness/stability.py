@@ -1,6 +1,6 @@
 """Stiff and extreme cases: generated scene families, each swept over one parameter, traced by
 rt_core (f32, f64), Mitsuba (f32) and the notes' naive float32 formulation, and judged against
-the exact oracle (``rt_core.exact``) on the very rays each tracer traced.
+the exact oracle (``mitsuba_ref.exact``) on the very rays each tracer traced.
 
 Families (``FAMILIES``; each case is a scene file text plus a camera or a list of rays):
 
@@ -24,7 +24,7 @@ Families (``FAMILIES``; each case is a scene file text plus a camera or a list o
 
 Per tracer and case (``Metrics``): mask/id mismatches against the exact answer; those not
 explained (no decision of the objects involved within K·u·S of its threshold, no tie within
-the bounds: ``rt_core.exact``); relative depth error (max, median) where tracer and oracle
+the bounds: ``mitsuba_ref.exact``); relative depth error (max, median) where tracer and oracle
 hit the same object, and its maximum over kappa_t·u (backward stability); non-finite
 outputs; for rt_core the camera's ray angle error against the exact course ray of the
 scene's float64 numbers (units of u); for f64, the depth check where the condition number
@@ -51,7 +51,7 @@ from fractions import Fraction
 
 import numpy as np
 
-from rt_core.exact import U, direction_error, parse_exact, trace_exact
+from mitsuba_ref.exact import U, direction_error, parse_exact, trace_exact
 from rt_core.rules import Rules
 
 TRACERS = ("rt_f32", "rt_f64", "mitsuba", "naive_f32")
@@ -547,7 +547,7 @@ def trace_rt(scene, case: Case, precision: str, rules: Rules = Rules()):
 
 def trace_mitsuba(scene, d32: np.ndarray, columns: int, rows: int):
     """Mitsuba 3 (llvm_ad_rgb, float32) on the same float32 rays: (t, id, nonfinite)."""
-    from .reference import MitsubaScene, trace_rays
+    from mitsuba_ref.reference import MitsubaScene, trace_rays
     ms = MitsubaScene(scene, max(columns, 2), max(rows, 2))
     ref = trace_rays(ms, d32, full=False)
     hit = ref["hit.mask"] > 0

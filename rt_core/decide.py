@@ -1,0 +1,191 @@
+"""Exact decisions for the primary rays whose float64 answer the kernel could not certify.
+
+The float64 kernel computes every decision (parallel, t > t_min, screen clip, finite-plane
+edges, sphere outline and front, closest hit) together with a certified bound on its error
+(rt_core/shapes.py); a ray any of whose decisions lies within its bound of the threshold is
+flagged and decided here instead, in rational arithmetic on the scene's numbers as written
+(``scene.exact``: the decimal text of the file) and the course's ideal ray through the exact
+corner-grid (or centre) sample, ``E = world − viewpoint``.  No rounding enters a decision:
+
+* plane kinds: s = N·Q / N·E (the hit is V + s·E; N·E = 0 is a miss); t > t_min is
+  s > 0 and s²|E|² > t_min²; the clip is the sign of V.z + s·E.z;
+* finite plane, with the unnormalised frame p = O(N·N) − (O·N)N (the projected orient) and
+  y = N × p: u = p·(sE − Q)/|p|, v = y·(sE − Q)/(|N||p|), so 0 <= u <= w is
+  a >= 0 and a² <= w²|p|² (a = p·(sE − Q)), and the same for v;
+* sphere: the near root s = (Q·E − √D)/|E|², D = (Q·E)² − |E|²(|Q|² − r²): a hit iff
+  D > 0, Q·E > 0 and |Q|² > r²;
+* closest hit: the parameters s (numbers of the form α + β√D) are compared exactly; an exact
+  tie goes to the rule's object.
+
+This code shares nothing with the references that check rt_core (mitsuba_ref/exact.py's oracle is
+independent of it and of the kernels).
+"""
+from __future__ import annotations
+
+import decimal
+from fractions import Fraction
+
+import numpy as np
+
+from .rules import Rules
+from .scene import Scene, exact
+
+_CTX = decimal.Context(prec=40, Emax=10 ** 6, Emin=-10 ** 6)
+
+
+def _sign(x) -> int:
+    return (x > 0) - (x < 0)
+
+
+def sgn_sqrt(p, q, r) -> int:
+    """sign(p + q·√r) exactly (r >= 0)."""
+    sp, sq = _sign(p), (_sign(q) if r > 0 else 0)
+    if sq == 0 or sp == sq:
+        return sp if sp else sq
+    if sp == 0:
+        return sq
+    c = p * p - q * q * r               # opposite signs: the larger square wins
+    return sp if c > 0 else (sq if c < 0 else 0)
+
+
+def sgn_two_sqrt(a, b, x, c, y) -> int:
+    """sign(a + b·√x + c·√y) exactly (x, y >= 0)."""
+    s1, s2 = sgn_sqrt(a, b, x), (_sign(c) if y > 0 else 0)
+    if s2 == 0 or s1 == s2:
+        return s1 if s1 else s2
+    if s1 == 0:
+        return s2
+    # (a + b√x)² − c²y = (a² + b²x − c²y) + 2ab√x
+    s = sgn_sqrt(a * a + b * b * x - c * c * y, 2 * a * b, x)
+    return s1 if s > 0 else (s2 if s < 0 else 0)
+
+
+def _dot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _cross(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+class _Exact:
+    """One object's numbers as written, and the products every ray needs."""
+
+    def __init__(self, obj, V):
+        self.kind = obj.kind
+        if obj.kind == "sphere":
+            self.Q = tuple(exact(c) - v for c, v in zip(obj.center, V))
+            self.cc = _dot(self.Q, self.Q) - exact(obj.radius) ** 2
+            return
+        N = tuple(exact(c) for c in obj.given_normal)
+        self.N = N
+        self.Q = tuple(exact(c) - v for c, v in zip(obj.point, V))
+        self.NQ = _dot(N, self.Q)
+        if obj.kind == "fplane":
+            O = tuple(exact(c) for c in obj.orient)
+            NN = _dot(N, N)
+            on = _dot(O, N)
+            self.p = tuple(o * NN - on * n for o, n in zip(O, N))
+            self.y = _cross(N, self.p)
+            PP = _dot(self.p, self.p)
+            w, h = (exact(c) for c in obj.size)
+            self.w2 = w * w * PP
+            self.h2 = h * h * NN * PP
+
+
+def _plane(o: _Exact, E, EE, Vz, rules: Rules, tmin2):
+    """s as (α, 0, 0), or None for a miss."""
+    ND = _dot(o.N, E)
+    if ND == 0:
+        return None
+    s = o.NQ / ND
+    if s <= 0 or (tmin2 and s * s * EE <= tmin2):
+        return None
+    if rules.screen_clip != "off":
+        z = _sign(Vz + s * E[2])
+        if z > 0 or (z == 0 and rules.screen_clip == ">="):
+            return None
+    if o.kind == "fplane":
+        H = tuple(s * e - q for e, q in zip(E, o.Q))
+        a, b = _dot(o.p, H), _dot(o.y, H)
+        if rules.edges == "closed":
+            if not (a >= 0 and a * a <= o.w2 and b >= 0 and b * b <= o.h2):
+                return None
+        elif not (a > 0 and a * a < o.w2 and b > 0 and b * b < o.h2):
+            return None
+    return (s, 0, 0)
+
+
+def _sphere(o: _Exact, E, EE, Vz, rules: Rules):
+    """s = α + β√D as (α, β, D), or None for a miss."""
+    if o.cc <= 0:
+        return None                      # viewpoint inside or on the sphere: near root <= 0
+    b = _dot(o.Q, E)
+    D = b * b - EE * o.cc
+    if D <= 0 or b <= 0:
+        return None
+    s = (b / EE, Fraction(-1) / EE, D)
+    if rules.clip_spheres and rules.screen_clip != "off":
+        z = sgn_sqrt(Vz + s[0] * E[2], s[1] * E[2], D)
+        if z > 0 or (z == 0 and rules.screen_clip == ">="):
+            return None
+    return s
+
+
+def _less(a, b) -> int:
+    """sign(s_a − s_b) for s = α + β√D."""
+    return sgn_two_sqrt(a[0] - b[0], a[1], a[2], -b[1], b[2])
+
+
+def _to_float(s, EE) -> float:
+    """t = s·|E| (the Euclidean distance), rounded to float64."""
+    with decimal.localcontext(_CTX):
+        dec = lambda f: decimal.Decimal(f.numerator) / decimal.Decimal(f.denominator)
+        v = dec(Fraction(s[0]))
+        if s[1]:
+            v += dec(Fraction(s[1])) * dec(Fraction(s[2])).sqrt()
+        return float(v * dec(EE).sqrt())
+
+
+def ideal_rays(scene: Scene, columns: int, rows: int, sampling: str, pixels):
+    """E = world − viewpoint (Fractions) of each pixel index (image order, row 0 the top)."""
+    ww, wh = (exact(c) for c in scene.window)
+    V = tuple(exact(c) for c in scene.viewpoint)
+    out = []
+    for i in pixels:
+        r, x = divmod(int(i), columns)
+        y = rows - 1 - r
+        if sampling == "corners":
+            wx = Fraction(x, columns - 1) * ww - ww / 2
+            wy = Fraction(y, rows - 1) * wh - wh / 2
+        else:
+            wx = Fraction(2 * x + 1, 2 * columns) * ww - ww / 2
+            wy = Fraction(2 * y + 1, 2 * rows) * wh - wh / 2
+        out.append((wx - V[0], wy - V[1], -V[2]))
+    return out
+
+
+def decide(scene: Scene, columns: int, rows: int, sampling: str, rules: Rules, pixels):
+    """(object id, t) of the exact closest hit of each pixel's ideal ray: int32 and float64
+    arrays, id −1 and t 0 on a miss."""
+    V = tuple(exact(c) for c in scene.viewpoint)
+    objs = [_Exact(o, V) for o in scene.objects]
+    tmin = Fraction(rules.t_min)
+    tmin2 = tmin * tmin
+    pixels = np.asarray(pixels, np.int64)
+    ids = np.full(len(pixels), -1, np.int32)
+    ts = np.zeros(len(pixels))
+    for k, E in enumerate(ideal_rays(scene, columns, rows, sampling, pixels)):
+        EE = _dot(E, E)
+        best, best_s = -1, None
+        for j, o in enumerate(objs):
+            s = (_sphere(o, E, EE, V[2], rules) if o.kind == "sphere"
+                 else _plane(o, E, EE, V[2], rules, tmin2))
+            if s is None:
+                continue
+            c = -1 if best_s is None else _less(s, best_s)
+            if c < 0 or (c == 0 and rules.ties == "last"):
+                best, best_s = j, s
+        if best >= 0:
+            ids[k], ts[k] = best, _to_float(best_s, EE)
+    return ids, ts

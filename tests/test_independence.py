@@ -1,0 +1,120 @@
+"""The references share no code with what they check.
+
+* Import test: the oracles (float64, exact, pixel classification), the references' scene reader
+  and geometry import nothing of rt_core's scene model, parser, camera or kernels: only the
+  table of kind names (rt_core.kinds) and the rules' parameter object (rt_core.rules).
+* Mutation test: a frame bug in the tracer (x̂ rotated by 90° in the plane: still orthonormal and
+  right-handed) is caught by the exact oracle, which computes its frame from the numbers as
+  written, and so is a normal taken from the wrong field.
+* One table of kinds: every per-kind dispatch covers every kind, and an unknown kind raises.
+"""
+from __future__ import annotations
+
+import dataclasses
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rt_core.kinds import KINDS
+
+REPO = Path(__file__).resolve().parents[1]
+REFERENCES = ("mitsuba_ref.oracle", "mitsuba_ref.exact", "mitsuba_ref.scenefile",
+              "mitsuba_ref.geometry", "mitsuba_ref.explain")
+FORBIDDEN = ("rt_core.scene", "rt_core.parser", "rt_core.camera", "rt_core.shapes",
+             "rt_core.tracer", "rt_core.accel", "rt_core.decide", "rt_core.shading",
+             "rt_core.render")
+
+
+@pytest.mark.parametrize("module", REFERENCES)
+def test01_references_do_not_import_the_tracer(module):
+    code = (f"import sys, {module}\n"
+            f"print(','.join(m for m in {FORBIDDEN!r} if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True,
+                         text=True, check=True).stdout.strip()
+    assert out == "", f"{module} imports {out}"
+
+
+TILTED = """8 6
+0 0 5
+fplane 1 1 1 0 0 0 0 0 0
+  0.3 0.2 1      # normal
+  -2 -1.5 -1     # corner
+  1 0.4 0        # orient
+  3.5 1.2        # size (not square: a rotated frame covers other pixels)
+sphere 1 1 1 0 0 0 0 0 0  2 1.5 -3  0.7
+"""
+
+
+def _rt_ids(text, mutate=None, monkeypatch=None):
+    from rt_core import backend, shapes
+    from rt_core.parser import parse_text
+    from rt_core.render import trace_geometry
+    from rt_core.camera import make_camera
+    if mutate:
+        orig = shapes.object_constants
+        monkeypatch.setattr(shapes, "object_constants", lambda sc: [mutate(c) for c in orig(sc)])
+        import rt_core.tracer as tr
+        monkeypatch.setattr(tr, "object_constants", shapes.object_constants)
+    sc = parse_text(text)
+    cam = make_camera(sc, 48, 36)
+    g = trace_geometry(sc, cam, backend.types("f64"))
+    return np.array(g["object.id"]).astype(int)
+
+
+def _exact_ids(text):
+    from mitsuba_ref.exact import ideal_rays, parse_exact, trace_exact
+    xs = parse_exact(text)
+    rays, d = ideal_rays(xs.window, xs.viewpoint, 48, 36, range(48 * 36))
+    return trace_exact(xs, d, rays=rays).id
+
+
+def _rotate(c):
+    if c.kind != "fplane":
+        return c
+    return dataclasses.replace(c, xdir=c.ydir, ydir=tuple(-x for x in c.xdir))
+
+
+def _wrong_normal(c):
+    if c.kind != "fplane":
+        return c
+    return dataclasses.replace(c, n=tuple(-x for x in c.n), nq=-c.nq, g=-c.g,
+                               xdir=c.ydir, ydir=c.xdir)
+
+
+def test02_tracer_agrees_with_the_exact_oracle_unmutated():
+    assert (_rt_ids(TILTED) == _exact_ids(TILTED)).all()
+
+
+@pytest.mark.parametrize("mutation", [_rotate, _wrong_normal])
+def test03_frame_mutations_are_caught(mutation, monkeypatch):
+    bad = _rt_ids(TILTED, mutation, monkeypatch)
+    assert (bad != _exact_ids(TILTED)).sum() > 20
+
+
+def test04_every_table_covers_every_kind():
+    from mitsuba_ref import convert, exact, oracle, scenefile
+    from rt_core import accel, parser, shapes
+    tables = {"shapes.OBJECT_T": shapes.OBJECT_T, "exact._EVAL": exact._EVAL,
+              "exact.DECISIONS": exact.DECISIONS, "oracle._PREPARE": oracle._PREPARE,
+              "convert._SHAPES": convert._SHAPES, "accel.LAYOUT": accel.LAYOUT,
+              "scenefile.LAYOUT": {k: v for k, v in scenefile.LAYOUT.items() if k in KINDS},
+              "parser._GROUPS": {k: v for k, v in parser._GROUPS.items() if k in KINDS},
+              "shapes.KIND_CODE": shapes.KIND_CODE}
+    for name, table in tables.items():
+        assert set(table) == set(KINDS), name
+
+
+def test05_unknown_kind_raises():
+    from types import SimpleNamespace
+    from rt_core.kinds import dispatch
+    from rt_core.shapes import object_t
+    with pytest.raises(ValueError, match="cone"):
+        object_t(None, None, SimpleNamespace(kind="cone"), None, 0.0)
+    from mitsuba_ref import oracle
+    with pytest.raises(ValueError, match="cone"):
+        oracle._prepare(SimpleNamespace(objects=[SimpleNamespace(kind="cone")]))
+    with pytest.raises(ValueError):
+        dispatch({}, "sphere")
