@@ -3,6 +3,6 @@
 * ``scenefile``: the course scene format's numbers as written, read on their own;
 * ``oracle``: a float64 per-ray tracer written straight from the notes, with error bounds;
 * ``exact``: the exact rational oracle (hit rules decided without rounding);
-* ``explain`` and ``secondary``: the classification of disagreeing pixels and rays;
+* ``explain``: the classification of disagreeing pixels and rays;
 * ``convert`` and ``reference``: the equivalent Mitsuba 3 scene and its renders.
 """

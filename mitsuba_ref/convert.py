@@ -14,10 +14,9 @@ the wheel has no double variants).
 """
 from __future__ import annotations
 
-from typing import Any as Scene  # a parsed course scene (duck-typed: window, viewpoint, objects)
-
 import math
 from dataclasses import dataclass
+from typing import Any as Scene         # a parsed course scene (duck-typed)
 from xml.sax.saxutils import quoteattr
 
 from rt_core.usererror import InputError

@@ -18,13 +18,15 @@ origin on the window, direction rounding, Embree's edge tests, our own float32 e
 """
 from __future__ import annotations
 
+from typing import Any as Scene         # a parsed course scene (duck-typed)
+
 import numpy as np
 
+from rt_core.kinds import kind
 from rt_core.rules import Rules
-from typing import Any as Scene
 
-from .geometry import frame, normal
 from .convert import stand_in_frame
+from .geometry import frame, normal
 
 K_ROUNDING = 16.0
 EPS32 = 2.0 ** -24
@@ -46,6 +48,7 @@ class ObjectEval:
         V = np.asarray(scene.viewpoint, np.float64)
         n = len(d)
         O = np.tile(V, (n, 1)) if O is None else np.asarray(O, np.float64)
+        kind(obj.kind)                          # an unknown kind raises, never "a plane"
         self.kind = obj.kind
         self.margin = np.full(n, np.inf)       # world-unit distance to the decision boundary
         self.clip_margin = np.full(n, np.inf)

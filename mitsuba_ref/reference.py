@@ -12,10 +12,10 @@ nearer hit of the two (an exact tie goes to the earlier object, as in the course
   the ``aov`` integrator (near/far clip = the screen clip); depth corrected for the near clip.
 """
 from __future__ import annotations
+from typing import Any as Scene         # a parsed course scene (duck-typed)
 
 import numpy as np
 
-from rt_core.scene import FPlane, Scene
 from .convert import AOVS, course_id, mitsuba, scene_dict, sensor_setup
 
 CAMERA_AOVS = AOVS + ",id:shape_index"
@@ -57,7 +57,7 @@ class MitsubaScene:
         # uv scale: Mitsuba's uv in [0,1]² -> the course's lasthit (u·w, v·h)
         self.uv_scale = np.zeros((len(scene.objects) + 1, 2))
         for i, obj in enumerate(scene.objects):
-            if isinstance(obj, FPlane):
+            if obj.kind == "fplane":
                 self.uv_scale[i] = obj.size
 
 

@@ -59,13 +59,15 @@ class File:
     objects: tuple
     dialect: str
 
-    @property
-    def fwindow(self):
-        return tuple(float(c) for c in self.window)
+    def floats(self) -> "File":
+        """The same scene with the header as floats (what a float reference reads)."""
+        return File(tuple(float(c) for c in self.window),
+                    tuple(float(c) for c in self.viewpoint), self.lights, self.objects,
+                    self.dialect)
 
-    @property
-    def fviewpoint(self):
-        return tuple(float(c) for c in self.viewpoint)
+    def default_rows(self, columns: int) -> int:
+        """rows = int(world_h / world_w · columns), the keyword programs' rule."""
+        return int(self.window[1] / self.window[0] * columns)
 
 
 def _lines(text: str):

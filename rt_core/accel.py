@@ -38,7 +38,7 @@ import drjit as dr
 import numpy as np
 
 from .rules import Rules
-from .shapes import ObjectConstants, object_t
+from .shapes import BOUND_FIELDS, object_t
 
 # More (bounded) objects than this: the symbolic loop instead of unrolled code.  Measured
 # crossover (bench, f32): unrolled wins up to ~8-12 objects, the binned loop above.
@@ -53,10 +53,10 @@ MARGIN = 2.0 ** -12
 # the object id rides along as a float (exact below 2**24).  (Scalar gathers: Dr.Jit's
 # packet gathers of Array4f were no faster here, and chose between packet and scalar code
 # from call to call, which broke kernel reuse.)
-LAYOUT = {"sphere": ("qx", "qy", "qz", "radius", "c", "id", "grp"),
-          "plane": ("qx", "qy", "qz", "nq", "nx", "ny", "nz", "g", "id", "grp"),
+LAYOUT = {"sphere": ("qx", "qy", "qz", "radius", "c", "id", "grp", "bo", "bf", "bs", "ic"),
+          "plane": ("qx", "qy", "qz", "nq", "nx", "ny", "nz", "g", "id", "grp", "bz"),
           "fplane": ("qx", "qy", "qz", "nq", "nx", "ny", "nz", "g", "w", "xx", "xy", "xz", "h",
-                     "yx", "yy", "yz", "id", "grp")}
+                     "yx", "yy", "yz", "id", "grp", "bz", "bu", "bv", "bw", "bh")}
 LAYOUT["tplane"] = LAYOUT["plane"]
 BOUNDED = ("sphere", "fplane")
 
@@ -86,6 +86,7 @@ def _row(c) -> dict:
     """The numbers of one ObjectConstants by slot name (float64, host)."""
     r = {"id": float(c.id), "grp": float(c.grp), "radius": c.radius, "c": c.c, "nq": c.nq,
          "g": c.g}
+    r.update({k: getattr(c, k) for k in BOUND_FIELDS})
     for name, v in (("q", c.q), ("n", c.n), ("x", c.xdir), ("y", c.ydir)):
         r[name + "x"], r[name + "y"], r[name + "z"] = v
     r["w"], r["h"] = c.size
@@ -110,6 +111,8 @@ class KindTable:
         A3 = T.Array3
         out = SimpleNamespace(kind=self.kind, id=T.Int32(v["id"]), grp=T.Int32(v["grp"]),
                               q=A3(v["qx"], v["qy"], v["qz"]))
+        for k in names[names.index("grp") + 1:]:      # the certified decisions' bounds
+            setattr(out, k, v[k])
         if self.kind == "sphere":
             out.radius, out.c = v["radius"], v["c"]
         else:
@@ -307,25 +310,27 @@ def _range(ks, kind: str, d, o):
     return tab, dr.gather(U, tab.offsets, k), dr.gather(U, tab.offsets, k + 1)
 
 
-def closest_kind(ks, kind: str, d, o, rules: Rules, skip, st):
+def closest_kind(ks, kind: str, d, o, rules: Rules, skip, st, scale: float = 0.0):
     """Fold every object of ``kind`` into the running closest hit ``st`` (tracer.Best), with
     the same test, tie rule and certification as the unrolled code."""
     T = ks.T
     vz = ks.scene.viewpoint[2]
     tab, start, end = _range(ks, kind, d, o)
     cert = st.cert
+    st.fresh = False                    # the body is traced once for every iteration
 
     def body(i, *state):
         obj = tab.view(T, i)
-        res = object_t(d, o, obj, rules, vz, cert)
+        res = object_t(d, o, obj, rules, vz, scale if cert else False)
         hit = res[1]
         if skip is not None:
             hit &= obj.id != skip
         s = st.set(state)
-        s.fold(res[0], hit, obj.id, rules, False, *((res[2], res[3], obj.grp) if cert else ()))
+        s.fold(res[0], hit, obj.id, rules, False,
+               *((res[2], res[3], obj.grp if st.shared else None) if cert else ()))
         return (i + 1, *s.state())
 
-    names = st.STATE if cert else st.STATE[:2]
+    names = st.names()
     out = dr.while_loop((start, *st.state()), lambda i, *state: i < end, body,
                         labels=("i",) + tuple("best_" + k for k in names),
                         label=f"closest_{kind}")

@@ -168,14 +168,22 @@ def ideal_rays(scene: Scene, columns: int, rows: int, sampling: str, pixels):
 def decide(scene: Scene, columns: int, rows: int, sampling: str, rules: Rules, pixels):
     """(object id, t) of the exact closest hit of each pixel's ideal ray: int32 and float64
     arrays, id −1 and t 0 on a miss."""
+    return decide_rays(scene, rules, ideal_rays(scene, columns, rows, sampling, pixels),
+                       distance=True)
+
+
+def decide_rays(scene: Scene, rules: Rules, rays, distance: bool = False):
+    """``decide`` for rays from the viewpoint along the exact directions ``rays`` (triples of
+    Fractions or floats, taken exactly); t is the ray parameter (hit = viewpoint + t·ray),
+    or with ``distance`` the Euclidean distance."""
     V = tuple(exact(c) for c in scene.viewpoint)
     objs = [_Exact(o, V) for o in scene.objects]
     tmin = Fraction(rules.t_min)
     tmin2 = tmin * tmin
-    pixels = np.asarray(pixels, np.int64)
-    ids = np.full(len(pixels), -1, np.int32)
-    ts = np.zeros(len(pixels))
-    for k, E in enumerate(ideal_rays(scene, columns, rows, sampling, pixels)):
+    ids = np.full(len(rays), -1, np.int32)
+    ts = np.zeros(len(rays))
+    for k, E in enumerate(rays):
+        E = tuple(Fraction(c) for c in E)
         EE = _dot(E, E)
         best, best_s = -1, None
         for j, o in enumerate(objs):
@@ -187,5 +195,5 @@ def decide(scene: Scene, columns: int, rows: int, sampling: str, rules: Rules, p
             if c < 0 or (c == 0 and rules.ties == "last"):
                 best, best_s = j, s
         if best >= 0:
-            ids[k], ts[k] = best, _to_float(best_s, EE)
+            ids[k], ts[k] = best, _to_float(best_s, EE if distance else Fraction(1))
     return ids, ts

@@ -1,11 +1,13 @@
 """Shape kernels, type-generic over Dr.Jit backend and precision, in two levels:
 
-* ``*_t``:   distance t and a hit mask for a batch of rays (what the closest-hit search needs);
-* ``*_surface``: normal and uv, computed once for the closest hit only.
+* ``*_t``: distance t and a hit mask for a batch of rays (what the closest-hit search needs),
+  and with ``cert`` the certified decisions (below);
+* surface data (normal, uv) for the closest hit only, in rt_core/tracer.py ``surface``.
 
 Every quantity is taken relative to the ray origin.  Per-object constants are computed once on
-the host in float64 (``ObjectConstants``): q = anchor − viewpoint (the plane's corner or the
-sphere's centre), n·q, and for spheres |q|² − r².  Primary rays start at the viewpoint, so
+the host (``ObjectConstants``), each rounded once from its exact value on the scene's numbers
+as written: q = anchor − viewpoint (the plane's corner or the sphere's centre), the unit
+normal and frame, n·q, and for spheres |q|² − r².  Primary rays start at the viewpoint, so
 they use these directly; other rays pass their origin ``o`` relative to the viewpoint.
 
 Finite-plane bounds: the seed's ``newhit = rotmat · (hit − point)`` equals, for
@@ -30,12 +32,13 @@ Numerical choices measured against the exact oracle (mitsuba_ref/exact.py, tools
   (Same operation count: n.x d.x + n.y d.y is the first part of n·d.)
 * sphere: the distance of the centre from the ray is |q × d|/|d|, not |q − d(q·d)/|d|²|, whose
   error along the ray adds in quadrature (for a ray along an axis the cross product is exact);
-* host constants: n·q, g and the sphere's |q|² − r² are rounded once from exact values
-  (``Fraction``); |n·q| within its float64 uncertainty of 0 is 0 (a plane through the
-  viewpoint: t = 0, a miss, instead of a hit at t ~ 1e-17); planes with the same unit normal
-  (up to sign) and n·q within that uncertainty share n and n·q exactly, so coplanar objects
-  tie exactly and the tie rule decides, as in exact arithmetic;
-* a parallel ray (n·d = 0) gives t = ±inf or NaN, rejected by ``t < inf`` (no separate test).
+* host constants are rounded once from exact values (``Fraction``, 40-digit ``Decimal`` for
+  the square roots): n·q of a plane through the viewpoint is exactly 0 (t = 0, a miss), and
+  objects on the same plane (the same exact plane equation, up to orientation) get the same
+  n and n·q up to sign, so they tie exactly and the tie rule decides, as in exact arithmetic;
+* n·d and the clip's sum are plain products and sums, no unpaired fma: exactly opposite
+  products cancel to 0 (a ray parallel to the plane: t = ±inf or NaN, rejected by
+  ``t < inf``).
 """
 from __future__ import annotations
 
@@ -67,6 +70,16 @@ class ObjectConstants:
     c: float = 0.0           # sphere |q|² − r²
     g: float = 0.0           # plane kinds: n·q + n.z·viewpoint.z, for the screen clip
     grp: int = 0             # objects of one group are the same plane or sphere: equal t
+    # bounds of the certified decisions (see "Certified decisions" below), for unit rays
+    bz: float = 0.0          # plane kinds: the clip's z·|n·d|
+    bu: float = 0.0          # fplane: u·|n·d| >= 0, v·|n·d| >= 0, u <= w, v <= h
+    bv: float = 0.0
+    bw: float = 0.0
+    bh: float = 0.0
+    bo: float = 0.0          # sphere: outline r√a − |q×d|, front q·d, the discriminant's
+    bf: float = 0.0          # bf + √(the discriminant's error) (bs), 1/c (ic)
+    bs: float = 0.0
+    ic: float = 0.0
 
 
 _CTX = decimal.Context(prec=40, Emax=10 ** 6, Emin=-10 ** 6)
@@ -105,8 +118,9 @@ def object_constants(scene: Scene) -> list[ObjectConstants]:
             r = exact(o.radius)
             q = tuple(rounded(c) for c in Q)
             grp = groups.setdefault(("s", Q, r), len(groups))
-            out.append(ObjectConstants(i, o.kind, q, radius=o.radius,
-                                       c=rounded(dot_x(Q, Q) - r * r), grp=grp))
+            c = rounded(dot_x(Q, Q) - r * r)
+            out.append(ObjectConstants(i, o.kind, q, radius=o.radius, c=c, grp=grp,
+                                       **_sphere_bounds(q, o.radius, c)))
             continue
         N = _canonical(tuple(exact(c) for c in (getattr(o, "given_normal", ()) or o.normal)))
         NN = dot_x(N, N)
@@ -127,9 +141,48 @@ def object_constants(scene: Scene) -> list[ObjectConstants]:
             xd = tuple(rounded(c, PP) for c in p)
             yd = tuple(rounded(c, PP * NN) for c in y)
         size = getattr(o, "size", (0.0, 0.0))
-        out.append(ObjectConstants(i, o.kind, tuple(rounded(c) for c in Q), n,
-                                   rounded(NQ, NN), xd, yd, size, g=g, grp=grp))
+        q = tuple(rounded(c) for c in Q)
+        out.append(ObjectConstants(i, o.kind, q, n, rounded(NQ, NN), xd, yd, size, g=g,
+                                   grp=grp, **_plane_bounds(scene.viewpoint[2], q, n, g, xd,
+                                                            yd, size)))
     return out
+
+
+BOUND_FIELDS = ("bz", "bu", "bv", "bw", "bh", "bo", "bf", "bs", "ic")
+
+
+# The certified decisions' bounds, for rays with |d| <= 1 (unit directions): each is the
+# bound KB·u·f_abs of "Certified decisions" below with every |d_i| replaced by 1, so a
+# constant per object; KD adds room for |n|, |d| a few units above 1.
+KD = 1.01
+
+
+def _plane_bounds(vz, q, n, g, X, Y, size) -> dict:
+    k = KB * U64 * KD
+    out = {"bz": k * (abs(vz) * (abs(n[0]) + abs(n[1])) + abs(g))}
+    if any(X):
+        aq = [abs(c) for c in q]
+        # |(q×d)_i| <= |q_j| + |q_k|
+        cab = (aq[1] + aq[2], aq[2] + aq[0], aq[0] + aq[1])
+        an = sum(abs(c) for c in n)
+        bu = k * sum(abs(y) * c for y, c in zip(Y, cab))
+        bv = k * sum(abs(x) * c for x, c in zip(X, cab))
+        out.update(bu=bu, bv=bv, bw=bu + 2 * k * abs(size[0]) * an,
+                   bh=bv + 2 * k * abs(size[1]) * an)
+    return out
+
+
+def _sphere_bounds(q, r, c) -> dict:
+    k = KB * U64 * KD
+    nq = math.sqrt(sum(x * x for x in q))
+    bo = k * (r + 3 * nq)
+    bf = k * sum(abs(x) for x in q)
+    ed = 4 * bo * (r + nq + bo)             # the discriminant (ra − cn)(ra + cn)
+    if not c > 0:
+        # the viewpoint inside or on the sphere (exact on the host): the near root is <= 0,
+        # a certain miss; a NaN bound fails both of the front test's comparisons
+        bf = math.nan
+    return {"bo": bo, "bf": bf, "bs": bf + math.sqrt(ed), "ic": 1.0 / c if c > 0 else 0.0}
 
 
 def _first(N) -> int:
@@ -173,9 +226,11 @@ def _check(d):
 
 # --- level 1: t and mask -----------------------------------------------------------------------
 #
-# Certified decisions (``cert=True``, rays from the viewpoint): beside t and the hit mask, each
-# function returns ``unsure`` — the verdict rests on a decision whose computed value lies
-# within its error bound of the threshold — and ``tb``, a bound on the error of t.  A value f
+# Certified decisions (``cert``: the largest |d| of the rays, 1 for the camera's; rays from the
+# viewpoint): each function returns t, the
+# masks ``certain`` (a hit in exact arithmetic for sure: the hit mask) and ``possible`` (a
+# hit in exact arithmetic is possible: the verdict is unsure where possible & ~certain), and
+# ``tb``, a bound on the error of t.  A value f
 # computed from inputs with componentwise relative errors (host constants: one rounding from
 # the exact value, rt_core/shapes.object_constants; ray components: at most 6 units, the
 # camera's fma plus the normalisation's product, the common scale factor being irrelevant to
@@ -191,21 +246,40 @@ U64 = 2.0 ** -53
 KB = 32.0
 
 
-def _unsure(value, bound):
-    """The exact value may lie on either side of 0 (a computed bound of 0: f is exact)."""
-    return (dr.abs(value) <= bound) & (bound > 0)
+def _scaled(b, cert):
+    """A bound for rays with |d| <= KD·cert (``cert``: 1 for the camera's unit rays, else the
+    largest length of the given rays); every bound is proportional to |d|."""
+    return b if cert == 1 else b * cert
 
 
-def _verdict(tests):
-    """(hit, unsure) from [(passed, unsure)]: unsure only if no decision fails for certain."""
-    hit = tests[0][0]
-    uns = tests[0][1]
-    sure_fail = ~tests[0][0] & ~tests[0][1]
-    for p, u in tests[1:]:
-        hit &= p
-        uns |= u
-        sure_fail |= ~p & ~u
-    return hit, uns & ~sure_fail
+class _Cert:
+    """Running 'certainly passes' and 'possibly passes' masks of one object's decisions.  A
+    decision on value v (exactly within b of the computed one) certainly passes iff
+    v >= b (v > b if the rule is strict) and possibly passes iff v >= −b.  The object is a
+    certain hit iff every decision certainly passes, and unsure iff every decision possibly
+    passes but not all certainly: the verdict of a certain ray is the computed one."""
+
+    def __init__(self, certain, possible):
+        self.certain, self.possible = certain, possible
+
+    def test(self, F, v, b, strict: bool):
+        if isinstance(b, (int, float)):     # opaque: the kernel does not depend on it
+            b, nb = dr.opaque(F, b), dr.opaque(F, -b)
+        else:
+            nb = -b
+        c, p = ((v > b) if strict else (v >= b)), ((v > nb) if strict else (v >= nb))
+        self.certain = c if self.certain is True else self.certain & c
+        self.possible = p if self.possible is True else self.possible & p
+
+    def split(self):
+        """(certain hit, possible hit): unsure is possible & ~certain"""
+        return self.certain, self.possible
+
+
+def _clip_test(cert: _Cert, F, zs, bz, rules: Rules):
+    """The screen clip on z·|n·d| (z <= 0 passes with '>', z < 0 with '>=')."""
+    if rules.screen_clip != "off":
+        cert.test(F, -zs, bz, rules.screen_clip == ">=")
 
 
 def plane_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = False):
@@ -213,14 +287,12 @@ def plane_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = Fa
     t, hit, _, _, c = _plane(d, o, obj, rules, vz, cert)
     if not cert:
         return t, hit
-    h, uns = _verdict([(c[6], c[0])] + c[1])
-    return t, h, uns, c[2]
+    return (t, *c[0].split(), c[1])
 
 
 def _plane(d, o, obj, rules: Rules, vz: float, cert: bool = False):
     """plane_t's work, shared with fplane_t: (t, hit, n·d, q', certification) with
-    certification = (unsure of t > t_min, [(passed, unsure) of the clip], bound of t, n·d's
-    bound, |n|·|d|) when ``cert``."""
+    certification = (_Cert of t > t_min and the clip, bound of t) when ``cert``."""
     F, B = _check(d)
     n = opaque3(type(d), obj.n)
     q = opaque3(type(d), obj.q)
@@ -241,41 +313,37 @@ def _plane(d, o, obj, rules: Rules, vz: float, cert: bool = False):
     cinfo = None
     if cert:
         assert o is None, "certified decisions are for rays from the viewpoint"
-        a_xy = dr.abs(nx) + dr.abs(ny)
-        A = a_xy + dr.abs(nz)
-        bden = dr.opaque(F, KB * U64) * A
-        # n·q = 0 exactly (a plane through the viewpoint): t = 0, a miss whatever n·d is
-        uns = _unsure(den, bden) & (nq != 0)
-        tb = dr.abs(t) * (bden / dr.abs(den) + dr.opaque(F, KB * U64))
+        bden = KB * U64 * KD * cert          # Σ|n_i d_i| <= |n||d| <= KD·cert
+        tb = dr.abs(t) * dr.fma(dr.abs(inv_den), bden, KB * U64)
+        tmin = dr.opaque(F, rules.t_min)
+        # t = n·q/(n·d): with n·d within its bound of 0, t may be anything (unless n·q = 0
+        # exactly, a plane through the viewpoint: t = 0)
+        # with t_min = 0 this covers an unsure n·d too: then tb > |t|, so t + tb > 0, or
+        # (n·d = ±0) t + tb = −inf + inf is NaN, which '~(... <=)' counts as possible
+        possible = ~(t + tb <= tmin)
         if rules.t_min > 0:
-            uns |= _unsure(t - dr.opaque(F, rules.t_min), tb)
-        cinfo = [uns, [], tb, bden, A, a_xy, hit]
+            possible |= (dr.abs(den) <= bden) & (nq != 0)
+        cinfo = [_Cert(t - tb > tmin, possible), tb]
     if rules.screen_clip != "off":
         # hit z = zn/den with zn = vz'·den + n·q'·d.z = vz'·(n.x d.x + n.y d.y) + g'·d.z,
         # g' = n·q' + n.z·vz' (host constant g; see the module docstring): nothing cancels
         # that is not the answer (exact 0 for a plane in z = 0)
-        g = getattr(obj, "g", None)
-        if o is None and g is not None and isinstance(obj.nq, (int, float)):
+        g = obj.g
+        if o is None and isinstance(obj.nq, (int, float)):
             # rays from the viewpoint: a hit has sign(den) = sign(nq) (t > 0), known here;
             # fold it into the constants: z·|den| with no work per ray
             sg = -1.0 if obj.nq < 0 else 1.0
             zs = dr.opaque(F, sg * vz) * nd_xy + dr.opaque(F, sg * g) * d.z
         else:
             vzo = dr.opaque(F, vz) if o is None else dr.opaque(F, vz) + o.z
-            if g is None:           # constants without g (older tables): the plain form
-                zn = vzo * den + nq * d.z
-            else:
-                g = opaque(F, g)
-                if o is not None:
-                    g = g - (n.x * o.x + n.y * o.y)
-                zn = vzo * nd_xy + g * d.z
+            g = opaque(F, g)
+            if o is not None:
+                g = g - (n.x * o.x + n.y * o.y)
+            zn = vzo * nd_xy + g * d.z
             zs = dr.mulsign(zn, den)
-        ok = clip_ok(zs, rules)
-        hit = hit & ok              # not in place: cinfo keeps the unclipped mask
+        hit = hit & clip_ok(zs, rules)
         if cert:
-            gz = dr.opaque(F, g) if isinstance(g, (int, float)) else g
-            zabs = dr.opaque(F, abs(vz)) * cinfo[5] + dr.abs(gz) * dr.abs(d.z)
-            cinfo[1].append((ok, _unsure(zs, dr.opaque(F, KB * U64) * zabs)))
+            _clip_test(cinfo[0], F, zs, _scaled(obj.bz, cert), rules)
     return t, hit, den, q, cinfo
 
 
@@ -325,15 +393,17 @@ def fplane_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = F
     inside = tests[0] & tests[1] & tests[2] & tests[3]
     if not cert:
         return t, hit & inside
-    uns_t, clip, tb, bden, A, _, t_ok = ci
-    k = dr.opaque(F, KB * U64)
-    cabs = _abs_cross(dr.abs(q), dr.abs(d))
-    bu, bv = k * dr.dot(dr.abs(Yo), cabs), k * dr.dot(dr.abs(Xo), cabs)
-    bw, bh = bu + 2 * k * dr.abs(wo) * A, bv + 2 * k * dr.abs(ho) * A
-    edges = [(tests[0], _unsure(su, bu)), (tests[1], _unsure(wd - su, bw)),
-             (tests[2], _unsure(sv, bv)), (tests[3], _unsure(hd - sv, bh))]
-    h, uns = _verdict([(t_ok, uns_t)] + clip + edges)
-    return t, h, uns, tb
+    c, tb = ci
+    # the four edges as one test: their least value against the largest of their bounds
+    # (a larger bound is still a bound)
+    m = dr.minimum(dr.minimum(su, wd - su), dr.minimum(sv, hd - sv))
+    if isinstance(obj.bw, (int, float)):
+        bm = max(obj.bw, obj.bh)            # bw >= bu and bh >= bv
+    else:
+        bm = dr.maximum(obj.bw, obj.bh)
+    bm = _scaled(bm, cert)
+    c.test(F, m, bm, rules.edges == "open")
+    return (t, *c.split(), tb)
 
 
 def sphere_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = False):
@@ -370,27 +440,23 @@ def sphere_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = F
     if not cert:
         return t, hit
     assert o is None, "certified decisions are for rays from the viewpoint"
-    k = dr.opaque(F, KB * U64)
-    # c <= 0 (the viewpoint inside or on the sphere) is exact on the host: a certain miss
-    inside = c <= 0
-    cabs = dr.norm(_abs_cross(dr.abs(q), dr.abs(d)))
-    bo = k * (ra + cn + cabs)
-    bf = k * dr.dot(dr.abs(q), dr.abs(d))
-    edisc = 4 * bo * (ra + cn + bo)
-    es = dr.minimum(edisc / s, dr.sqrt(edisc))
-    tb = dr.abs(t) * ((bf + es) / (bh + s) + k)
-    tb = dr.select(dr.isfinite(tb), tb, dr.inf)
-    tests = [(outline, _unsure(ra - cn, bo)), (front, _unsure(bh, bf))]
+    # t = c/(b' + s): its error from b' and from s = √disc, |√x − √y| <= √|x−y| (a loose
+    # bound far from tangency, but t's bound only decides which near ties are re-decided)
+    # (t > 0 on every hit, and the bound matters on hits only)
+    tb = t * dr.fma(opaque(F, _scaled(obj.bs, cert)) * t, opaque(F, obj.ic), KB * U64)
+    c = _Cert(True, True)
+    c.test(F, ra - cn, _scaled(obj.bo, cert), True)
+    c.test(F, bh, _scaled(obj.bf, cert), True)     # bf is NaN when c <= 0: never passes
     if rules.clip_spheres and rules.screen_clip != "off":
-        zabs = dr.opaque(F, abs(vz)) + dr.abs(t * d.z)
-        tests.append((clip, _unsure(z, k * zabs + tb * dr.abs(d.z))))
-    h, uns = _verdict(tests)
-    return t, hit, uns & ~inside, tb
+        zb = dr.fma(dr.abs(t), dr.abs(d.z), dr.opaque(F, abs(vz))) * (KB * U64) + tb
+        _clip_test(c, F, z, zb, rules)
+    return (t, *c.split(), tb)
 
 
 OBJECT_T = {"sphere": sphere_t, "plane": plane_t, "fplane": fplane_t, "tplane": plane_t}
 
 
 def object_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = False):
-    """The kind's level-1 function (t, hit[, unsure, t bound with ``cert``])."""
+    """The kind's level-1 function: (t, hit), or with ``cert`` (t, certain hit, possible hit,
+    bound of t)."""
     return dispatch(OBJECT_T, obj.kind)(d, o, obj, rules, vz, cert)

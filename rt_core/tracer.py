@@ -20,10 +20,11 @@ import drjit as dr
 
 from . import accel, backend
 from .backend import Types
-from .decide import decide
+from .decide import decide, decide_rays
 from .rules import Rules
 from .scene import Scene, SceneError
-from .shapes import KIND_CODE, PLANE_KINDS, ObjectConstants, object_constants, object_t
+from .shapes import (BOUND_FIELDS, KIND_CODE, PLANE_KINDS, ObjectConstants, object_constants,
+                     object_t)
 
 backend.require("llvm")     # fail early, with a message, on an LLVM that would abort kernels
 
@@ -91,6 +92,8 @@ def prepare(scene: Scene, T: Types) -> KernelScene:
 def _magnitudes(c: ObjectConstants):
     """Absolute values of every number a kernel receives for object constants ``c``."""
     for f in dataclasses.fields(c):
+        if f.name in BOUND_FIELDS:          # the certified decisions' bounds (NaN marks a
+            continue                        # certain miss), not inputs of the kernels' arithmetic
         v = getattr(c, f.name)
         if isinstance(v, tuple):
             yield from (abs(x) for x in v)
@@ -110,40 +113,52 @@ def _finite_obj(scene: Scene, obj) -> bool:
         return False
 
 
-def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, cam=None):
+def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, cam=None,
+                dmax: float = 1.0):
     """(t, object id, hit mask) of the closest hit along o + t·d (o relative to the
     viewpoint; None for rays from the viewpoint).  Misses: t = 0, id = -1.
     ``skip``: per-ray object id to ignore (the surface a secondary ray leaves).
     ``cam``: the camera of the primary rays ``d``; with it, in float64 (``exact_decisions``),
     every decision is certified and the rays the kernel cannot certify are decided exactly
-    on the scene's numbers and the ideal ray (rt_core/decide.py)."""
+    on the scene's numbers and the ideal ray (rt_core/decide.py).  ``cam="rays"``: the same,
+    with the directions ``d`` themselves as the exact rays, ``dmax`` (host) bounding their
+    lengths (the bounds hold for |d| <= 1.01·dmax)."""
     T = ks.T
     assert isinstance(d, T.Array3), f"expected {T.Array3.__name__} directions"
     cert = cam is not None and o is None and exact_decisions(ks)
+    if cert and isinstance(cam, str):
+        assert cam == "rays", cam
     n = dr.width(d)
     vz = ks.scene.viewpoint[2]
     st = Best(dr.full(T.Float, dr.inf, n), dr.full(T.Int32, -1, n))
+    shared = cert and shared_groups(ks)
+    scale = (float(dmax) if isinstance(cam, str) else 1.0) if cert else 0.0
     if cert:
-        st.certify(T, n)
+        st.certify(T, n, shared)
     # file order is id order within one kind: then no tie term is needed for 'first'
     single_kind = len(ks.kinds) == 1
     for kind in ks.kinds:
         if accel.looped(ks, kind):          # many objects: one loop, constants as data
-            st = accel.closest_kind(ks, kind, d, o, rules, skip, st)
+            st = accel.closest_kind(ks, kind, d, o, rules, skip, st, scale)
             continue
         for obj in ks.by_kind[kind]:
-            res = object_t(d, o, obj, rules, vz, cert)
+            res = object_t(d, o, obj, rules, vz, scale)
             oid = dr.opaque(T.Int32, obj.id)
             hit = res[1]
             if skip is not None:
                 hit &= oid != skip
             st.fold(res[0], hit, oid, rules, single_kind,
-                    *((res[2], res[3], dr.opaque(T.Int32, obj.grp)) if cert else ()))
-    best_t, best_id = st.t, st.id
+                    *((res[2], res[3], dr.opaque(T.Int32, obj.grp) if shared else None)
+                      if cert else ()))
     if cert:
-        best_t, best_id = _decide_flagged(ks, cam, rules, st)
-    hit = best_id >= 0
-    return dr.select(hit, best_t, 0), best_id, hit
+        return _decide_flagged(ks, cam, rules, st, d)
+    hit = st.id >= 0
+    return dr.select(hit, st.t, 0), st.id, hit
+
+
+def shared_groups(ks: KernelScene) -> bool:
+    """Do two objects lie on the same plane (or are the same sphere)?"""
+    return len({c.grp for c in ks.consts}) < len(ks.consts)
 
 
 def exact_decisions(ks: KernelScene) -> bool:
@@ -160,26 +175,33 @@ class Best:
         self.t, self.id = t, id
         self.cert = False
 
-    def certify(self, T, n):
+    def certify(self, T, n, shared: bool = True):
         self.cert = True
+        self.shared = shared
         self.tb = dr.zeros(T.Float, n)
-        self.grp = dr.full(T.Int32, -1, n)
+        self.fresh = True
+        self.grp = dr.full(T.Int32, -1, n) if shared else None
+        # the least lower bound of the other hits; −inf marks a ray to decide exactly
         self.lo2 = dr.full(T.Float, dr.inf, n)
-        self.flag = dr.zeros(T.Bool, n)
 
-    STATE = ("t", "id", "tb", "grp", "lo2", "flag")
+    def names(self):
+        if not self.cert:
+            return ("t", "id")
+        return ("t", "id", "tb", "lo2") + (("grp",) if self.shared else ())
 
     def state(self):
-        return tuple(getattr(self, k) for k in (self.STATE if self.cert else self.STATE[:2]))
+        return tuple(getattr(self, k) for k in self.names())
 
     def set(self, values):
-        for k, v in zip(self.STATE, values):
+        for k, v in zip(self.names(), values):
             setattr(self, k, v)
         return self
 
-    def fold(self, t, hit, oid, rules: Rules, single_kind=False, uns=None, tb=None, grp=None):
+    def fold(self, t, hit, oid, rules: Rules, single_kind=False, possible=None, tb=None,
+             grp=None):
         """Take object ``oid``'s hit at t into the running closest hit: smaller t wins; an
-        exact tie goes to the smaller id ('first') or the larger ('last')."""
+        exact tie goes to the smaller id ('first') or the larger ('last').  Certified:
+        ``hit`` is the certain hit, ``possible`` the possible one (shapes.py)."""
         if rules.ties == "first":
             better = t < self.t
             if not single_kind:
@@ -188,36 +210,69 @@ class Best:
             better = t <= self.t if single_kind else (
                 (t < self.t) | ((t == self.t) & (oid > self.id)))
         upd = hit & better
+        old = None
         if self.cert:
             # a winner is certain when its upper bound is below every other hit's lower
-            # bound, except hits on the same plane or sphere (equal t: the tie rule decides)
-            self.flag |= uns
-            old = dr.select((self.id >= 0) & (self.grp != grp),
-                            dr.minimum(self.lo2, self.t - self.tb), self.lo2)
-            new = dr.select(hit & (grp != self.grp), dr.minimum(self.lo2, t - tb), self.lo2)
-            self.lo2 = dr.select(upd, old, new)
-            self.tb = dr.select(upd, tb, self.tb)
-            self.grp = dr.select(upd, grp, self.grp)
+            # bound, except hits on the same plane or sphere (equal t: the tie rule decides;
+            # ``grp`` is None when no two objects share a plane or sphere)
+            # an unsure object (possible, not certain) sets lo2 = −inf: the ray is flagged
+            unsure = dr.select(possible, -dr.inf, dr.inf)
+            if getattr(self, "fresh", False):
+                # the first object: no other hit yet
+                self.fresh = False
+                self.tb = dr.select(upd, tb, self.tb)
+                self.lo2 = dr.select(hit, self.lo2, unsure)
+                if grp is not None:
+                    self.grp = dr.select(upd, grp, self.grp)
+            elif grp is None:
+                # the displaced winner, or this hit, joins the others (inf − 0 before a hit)
+                lo = dr.select(upd, self.t - self.tb, dr.select(hit, t - tb, unsure))
+                self.lo2 = dr.minimum(self.lo2, lo)
+                self.tb = dr.select(upd, tb, self.tb)
+            else:
+                uns = possible & ~hit
+                old = dr.select((self.id >= 0) & (self.grp != grp),
+                                dr.minimum(self.lo2, self.t - self.tb), self.lo2)
+                new = dr.select(hit & (grp != self.grp), dr.minimum(self.lo2, t - tb),
+                                self.lo2)
+                self.grp = dr.select(upd, grp, self.grp)
+            if old is not None:
+                self.lo2 = dr.select(uns, -dr.inf, dr.select(upd, old, new))
+                self.tb = dr.select(upd, tb, self.tb)
         self.t = dr.select(upd, t, self.t)
         self.id = dr.select(upd, oid, self.id)
 
 
-def _decide_flagged(ks: KernelScene, cam, rules: Rules, st: Best):
+def _decide_flagged(ks: KernelScene, cam, rules: Rules, st: Best, d):
     """Replace the flagged rays' answers by the exact ones (rt_core/decide.py)."""
     T = ks.T
-    flag = st.flag | ((st.id >= 0) & (st.t + st.tb >= st.lo2))
-    dr.eval(st.t, st.id, flag)
-    pix = dr.compress(flag).numpy()
+    # t ± tb holds the exact t with room to spare (KB is twice the rounding count), so
+    # intervals that merely touch are apart; a miss has t + tb = inf, flagged only at −inf
+    flag = st.t + st.tb > st.lo2
+    t = dr.select(st.id >= 0, st.t, 0)
+    # flagged rays carry id −2: one int output instead of two masks (Dr.Jit's LLVM kernels
+    # write several mask outputs slowly)
+    oid = dr.select(flag, -2, st.id)
+    # count the flagged rays in the same kernel (an atomic add on flagged lanes only)
+    count = dr.zeros(T.UInt32, 1)
+    dr.scatter_reduce(dr.ReduceOp.Add, count, T.UInt32(1), T.UInt32(0), flag)
+    dr.eval(t, oid, count)
+    if count.numpy()[0] == 0:
+        ks.__dict__["decided"] = 0
+        return t, oid, oid >= 0
+    pix = dr.compress(oid == -2).numpy()
     ks.__dict__["decided"] = len(pix)
-    if not len(pix):
-        return st.t, st.id
-    ids, ts = decide(ks.scene, cam.columns, cam.rows, cam.sampling, rules, pix)
+    if isinstance(cam, str):                 # the traced directions are the exact rays
+        E = np.stack([np.asarray(c.numpy(), np.float64)[pix] for c in (d.x, d.y, d.z)], 1)
+        ids, ts = decide_rays(ks.scene, rules, E.tolist())
+    else:
+        ids, ts = decide(ks.scene, cam.columns, cam.rows, cam.sampling, rules, pix)
     # patched on the host: no kernel, so the compiled kernels do not depend on the count
-    t, oid = st.t.numpy().copy(), st.id.numpy().copy()
-    t[pix] = np.where(ids >= 0, ts, np.inf)
+    t, oid = t.numpy().copy(), oid.numpy().copy()
+    t[pix] = np.where(ids >= 0, ts, 0.0)
     oid[pix] = ids
     t, oid = T.Float(t), T.Int32(oid)
-    return t, oid
+    return t, oid, oid >= 0
 
 
 def surface(ks: KernelScene, d, t, oid, hit, o=None):

@@ -1,5 +1,5 @@
 """Shadow rays and first-bounce reflections of rt_core's shading against Mitsuba 3, ray by ray
-(mitsuba_ref/secondary.py): no unexplained disagreement on any bundled or supported course
+(tools/harness/secondary.py): no unexplained disagreement on any bundled or supported course
 scene, in either precision; and broken shadows or reflections *are* reported."""
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from rt_core import shading
 from rt_core.parser import parse_scene
 from rt_core.rules import Rules
 from mitsuba_ref.convert import plane_extent
-from mitsuba_ref.secondary import (CLASS_CODE, SkipScenes, classify_hits, compare_secondary,
+from tools.harness.secondary import (CLASS_CODE, SkipScenes, classify_hits, compare_secondary,
                                     reference_hits)
 from tools.harness.validate import default_scene_paths, load_supported
 

@@ -15,7 +15,9 @@ Mitsuba scene with rays from the viewpoint computes the course's answer (up to f
 rounding: ``agree`` counts the rays where rt_core f32 and Mitsuba see different objects).
 
 Rays: rt_core's float32 camera directions, evaluated once; rt_core f64 traces the same values
-widened exactly, Mitsuba the same float32 values from the (float32) viewpoint.  Timed: the
+widened exactly, with its exact decisions on them (``rt_core-f64-plain``: the same kernel
+without the certification; ``f64_exact_vs_plain`` is their speed ratio), Mitsuba the same
+float32 values from the (float32) viewpoint.  Timed: the
 closest-hit kernel alone (rt_core ``closest_hit`` → t, id; Mitsuba ``ray_intersect_preliminary``
 → t, shape index), each call ``dr.eval`` + ``dr.sync_thread``.  The first call (compilation
 included, unless a kernel of the same structure ran before in the process) is reported apart;
@@ -41,7 +43,7 @@ SCENES = ("fplanes", "spheres", "mixed")
 WINDOW = (16.0, 9.0)
 VIEWPOINT = (0.0, 0.0, 10.0)
 GREY = Material((1, 1, 1), (2, 2, 2), (0, 0, 0))
-TRACERS = ("rt_core-f32", "rt_core-f64", "mitsuba")
+TRACERS = ("rt_core-f32", "rt_core-f64", "rt_core-f64-plain", "mitsuba")
 # optional variants (--brute): what the many-object path replaced
 BRUTE = ("rt_core-f32-nobins", "rt_core-f32-unrolled")
 UNROLLED_LIMIT = 64          # the unrolled kernel beyond this takes seconds to compile and run
@@ -199,7 +201,8 @@ class Tracer:
     keep: list = field(default_factory=list)   # objects that must outlive the calls
 
 
-def rt_tracer(name, scene, precision, d32, unroll_max=None, bins=None) -> Tracer:
+def rt_tracer(name, scene, precision, d32, unroll_max=None, bins=None,
+              exact: bool = True) -> Tracer:
     import drjit as dr
     from rt_core import accel, backend
     from rt_core.tracer import closest_hit, prepare
@@ -208,13 +211,16 @@ def rt_tracer(name, scene, precision, d32, unroll_max=None, bins=None) -> Tracer
     dr.eval(d)
     t0 = time.perf_counter()
     ks = accel.configure(prepare(scene, T), unroll_max, bins)
+    ks.exact_decisions = exact
     if bins is not False and any(accel.looped(ks, k) for k in ks.kinds):
         accel.binned(ks, dr.width(d))
     prep = (time.perf_counter() - t0) * 1e3
     state = {}
 
     def run():
-        t, oid, _ = closest_hit(ks, d)
+        # float64 decides exactly on the given rays (rt_core/decide.py), as it does on the
+        # camera's; rt_core-f64-plain is the same kernel without the certification
+        t, oid, _ = closest_hit(ks, d, cam="rays")
         dr.eval(t, oid)
         state["id"] = oid
         return t, oid
@@ -262,6 +268,8 @@ def bench_case(kind: str, n: int, columns: int = 1920, reps: int = 9, brute: boo
     dr.eval(d32)
     makers = {"rt_core-f32": lambda: rt_tracer("rt_core-f32", scene, "f32", d32),
               "rt_core-f64": lambda: rt_tracer("rt_core-f64", scene, "f64", d32),
+              "rt_core-f64-plain": lambda: rt_tracer("rt_core-f64-plain", scene, "f64", d32,
+                                                     exact=False),
               "mitsuba": lambda: mitsuba_tracer(scene, d32, columns),
               "rt_core-f32-nobins": lambda: rt_tracer("rt_core-f32-nobins", scene, "f32", d32,
                                                       bins=False),
@@ -300,6 +308,10 @@ def bench_case(kind: str, n: int, columns: int = 1920, reps: int = 9, brute: boo
         if mi and name != "mitsuba":
             r["ratio_vs_mitsuba"] = round(mi["median_ms"] / r["median_ms"], 3)
             r["ratio_vs_mitsuba_best"] = round(mi["min_ms"] / r["min_ms"], 3)
+    ex, pl = out["tracers"].get("rt_core-f64"), out["tracers"].get("rt_core-f64-plain")
+    if ex and pl:
+        out["f64_exact_vs_plain"] = round(pl["median_ms"] / ex["median_ms"], 3)
+        out["f64_exact_vs_plain_best"] = round(pl["min_ms"] / ex["min_ms"], 3)
     for p in ("f32", "f64"):
         r = out["tracers"].get(f"rt_core-{p}")
         if r and mi:
@@ -381,6 +393,11 @@ def table(result: dict) -> str:
                          f"{(f'{ratio:.2f}x' if ratio else '-'):>10s} "
                          f"{(f'{best:.2f}x' if best else '-'):>7s} "
                          f"{r.get('differ_from_f32', '-')!s:>7s}")
+    ratios = [(c["scene"], c["objects"], c["f64_exact_vs_plain"]) for c in result["cases"]
+              if "f64_exact_vs_plain" in c]
+    if ratios:
+        lines.append("f64 exact decisions, speed vs without: " + ", ".join(
+            f"{k} {n}: {r:.2f}" for k, n, r in ratios))
     for kind, g in result["growth"].items():
         lines.append(f"{kind}: " + ", ".join(f"{k}={v}" for k, v in g.items()))
     return "\n".join(lines)

@@ -532,10 +532,13 @@ def trace_rt(scene, case: Case, precision: str, rules: Rules = Rules()):
     ks = prepare(scene, T)
     if case.rays is None:
         d = primary_directions(scene, make_camera(scene, case.columns, case.rows), T)
+        dmax = 1.0
     else:
         a = np.asarray(case.rays, dt)
         d = T.Array3(*(T.Float(a[:, i]) for i in range(3)))
-    t, oid, hit = closest_hit(ks, d, None, rules)
+        dmax = float(np.linalg.norm(a.astype(np.float64), axis=1).max())
+    # float64 decides exactly on the rays as traced, which is what the exact oracle judges
+    t, oid, hit = closest_hit(ks, d, None, rules, cam="rays", dmax=dmax)
     normal, u, v = surface(ks, d, t, oid, hit)
     pos = position(ks, d, t, hit)
     dr.eval(d, t, oid, hit, normal, u, v, pos)

@@ -39,8 +39,8 @@ from rt_core.render import render_image
 from rt_core.rules import Rules
 from rt_core.scene import Scene
 from rt_core.shading import DEFAULT_MAX_DIST
-from .convert import course_id, mitsuba, plane_extent, scene_dict, shape_id
-from .explain import EPS32, K_ROUNDING, ObjectEval
+from mitsuba_ref.convert import course_id, mitsuba, plane_extent, scene_dict, shape_id
+from mitsuba_ref.explain import EPS32, K_ROUNDING, ObjectEval
 
 CLASSES = ("agree", "edge", "silhouette", "graze", "clip", "light", "origin", "tie", "extent",
            "unexplained")
