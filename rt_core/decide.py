@@ -165,19 +165,26 @@ def ideal_rays(scene: Scene, columns: int, rows: int, sampling: str, pixels):
     return out
 
 
-def decide(scene: Scene, columns: int, rows: int, sampling: str, rules: Rules, pixels):
+def decide(scene: Scene, columns: int, rows: int, sampling: str, rules: Rules, pixels,
+           objs=None):
     """(object id, t) of the exact closest hit of each pixel's ideal ray: int32 and float64
-    arrays, id −1 and t 0 on a miss."""
+    arrays, id −1 and t 0 on a miss.  ``objs``: ``prepare(scene)``, if kept from before."""
     return decide_rays(scene, rules, ideal_rays(scene, columns, rows, sampling, pixels),
-                       distance=True)
+                       distance=True, objs=objs)
 
 
-def decide_rays(scene: Scene, rules: Rules, rays, distance: bool = False):
+def prepare(scene: Scene) -> list:
+    """The scene's objects as exact numbers, for any number of ``decide`` calls."""
+    V = tuple(exact(c) for c in scene.viewpoint)
+    return [_Exact(o, V) for o in scene.objects]
+
+
+def decide_rays(scene: Scene, rules: Rules, rays, distance: bool = False, objs=None):
     """``decide`` for rays from the viewpoint along the exact directions ``rays`` (triples of
     Fractions or floats, taken exactly); t is the ray parameter (hit = viewpoint + t·ray),
     or with ``distance`` the Euclidean distance."""
     V = tuple(exact(c) for c in scene.viewpoint)
-    objs = [_Exact(o, V) for o in scene.objects]
+    objs = prepare(scene) if objs is None else objs
     tmin = Fraction(rules.t_min)
     tmin2 = tmin * tmin
     ids = np.full(len(rays), -1, np.int32)

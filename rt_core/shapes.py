@@ -76,8 +76,8 @@ class ObjectConstants:
     bv: float = 0.0
     bw: float = 0.0
     bh: float = 0.0
-    bo: float = 0.0          # sphere: outline r√a − |q×d|, front q·d, the discriminant's
-    bf: float = 0.0          # bf + √(the discriminant's error) (bs), 1/c (ic)
+    bo: float = 0.0          # sphere: outline r√a − |q×d| and front q·d; for t's bound
+    # bo + √(the discriminant's error) (bs) and 1/c (ic)
     bs: float = 0.0
     ic: float = 0.0
 
@@ -148,7 +148,7 @@ def object_constants(scene: Scene) -> list[ObjectConstants]:
     return out
 
 
-BOUND_FIELDS = ("bz", "bu", "bv", "bw", "bh", "bo", "bf", "bs", "ic")
+BOUND_FIELDS = ("bz", "bu", "bv", "bw", "bh", "bo", "bs", "ic")
 
 
 # The certified decisions' bounds, for rays with |d| <= 1 (unit directions): each is the
@@ -176,13 +176,14 @@ def _sphere_bounds(q, r, c) -> dict:
     k = KB * U64 * KD
     nq = math.sqrt(sum(x * x for x in q))
     bo = k * (r + 3 * nq)
-    bf = k * sum(abs(x) for x in q)
+    # bo also bounds the front test's q·d (Σ|q_i d_i| <= √3|q| <= 3|q|): one constant for both
     ed = 4 * bo * (r + nq + bo)             # the discriminant (ra − cn)(ra + cn)
+    bs = bo + math.sqrt(ed)
     if not c > 0:
         # the viewpoint inside or on the sphere (exact on the host): the near root is <= 0,
-        # a certain miss; a NaN bound fails both of the front test's comparisons
-        bf = math.nan
-    return {"bo": bo, "bf": bf, "bs": bf + math.sqrt(ed), "ic": 1.0 / c if c > 0 else 0.0}
+        # a certain miss; a NaN bound fails both comparisons of the outline test
+        bo = math.nan
+    return {"bo": bo, "bs": bs, "ic": 1.0 / c if c > 0 else 0.0}
 
 
 def _first(N) -> int:
@@ -445,8 +446,9 @@ def sphere_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = F
     # (t > 0 on every hit, and the bound matters on hits only)
     tb = t * dr.fma(opaque(F, _scaled(obj.bs, cert)) * t, opaque(F, obj.ic), KB * U64)
     c = _Cert(True, True)
-    c.test(F, ra - cn, _scaled(obj.bo, cert), True)
-    c.test(F, bh, _scaled(obj.bf, cert), True)     # bf is NaN when c <= 0: never passes
+    bo = _scaled(obj.bo, cert)              # NaN when c <= 0: never passes
+    c.test(F, ra - cn, bo, True)
+    c.test(F, bh, bo, True)
     if rules.clip_spheres and rules.screen_clip != "off":
         zb = dr.fma(dr.abs(t), dr.abs(d.z), dr.opaque(F, abs(vz))) * (KB * U64) + tb
         _clip_test(c, F, z, zb, rules)

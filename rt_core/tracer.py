@@ -20,7 +20,7 @@ import drjit as dr
 
 from . import accel, backend
 from .backend import Types
-from .decide import decide, decide_rays
+from .decide import decide, decide_rays, prepare as prepare_exact
 from .rules import Rules
 from .scene import Scene, SceneError
 from .shapes import (BOUND_FIELDS, KIND_CODE, PLANE_KINDS, ObjectConstants, object_constants,
@@ -257,21 +257,33 @@ def _decide_flagged(ks: KernelScene, cam, rules: Rules, st: Best, d):
     count = dr.zeros(T.UInt32, 1)
     dr.scatter_reduce(dr.ReduceOp.Add, count, T.UInt32(1), T.UInt32(0), flag)
     dr.eval(t, oid, count)
-    if count.numpy()[0] == 0:
-        ks.__dict__["decided"] = 0
-        return t, oid, oid >= 0
-    pix = dr.compress(oid == -2).numpy()
+    pix = dr.compress(oid == -2).numpy() if count.numpy()[0] else np.zeros(0, np.int64)
     ks.__dict__["decided"] = len(pix)
-    if isinstance(cam, str):                 # the traced directions are the exact rays
-        E = np.stack([np.asarray(c.numpy(), np.float64)[pix] for c in (d.x, d.y, d.z)], 1)
-        ids, ts = decide_rays(ks.scene, rules, E.tolist())
+    if not len(pix):
+        ids, ts = np.zeros(0, np.int32), np.zeros(0)
     else:
-        ids, ts = decide(ks.scene, cam.columns, cam.rows, cam.sampling, rules, pix)
-    # patched on the host: no kernel, so the compiled kernels do not depend on the count
-    t, oid = t.numpy().copy(), oid.numpy().copy()
-    t[pix] = np.where(ids >= 0, ts, 0.0)
-    oid[pix] = ids
-    t, oid = T.Float(t), T.Int32(oid)
+        objs = ks.__dict__.get("_exact_objects")
+        if objs is None:
+            objs = ks.__dict__["_exact_objects"] = prepare_exact(ks.scene)
+        if isinstance(cam, str):             # the traced directions are the exact rays
+            g = dr.gather(T.Array3, d, T.UInt32(pix.astype(np.uint32).tolist()))
+            E = np.stack([np.asarray(c.numpy(), np.float64) for c in (g.x, g.y, g.z)], 1)
+            ids, ts = decide_rays(ks.scene, rules, E.tolist(), objs=objs)
+        else:
+            ids, ts = decide(ks.scene, cam.columns, cam.rows, cam.sampling, rules, pix, objs)
+    # scattered into the arrays by one kernel that always runs, with two masked-off lanes
+    # added (so that it never has one lane, a literal, and runs when nothing is flagged):
+    # the kernels a render compiles do not depend on what was flagged
+    live = np.r_[np.ones(len(pix), bool), False, False]
+    pix, ids, ts = np.r_[pix, 0, 0], np.r_[ids, -1, -1], np.r_[ts, 0.0, 0.0]
+    # (from lists: Dr.Jit's own, aligned memory; numpy's alignment would change the kernel)
+    idx, mask = T.UInt32(pix.astype(np.uint32).tolist()), T.Bool(live.tolist())
+    tv = T.Float(np.where(ids >= 0, ts, 0.0).tolist())
+    iv = T.Int32(ids.astype(np.int32).tolist())
+    dr.eval(idx, mask, tv, iv)
+    for target, values in ((t, tv), (oid, iv)):      # one small kernel each, fixed inputs
+        dr.scatter(target, values, idx, mask)
+        dr.eval(target)
     return t, oid, oid >= 0
 
 
