@@ -38,7 +38,7 @@ import numpy as np
 from rt_core.kinds import dispatch
 from rt_core.rules import Rules
 
-from .geometry import frame, normal
+from .geometry import frame, normal, unit
 
 INF = math.inf
 OFF = 10000.0           # the notes' tile-parity offset
@@ -342,11 +342,25 @@ HITS = {"plane": plane_hits, "fplane": fplane_hits, "tplane": tplane_hits,
         "sphere": sphere_hits}
 
 
-def tile_foreground(tplane, u: float, v: float) -> bool:
-    """The tiled plane's MAT choice: foreground iff floor(OFF + u/w) + floor(OFF + v/h) is odd."""
+def tile_scale(tplane, rules: Rules = Rules()) -> float:
+    """u's factor under the variant that leaves xdir unprojected: u' = unit(xdir)·(hit −
+    point) = |p|·u, p the projected unit xdir (1 with the notes' projection)."""
+    if rules.tile_project:
+        return 1.0
+    n, x = normal(tplane), unit(tplane.orient)
+    c = sum(a * b for a, b in zip(n, x))
+    return math.sqrt(max(1.0 - c * c, 0.0))
+
+
+def tile_foreground(tplane, u: float, v: float, rules: Rules = Rules()) -> bool:
+    """The tiled plane's MAT choice: foreground iff floor(OFF + u/w) + floor(OFF + v/h) is odd
+    (variants: floor((OFF + u)/w); u scaled by ``tile_scale``)."""
     w, h = tplane.size
-    relx = math.floor(OFF + u / w)
-    rely = math.floor(OFF + v / h)
+    u = u * tile_scale(tplane, rules)
+    if rules.tile_add_first:
+        relx, rely = math.floor((OFF + u) / w), math.floor((OFF + v) / h)
+    else:
+        relx, rely = math.floor(OFF + u / w), math.floor(OFF + v / h)
     return (relx + rely) % 2 == 1
 
 

@@ -27,6 +27,7 @@ class Camera:
     sampling: str
     sx: float               # sample spacing in world units (host float64)
     sy: float
+    row_shift: int = 0      # 1: image row r samples course row H − r (a course variant)
 
     @property
     def size(self) -> int:
@@ -34,7 +35,8 @@ class Camera:
 
 
 def make_camera(scene: Scene, columns: int, rows: int | None = None,
-                sampling: str = "corners") -> Camera:
+                sampling: str = "corners", rules=None) -> Camera:
+    """The camera; ``rules.rows == 'shifted'`` shifts every row up by one (a variant)."""
     if sampling not in SAMPLINGS:
         raise InputError(f"sampling must be corners or centers, not {sampling!r}")
     given_rows = rows is not None
@@ -54,7 +56,8 @@ def make_camera(scene: Scene, columns: int, rows: int | None = None,
         sx, sy = ww / (columns - 1), wh / (rows - 1)
     else:
         sx, sy = ww / columns, wh / rows
-    return Camera(columns, rows, sampling, sx, sy)
+    shift = 1 if rules is not None and getattr(rules, "rows", "course") == "shifted" else 0
+    return Camera(columns, rows, sampling, sx, sy, shift)
 
 
 def _axis_offsets(cam: Camera, scene: Scene, axis: int):
@@ -120,9 +123,10 @@ def primary_offsets(scene: Scene, cam: Camera, T):
     vx, vy = exact(scene.viewpoint[0]), exact(scene.viewpoint[1])
     # x − c = (x − c_hi) − c_lo and y − c = ((rows − 1 − c_hi) − r) − c_lo: integers first
     ix = F(x) - dr.opaque(F, float(hx))
-    iy = dr.opaque(F, float(cam.rows - 1 - hy)) - F(r)
+    iy = dr.opaque(F, float(cam.rows - 1 + cam.row_shift - hy)) - F(r)
     wx = axis(ix, sx, cx, cam.columns, (-hx, -ww / 2 - vx), (cam.columns - 1 - hx, ww / 2 - vx))
     wy = axis(iy, sy, cy, cam.rows, (-hy, -wh / 2 - vy), (cam.rows - 1 - hy, wh / 2 - vy))
+    # (with row_shift the row above the window, y = rows, is no edge: its fma value stays)
     wz = op(-vz) + dr.zeros(F, cam.size)
     return T.Array3(wx, wy, wz)
 

@@ -147,14 +147,14 @@ def _to_float(s, EE) -> float:
         return float(v * dec(EE).sqrt())
 
 
-def ideal_rays(scene: Scene, columns: int, rows: int, sampling: str, pixels):
+def ideal_rays(scene: Scene, columns: int, rows: int, sampling: str, pixels, row_shift=0):
     """E = world − viewpoint (Fractions) of each pixel index (image order, row 0 the top)."""
     ww, wh = (exact(c) for c in scene.window)
     V = tuple(exact(c) for c in scene.viewpoint)
     out = []
     for i in pixels:
         r, x = divmod(int(i), columns)
-        y = rows - 1 - r
+        y = rows - 1 - r + row_shift
         if sampling == "corners":
             wx = Fraction(x, columns - 1) * ww - ww / 2
             wy = Fraction(y, rows - 1) * wh - wh / 2
@@ -166,11 +166,11 @@ def ideal_rays(scene: Scene, columns: int, rows: int, sampling: str, pixels):
 
 
 def decide(scene: Scene, columns: int, rows: int, sampling: str, rules: Rules, pixels,
-           objs=None):
+           objs=None, row_shift: int = 0):
     """(object id, t) of the exact closest hit of each pixel's ideal ray: int32 and float64
     arrays, id −1 and t 0 on a miss.  ``objs``: ``prepare(scene)``, if kept from before."""
-    return decide_rays(scene, rules, ideal_rays(scene, columns, rows, sampling, pixels),
-                       distance=True, objs=objs)
+    return decide_rays(scene, rules, ideal_rays(scene, columns, rows, sampling, pixels,
+                                                row_shift), distance=True, objs=objs)
 
 
 def prepare(scene: Scene) -> list:

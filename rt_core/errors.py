@@ -2,8 +2,10 @@
 from .scene import SceneError, GeometryError
 from .exrio import ExrError
 from .backend import BackendError
+from .imageio import ImageError
 from .usererror import InputError
 
 
 # OSError: a missing input, an output path under a file, a full disk, ... (one line each)
-USER_ERRORS = (SceneError, GeometryError, ExrError, BackendError, InputError, OSError)
+USER_ERRORS = (SceneError, GeometryError, ExrError, BackendError, InputError, ImageError,
+               OSError)

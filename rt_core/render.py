@@ -91,7 +91,7 @@ def render_geometry(scene: Scene, columns: int, rows: int | None = None, precisi
 
     Keys: GEOMETRY_CHANNELS. Arrays are float32 or float64 per ``precision``."""
     T = backends.types(precision, backend)
-    cam = make_camera(scene, columns, rows, sampling)
+    cam = make_camera(scene, columns, rows, sampling, rules)
     return to_images(trace_geometry(scene, cam, T, rules), cam)
 
 

@@ -25,13 +25,14 @@ positions.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import drjit as dr
 import numpy as np
 
 from .rules import Rules
-from .scene import sub
+from .scene import sub, unit
 from .shapes import KIND_CODE, opaque3
 from .jitlog import NullLog
 from .tracer import KernelScene, closest_hit, occluded, surface
@@ -43,6 +44,7 @@ from .tracer import KernelScene, closest_hit, occluded, surface
 # 20 hundreds in several scenes), while two facing mirrors (scenes/shade_mirrors.txt) stop
 # after 69 bounces instead of 3470 (6 pixels differ).
 DEFAULT_MAX_DIST = 1000.0
+TILE_OFF = 10000.0          # the notes' tile-parity offset (even: no effect unless added first)
 # Safety cap on reflection bounces.  Each bounce adds its t > 0 to total_dist, so the loop
 # normally ends at MAX_DIST; but t has no lower bound (a grazing corner of two mirrors, or a
 # float32 total_dist that stops growing once t < ulp(total_dist)/2), so this cap guarantees
@@ -68,18 +70,31 @@ def any_specular(scene) -> bool:
     return any(c != 0 for m in mats for c in m.specular)
 
 
-def _material_tables(ks: KernelScene):
+def _material_tables(ks: KernelScene, rules: Rules = Rules()):
     """Per-object MAT tables: rows 0..n-1 foreground, n..2n-1 background (a copy of the
     foreground for every kind but the tiled plane), plus tile sizes (1 for the others)."""
     T, objs = ks.T, ks.scene.objects
     bg = [o.background if o.kind == "tplane" else o.material for o in objs]
     mats = [o.material for o in objs] + bg
     col = lambda name: T.Array3(*([getattr(m, name)[i] for m in mats] for i in range(3)))
-    size = [o.size if o.kind == "tplane" else (1.0, 1.0) for o in objs]
+    size = [_tile_size(o, rules) if o.kind == "tplane" else (1.0, 1.0) for o in objs]
     tables = {"ambient": col("ambient"), "diffuse": col("diffuse"), "specular": col("specular"),
               "tile_w": T.Float([s[0] for s in size]), "tile_h": T.Float([s[1] for s in size])}
     dr.make_opaque(*tables.values())        # data, not literals, even for one object
     return tables
+
+
+def _tile_size(o, rules: Rules):
+    """A tiled plane's tile size; with the variant that leaves xdir unprojected, u is
+    unit(xdir)·(hit − point) = |p|·u (p: xdir projected, |p| = the cosine of its tilt), so the
+    tiles are w/|p| wide along the projected axis."""
+    w, h = o.size
+    if rules.tile_project:
+        return (w, h)
+    n = unit(o.given_normal or o.normal)
+    x = unit(o.orient)
+    c = x[0] * n[0] + x[1] * n[1] + x[2] * n[2]
+    return (w / math.sqrt(max(1.0 - c * c, 0.0)), h)
 
 
 def _odd_floor(x):
@@ -88,7 +103,7 @@ def _odd_floor(x):
     return f - 2 * dr.floor(0.5 * f)
 
 
-def material(ks: KernelScene, tables: dict, oid, hit, u, v):
+def material(ks: KernelScene, tables: dict, oid, hit, u, v, rules: Rules = Rules()):
     """(ambient, diffuse, specular) at each hit; zeros on a miss.  A tiled plane's MAT by tile
     parity: floor(OFF + u/w) + floor(OFF + v/h) odd -> foreground.  OFF = 10000 is even, so
     the parity is that of floor(u/w) + floor(v/h); leaving OFF out keeps float32 from rounding
@@ -100,7 +115,11 @@ def material(ks: KernelScene, tables: dict, oid, hit, u, v):
             dr.gather(T.UInt32, ks.table("kind"), idx, hit) == KIND_CODE["tplane"]
         w = dr.gather(T.Float, tables["tile_w"], idx, hit)
         h = dr.gather(T.Float, tables["tile_h"], idx, hit)
-        odd = (_odd_floor(u / w) + _odd_floor(v / h)) == 1
+        if rules.tile_add_first:            # a variant: floor((OFF + u)/w)
+            off = dr.opaque(T.Float, TILE_OFF)
+            odd = (_odd_floor((u + off) / w) + _odd_floor((v + off) / h)) == 1
+        else:
+            odd = (_odd_floor(u / w) + _odd_floor(v / h)) == 1
         idx = dr.select(tiled & ~odd, idx + len(ks.scene.objects), idx)
     return tuple(dr.gather(T.Array3, tables[k], idx, hit)
                  for k in ("ambient", "diffuse", "specular"))
@@ -128,7 +147,7 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
     scene = ks.scene
     if not scene.objects:
         return ShadeResult(image)
-    tables = _material_tables(ks)
+    tables = _material_tables(ks, rules)
     # light centres relative to the viewpoint (host float64, then one rounding) and emissivity
     lights = [(opaque3(T.Array3, sub(L.center, scene.viewpoint)), opaque3(T.Array3, L.emissivity))
               for L in scene.lights]
@@ -150,7 +169,7 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
         normal, u, v = surface(ks, d, t, oid, hit, o)
         total = t if dist is None else dist + t
         H = d * t if o is None else dr.fma(d, t, o)         # hit point, relative
-        amb, dif, spec = material(ks, tables, oid, hit, u, v)
+        amb, dif, spec = material(ks, tables, oid, hit, u, v, rules)
         ex = extra(t, oid, hit, normal, u, v) if extra is not None and bounce == 0 else {}
         dr.eval(t, oid, hit, normal, H, total, amb, dif, spec, ex)
         log.mark("hit", group, bounce, rays)
@@ -174,8 +193,9 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
             if rec is not None:
                 rec.update(_numpy({f"L{j}.dir": L, f"L{j}.dist": ld, f"L{j}.cast": cast,
                                    f"L{j}.blocked": blocked}, rays))
-        # shade pass: divide by the path length, add to the pixel, spawn reflections
-        local = I / total
+        # shade pass: divide by the path length (a variant: by this segment's), add to the
+        # pixel, spawn reflections
+        local = I / (t if rules.reflect == "segment" else total)
         # each pixel appears at most once per wavefront: a plain read-modify-write (not
         # dr.scatter_add, which drops NaN: a NaN must reach the image, to be counted)
         add = local if weight is None else weight * local

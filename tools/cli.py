@@ -12,7 +12,8 @@ import argparse
 import importlib
 import sys
 
-COMMANDS = ["render", "convert", "compare", "validate", "exr", "gallery", "bench", "report", "stability"]
+COMMANDS = ["check", "render", "convert", "compare", "validate", "exr", "gallery", "bench", "report",
+            "stability"]
 USAGE_EXIT = 64
 
 

@@ -100,7 +100,7 @@ def run(args) -> int:
         _check_writable(path)
     scene = parse_scene(args.scene)
     T = backend.types(args.precision, args.backend)
-    cam = make_camera(scene, args.columns, args.rows, args.sampling)
+    cam = make_camera(scene, args.columns, args.rows, args.sampling, rules)
     with (KernelLog() if args.explain else contextlib.nullcontext()) as log:
         images, res = render_image(scene, cam, T, rules, geometry=bool(args.output),
                                    shade=shade, max_dist=max_dist, log=log)

@@ -1,0 +1,219 @@
+"""A slow, obviously correct per-pixel float64 oracle of the course's shading.
+
+The notes' recursion written out literally (shared/notes/course-format.md, "Shading"), one
+pixel at a time, on top of the per-ray geometry oracle (``mitsuba_ref/oracle.py``: its hit functions,
+its closest-hit ``trace`` with the ``skip`` of the surface a ray leaves, its error-carrying
+``EF`` numbers).  Nothing here is vectorized or shares code with ``rt_core.shading``.
+
+Beside the intensity I (with a first-order bound on its rounding error, in units of u) every
+pixel carries the *margins* of the discontinuous decisions that made it, each the distance of
+the decided quantity from its threshold over that quantity's error bound (as in oracle.py):
+
+  geo      the closest hits of the primary and reflection rays (edges, ties, clip, graze, ...)
+  shadow   the shadow tests: the blocking hit's own decisions, and its t against the light's
+           distance d
+  tile     a tiled plane's parity: x = u/w, y = v/h against the integers
+  maxdist  total_dist against MAX_DIST (whether the path goes on)
+
+The light test c > 0 is not among them: the diffuse term is c·(...), continuous where c
+changes sign.  ``flags`` turns margins into per-pixel flags for one precision.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from rt_core.rules import Rules
+from mitsuba_ref import oracle
+from mitsuba_ref.oracle import EF, diff3, dot3, length3, scale3, trace, unit3, vec
+
+INF = math.inf
+U = {"f32": 2.0 ** -24, "f64": 2.0 ** -53}
+# The oracle's bounds are first-order bounds of the notes' formulas evaluated in the stated
+# precision.  rt_core evaluates other, equivalent formulas (relative to the viewpoint, fma,
+# Binet-Cauchy uv, a bounce-by-bounce sum), whose rounding errors are of the same order but
+# not bounded by the same expression, hence two safety factors:
+#   K_DECISION = 64: a decision is flagged when its margin is below 64·u, as in
+#     test_tracer_vs_oracle (50x headroom over the worst error/bound ratio measured there);
+#   K_VALUE = 8: the intensity may differ by 8·u·err; measured over scenes/*.txt and the 94
+#     supported course scenes with at most 8 lights (24 columns, f32 and f64), with no 8-bit
+#     difference outside the flags, |I_rt_core − I_oracle| never exceeded 0.77·u·err.
+K_DECISION = 64.0
+K_VALUE = 8.0
+MARGINS = ("geo", "shadow", "tile", "maxdist")
+
+
+def _hit_margin(scene, h, base, d, skip, ties: bool = True, tmax: float = INF) -> float:
+    """The smallest margin of the decisions behind a ray's verdict: oracle.trace's own (edge,
+    clip, t_min, graze; tie for a closest hit), except the sphere discriminant.  For spheres the
+    notes' b² − 4ac cancels badly far from the ray origin (its bound, and so its margin, grows
+    with |base|²); the decision it stands for is the ray passing inside or outside the sphere,
+    whose well-conditioned margin is |p − r|, p the distance of the centre from the ray line."""
+    m = min(h.edge_margin, h.clip_margin, h.tmin_margin, h.graze)
+    m = min(m, h.tie_gap) if ties else m
+    tw = h.t if h.hit else INF
+    for i, o in enumerate(scene.objects):
+        if o.kind != "sphere" or i == skip:
+            continue
+        q = diff3(vec(o.center), base)
+        along = dot3(q, d)
+        r = EF(o.radius)
+        if along.v + r.v < 0 or along.v - r.v > min(tw, tmax):
+            continue                     # behind the ray, or beyond what decides it
+        p = length3(diff3(q, scale3(along, d)))
+        m = min(m, _margin(p.v - r.v, p.e + r.e))
+    return m
+
+
+def _margin(slack: float, err: float) -> float:
+    return INF if err == 0.0 else abs(slack) / err
+
+
+def _int_margin(x: EF, extra: float = 0.0) -> float:
+    """Distance of x from the nearest integer (minus an absolute ``extra``) over x's error."""
+    dist = abs(x.v - round(x.v)) - extra
+    return 0.0 if dist <= 0 else _margin(dist, x.e)
+
+
+def _ef3(vals, errs):
+    return tuple(EF(v, e) for v, e in zip(vals, errs))
+
+
+class _Pixel:
+    def __init__(self):
+        self.geo = self.shadow = self.tile = self.maxdist = INF
+        self.bounces = 0
+
+
+def primary_ray(scene, x: int, y: int, W: int, H: int, sampling: str = "corners"):
+    """(base, dir) as EF triples for column x, row y (y = 0 the bottom row): the notes' camera."""
+    ww, wh = EF(scene.window[0]), EF(scene.window[1])
+    if sampling == "corners":
+        wx = EF(x, 0.0) / EF(W - 1, 0.0) * ww - ww / 2.0
+        wy = EF(y, 0.0) / EF(H - 1, 0.0) * wh - wh / 2.0
+    else:
+        wx = (EF(x, 0.0) + 0.5) / EF(W, 0.0) * ww - ww / 2.0
+        wy = (EF(y, 0.0) + 0.5) / EF(H, 0.0) * wh - wh / 2.0
+    base = vec(scene.viewpoint)
+    return base, unit3(diff3((wx, wy, EF(0.0, 0.0)), base))
+
+
+def ray_trace(scene, base, d, total_dist, skip, rules: Rules, max_dist: float, px: _Pixel):
+    """The notes' trace(): intensity (3 EF) of the ray base + t·d, path length so far
+    ``total_dist`` (EF), ignoring object ``skip``; margins go into ``px``."""
+    h = trace(scene, base, d, rules, skip)
+    px.geo = min(px.geo, _hit_margin(scene, h, base, d, skip))
+    if not h.hit:
+        return (EF(0.0, 0.0),) * 3
+    obj = scene.objects[h.id]
+    total_dist = total_dist + EF(h.t, h.err_t)
+    H = _ef3(h.position, h.err_position)
+    N = _ef3(h.normal, h.err_normal)
+    mat = obj.material
+    if obj.kind == "tplane":
+        # floor(OFF + u/w): the oracle's float64 sum rounds by up to ulp(OFF)/2
+        k = oracle.tile_scale(obj, rules)
+        u = EF(h.uv[0], h.err_uv[0]) * EF(k)
+        vv = EF(h.uv[1], h.err_uv[1])
+        if rules.tile_add_first:
+            u, vv = u + EF(oracle.OFF, 0.0), vv + EF(oracle.OFF, 0.0)
+        x = u / EF(obj.size[0])
+        y = vv / EF(obj.size[1])
+        off = oracle.OFF * 2.0 ** -53
+        px.tile = min(px.tile, _int_margin(x, off), _int_margin(y, off))
+        if not oracle.tile_foreground(obj, h.uv[0], h.uv[1], rules):
+            mat = obj.background
+    I = [EF(a) for a in mat.ambient]
+    for light in scene.lights:
+        D = diff3(vec(light.center), H)
+        dist = length3(D)
+        L = unit3(D)
+        c = dot3(L, N)
+        if c.v <= 0:
+            continue                                    # light behind the surface
+        s = trace(scene, H, L, rules, h.id)
+        px.shadow = min(px.shadow, _hit_margin(scene, s, H, L, h.id, False, dist.v))
+        if s.hit:
+            px.shadow = min(px.shadow, _margin(s.t - dist.v, s.err_t + dist.e))
+            if s.t < dist.v:
+                continue                                # shadow
+        for i in range(3):
+            I[i] = I[i] + EF(mat.diffuse[i]) * EF(light.emissivity[i]) * c / dist
+    seg = EF(h.t, h.err_t) if rules.reflect == "segment" else total_dist
+    I = [a / seg for a in I]
+    if any(mat.specular):
+        px.maxdist = min(px.maxdist, _margin(total_dist.v - max_dist, total_dist.e))
+        if total_dist.v < max_dist:
+            px.bounces += 1
+            R = unit3(diff3(d, scale3(2.0 * dot3(d, N), N)))
+            Ir = ray_trace(scene, H, R, total_dist, h.id, rules, max_dist, px)
+            I = [I[i] + EF(mat.specular[i]) * Ir[i] for i in range(3)]
+    return tuple(I)
+
+
+def render_shade_oracle(scene, columns: int, rows: int | None = None,
+                        sampling: str = "corners", rules: Rules = Rules(),
+                        max_dist: float = 1000.0) -> dict:
+    """Per-pixel oracle images, row 0 = TOP: 'I' and 'err' (rows, columns, 3): intensity and
+    its error bound in units of u; MARGINS (rows, columns); 'bounces'."""
+    W = int(columns)
+    H = scene.default_rows(W) if rows is None else int(rows)
+    out = {"I": np.zeros((H, W, 3)), "err": np.zeros((H, W, 3)),
+           "bounces": np.zeros((H, W), np.int32)}
+    out.update({m: np.full((H, W), INF) for m in MARGINS})
+    for y in range(H):
+        r = H - 1 - y
+        for x in range(W):
+            px = _Pixel()
+            base, d = primary_ray(scene, x, y, W, H, sampling)
+            I = ray_trace(scene, base, d, EF(0.0, 0.0), None, rules, max_dist, px)
+            out["I"][r, x] = [c.v for c in I]
+            out["err"][r, x] = [c.e for c in I]
+            out["bounces"][r, x] = px.bounces
+            for m in MARGINS:
+                out[m][r, x] = getattr(px, m)
+    return out
+
+
+def shade_pixels(scene, columns: int, rows: int, pixels, sampling: str = "corners",
+                 rules: Rules = Rules(), max_dist: float = 1000.0) -> dict:
+    """``render_shade_oracle`` for some pixels only (indices in image order, row 0 the top):
+    'I', 'err' (n, 3) and MARGINS (n,)."""
+    pixels = np.asarray(pixels, np.int64)
+    n = len(pixels)
+    out = {"I": np.zeros((n, 3)), "err": np.zeros((n, 3)), "bounces": np.zeros(n, np.int32)}
+    out.update({m: np.full(n, INF) for m in MARGINS})
+    for k, i in enumerate(pixels.tolist()):
+        r, x = divmod(i, columns)
+        px = _Pixel()
+        shift = 1 if rules.rows == "shifted" else 0
+        base, d = primary_ray(scene, x, rows - 1 - r + shift, columns, rows, sampling)
+        I = ray_trace(scene, base, d, EF(0.0, 0.0), None, rules, max_dist, px)
+        out["I"][k] = [c.v for c in I]
+        out["err"][k] = [c.e for c in I]
+        out["bounces"][k] = px.bounces
+        for m in MARGINS:
+            out[m][k] = getattr(px, m)
+    return out
+
+
+def quantize(I: np.ndarray) -> np.ndarray:
+    """floor(255 · clamp(I, 0, 1)), in float64."""
+    return np.floor(255.0 * np.clip(I, 0.0, 1.0)).astype(np.uint8)
+
+
+def flags(orc: dict, precision: str) -> dict:
+    """Per-pixel flags (rows, columns) for a tracer in ``precision``: each discontinuous
+    decision that may flip ('geo', 'shadow', 'tile', 'maxdist', together 'jump'); 'quant': a
+    channel within the intensity bound of an 8-bit level boundary (255·I near an integer);
+    'any'."""
+    u = U[precision]
+    out = {m: orc[m] < K_DECISION * u for m in MARGINS}
+    q = 255.0 * orc["I"]
+    bound = K_VALUE * u * orc["err"]
+    near = np.abs(q - np.round(q)) < 255.0 * bound
+    out["quant"] = np.any(near & (orc["I"] <= 1 + bound), -1)
+    out["jump"] = out["geo"] | out["shadow"] | out["tile"] | out["maxdist"]
+    out["any"] = out["jump"] | out["quant"]
+    return out

@@ -1,0 +1,90 @@
+"""rtval check: validate a user's own course tracer, pixel by pixel, with every difference
+explained (tools/harness/check.py)."""
+from __future__ import annotations
+
+import json
+import sys
+
+from .options import positive_int, rules_arg, nonneg_float
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser(
+        "check", help="check a course tracer's image (or run the tracer) against rt_core",
+        description="Check the image a course tracer wrote for SCENE (binary/ASCII PPM or PNG; "
+                    "its size gives the columns and rows), or with --run run the tracer on each "
+                    "SCENE and check what it writes.  Every pixel is classed match, rounding, "
+                    "boundary (within a float64 error bound of a decision), variant (explained "
+                    "by a rule variant of real course programs, inferred from the image) or "
+                    "wrong.  Exit 0 if no pixel is wrong, 1 if some are, 2 on bad input.")
+    p.add_argument("inputs", nargs="+", metavar="SCENE [IMAGE]",
+                   help="SCENE IMAGE, or with --run one or more scenes")
+    p.add_argument("--run", metavar="CMD",
+                   help="the tracer's command line, with {scene} {out} {columns} {rows} and "
+                        "optionally {hits}, e.g. './ray {columns} {rows} < {scene} > {out}'")
+    p.add_argument("--columns", type=positive_int, default=None,
+                   help="image width (with --run: required; otherwise only to override)")
+    p.add_argument("--rows", type=positive_int, default=None,
+                   help="image height (default: the image's, or int(h/w*columns) with --run)")
+    p.add_argument("--rules", type=rules_arg, default=None, metavar="NAME=VALUE,...",
+                   help="fix the hit rules instead of inferring them "
+                        "(edges, screen_clip, ties, t_min, clip_spheres)")
+    p.add_argument("--max-dist", type=nonneg_float, default=None, metavar="D",
+                   help="fix the reflection cut-off instead of inferring it")
+    p.add_argument("--hits", metavar="FILE",
+                   help="a hit dump of the image: 'column row object t' per pixel")
+    p.add_argument("--timeout", type=nonneg_float, default=60.0, metavar="S",
+                   help="with --run: seconds before a run is killed (default 60)")
+    p.add_argument("--report", metavar="DIR", help="write an HTML report into DIR")
+    p.add_argument("--junit", metavar="FILE", help="write JUnit XML (one test case per scene)")
+    p.add_argument("--json", action="store_true", help="print the results as JSON on stdout")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from rt_core.errors import InputError
+    from rt_core.outputs import atomic_write
+    from tools.harness.check import (check_image, check_run, junit_xml, text_report,
+                                     write_report)
+    kw = {"rules": args.rules, "max_dist": args.max_dist}
+    if args.run:
+        if args.columns is None:
+            raise InputError("--run needs --columns (the image width to ask the tracer for)")
+        for need in ("{scene}", "{out}"):
+            if need not in args.run:
+                raise InputError(f"--run: the command must contain {need} (e.g. "
+                                 "'./ray {columns} {rows} < {scene} > {out}')")
+        if args.hits:
+            raise InputError("--hits is for a given image; with --run put {hits} in the "
+                             "command")
+        results = check_run(args.run, args.inputs, args.columns, args.rows, args.timeout, **kw)
+    else:
+        if len(args.inputs) != 2:
+            raise InputError(f"expected SCENE IMAGE, got {len(args.inputs)} argument(s); to run "
+                             "a tracer on several scenes use --run")
+        results = [check_image(args.inputs[0], args.inputs[1], columns=args.columns,
+                               rows=args.rows, hits_path=args.hits, **kw)]
+    if args.json:
+        json.dump([r.summary() for r in results], sys.stdout, indent=1)
+        print()
+    else:
+        print(text_report(results))
+    if args.junit:
+        text = junit_xml(results)
+
+        def write(tmp):
+            with open(tmp, "w", encoding="utf-8") as f:
+                f.write(text)
+        atomic_write(args.junit, write)
+    if args.report:
+        path = write_report(results, args.report)
+        print(f"report: {path}", file=sys.stderr)
+    single = len(results) == 1 and not args.run
+    if single and results[0].status in ("error", "refused"):
+        print(f"rtval check: {results[0].reason}", file=sys.stderr)
+        return 2
+    if any(r.status == "fail" for r in results):
+        return 1
+    if any(r.status == "error" for r in results):
+        return 1 if args.run else 2
+    return 0

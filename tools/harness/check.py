@@ -1,0 +1,568 @@
+"""rtval check: a user's course tracer, pixel by pixel, every difference explained.
+
+For one scene and the image a tracer wrote (PPM P6/P3 or PNG), rt_core renders the course
+image in float64 (exact decisions) and every pixel gets one class:
+
+* ``match``: the same 8-bit colour;
+* ``rounding``: a channel off by one (truncation of an intensity at an 8-bit level);
+* ``boundary``: a ray of the pixel (primary, shadow or reflection) passes within a float64
+  error bound of a decision — an edge, a tie, the window plane, a sphere outline, a shadow's
+  blocker, a tile border, the distance cut-off — so either answer is defensible.  The bound is
+  computed by the float64 shading oracle (mitsuba_ref/shade_oracle.py), independently of
+  rt_core;
+* ``variant``: the pixel is right under the rule variant inferred for the image and wrong
+  under the notes' rule (``variant_rule`` names it);
+* ``wrong``: anything else.
+
+**Rule inference.**  Each rule with variants seen in real course programs (finite-plane
+edges, screen clip, tie order, plane t threshold, clipped spheres, the reflection distance
+cut-off) is set, one at a time and repeatedly until nothing changes, to the value whose render
+leaves the fewest differing pixels.  A rule is *determined* when another value would leave
+more (the count that decides it is reported), *undetermined* when the scene cannot tell.
+
+The verdict: ``pass`` when no pixel is ``wrong`` under the inferred (or given) rules.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import shlex
+import signal
+import subprocess
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+CLASSES = ("match", "rounding", "boundary", "variant", "wrong")
+# named colours of the class image (legend in the report)
+COLORS = {"match": ("dark grey", (48, 48, 48)), "rounding": ("blue", (70, 110, 230)),
+          "boundary": ("yellow", (240, 200, 40)), "variant": ("green", (60, 180, 75)),
+          "wrong": ("red", (230, 30, 30))}
+DEFAULT_MAX_DIST = 1000.0
+MAX_DISTS = (1000.0, 20.0, 30.0, 50.0, 70.0, 200.0, 50000.0)
+# (rule, values with the notes' first, which scenes it can matter in)
+DIMENSIONS = (
+    ("edges", ("closed", "open"), lambda k: "fplane" in k),
+    ("screen_clip", (">", ">="), lambda k: bool(set(k) & {"plane", "fplane", "tplane"})),
+    ("ties", ("first", "last"), lambda k: len(k) > 0),
+    ("t_min", (0.0, 1e-4, 1e-5), lambda k: bool(set(k) & {"plane", "fplane", "tplane"})),
+    ("clip_spheres", (False, True), lambda k: "sphere" in k),
+    ("max_dist", MAX_DISTS, None),
+    ("reflect", ("total", "segment"), "specular"),
+    ("rows", ("course", "shifted"), lambda k: len(k) > 0),
+    ("tile_add_first", (False, True), lambda k: "tplane" in k),
+    ("tile_project", (True, False), lambda k: "tplane" in k),
+)
+WORDS = {
+    ("edges", "open"): "finite-plane edges are open (0 < u < w): the notes' bounds are closed, "
+                       "0 <= u <= w, so rays exactly through an edge are lost",
+    ("screen_clip", ">="): "hits exactly in the window plane (z = 0) are clipped: the notes clip "
+                           "only z > 0, so a plane lying in z = 0 should be visible",
+    ("ties", "last"): "an exact tie goes to the later object (a list built by inserting at the "
+                      "head?): the notes keep the earlier one",
+    ("t_min", 1e-4): "plane hits need t > 1e-4: the notes accept any t > 0",
+    ("t_min", 1e-5): "plane hits need t > 1e-5: the notes accept any t > 0",
+    ("clip_spheres", True): "spheres are clipped at the window plane too: the notes clip planes "
+                            "only",
+    ("reflect", "segment"): "reflections are divided by the segment length, the notes divide by "
+                            "the total path",
+    ("rows", "shifted"): "every row is sampled one row too high ((H - r)/(H - 1) instead of "
+                         "(H - 1 - r)/(H - 1)): the top row lies above the window",
+    ("tile_add_first", True): "the tile parity adds the offset before dividing, "
+                              "floor((OFF + u)/w): the notes take floor(OFF + u/w)",
+    ("tile_project", False): "the tiled plane's direction is not projected onto the plane, so "
+                             "the tiles are stretched where it is tilted",
+}
+
+
+@dataclass
+class RuleFinding:
+    rule: str
+    value: object
+    determined: bool
+    pixels: int          # differing pixels the next-best value would add (0: undetermined)
+    notes: object        # the notes' value
+
+    def as_dict(self):
+        return dataclasses.asdict(self)
+
+
+@dataclass
+class SceneCheck:
+    """The result for one scene."""
+    scene: str
+    image: str | None
+    status: str                      # pass, fail, error (bad input, crash, ...) or refused
+    reason: str = ""
+    columns: int = 0
+    rows: int = 0
+    counts: dict = field(default_factory=dict)
+    variant_counts: dict = field(default_factory=dict)
+    rules: str = ""
+    max_dist: float = DEFAULT_MAX_DIST
+    findings: list = field(default_factory=list)
+    deviations: list = field(default_factory=list)
+    worst: dict = field(default_factory=dict)
+    seconds: float = 0.0
+    hits: dict = field(default_factory=dict)
+    classes: np.ndarray | None = None        # (rows, columns) class index
+    ours: np.ndarray | None = None
+    theirs: np.ndarray | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "pass"
+
+    def summary(self) -> dict:
+        out = {k: v for k, v in dataclasses.asdict(self).items()
+               if k not in ("classes", "ours", "theirs", "findings")}
+        out["findings"] = [f.as_dict() for f in self.findings]
+        return out
+
+
+# --- rendering ----------------------------------------------------------------------------------
+
+class Renderer:
+    """rt_core f64 course images of one scene, cached per (rules, max_dist)."""
+
+    def __init__(self, scene, columns: int, rows: int):
+        from rt_core import backend
+        from rt_core.camera import make_camera
+        self.scene, self.T = scene, backend.types("f64")
+        self.cam = make_camera(scene, columns, rows)
+        self.cameras = {r: make_camera(scene, columns, rows, rules=_rows(r))
+                        for r in ("course", "shifted")}
+        self.cache = {}
+
+    def image(self, rules, max_dist: float) -> np.ndarray:
+        key = (rules, max_dist)
+        if key not in self.cache:
+            from rt_core.render import render_image
+            imgs, _ = render_image(self.scene, self.cameras[rules.rows], self.T, rules,
+                                   geometry=False, shade=True, max_dist=max_dist)
+            rgb = np.stack([imgs[c] for c in ("R", "G", "B")], -1)
+            self.cache[key] = np.floor(255.0 * np.clip(rgb, 0.0, 1.0)).astype(np.uint8)
+        return self.cache[key]
+
+    def ids(self, rules):
+        from rt_core.render import trace_geometry, to_images
+        cam = self.cameras[rules.rows]
+        g = to_images(trace_geometry(self.scene, cam, self.T, rules), cam)
+        return g["object.id"].astype(np.int64), g["depth.Z"]
+
+
+def _rows(value: str):
+    from rt_core.rules import Rules
+    return Rules(rows=value)
+
+
+def _differs(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Pixels whose colours differ by more than one level in some channel."""
+    return np.abs(a.astype(np.int16) - b.astype(np.int16)).max(-1) > 1
+
+
+def _config(rules, max_dist, name, value):
+    if name == "max_dist":
+        return rules, float(value)
+    return dataclasses.replace(rules, **{name: value}), max_dist
+
+
+def infer(r: Renderer, theirs: np.ndarray, start_rules, start_max_dist: float, fixed=()):
+    """Coordinate descent over DIMENSIONS from the notes' rules: (rules, max_dist,
+    findings)."""
+    kinds = set(r.scene.kinds())
+    specular = any(any(o.material.specular) for o in r.scene.objects)
+    dims = [(n, v) for n, v, relevant in DIMENSIONS if n not in fixed and (
+        specular if relevant in (None, "specular") else relevant(kinds))]
+    rules, md = start_rules, start_max_dist
+    count = lambda cfg: int(_differs(r.image(*cfg), theirs).sum())
+    for _ in range(3):
+        changed = False
+        for name, values in dims:
+            best = (count((rules, md)), _value(rules, md, name))
+            for v in values:
+                c = count(_config(rules, md, name, v))
+                if c < best[0]:
+                    best = (c, v)
+            if best[1] != _value(rules, md, name):
+                rules, md = _config(rules, md, name, best[1])
+                changed = True
+        if not changed:
+            break
+    findings = []
+    here = count((rules, md))
+    for name, values, _ in DIMENSIONS:
+        notes = values[0] if name != "max_dist" else None
+        if (name, values) not in dims:
+            findings.append(RuleFinding(name, _value(rules, md, name), False, 0, notes))
+            continue
+        others = [count(_config(rules, md, name, v)) for v in values
+                  if v != _value(rules, md, name)]
+        extra = min(others) - here if others else 0
+        findings.append(RuleFinding(name, _value(rules, md, name), extra > 0, max(extra, 0),
+                                    notes))
+    return rules, md, findings
+
+
+def _value(rules, md, name):
+    return md if name == "max_dist" else getattr(rules, name)
+
+
+# --- one scene ------------------------------------------------------------------------------------
+
+def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
+                rows: int | None = None, rules=None, max_dist: float | None = None,
+                hits_path: str | None = None, theirs: np.ndarray | None = None) -> SceneCheck:
+    """Check one image of one scene.  ``rules``/``max_dist`` given: no inference of those."""
+    from rt_core.imageio import ImageError, read_image
+    from rt_core.parser import parse_scene
+    from rt_core.rules import Rules
+    from rt_core.scene import SceneError
+    t0 = time.perf_counter()
+    res = SceneCheck(str(scene_path), str(image_path) if image_path else None, "error")
+    try:
+        scene = parse_scene(scene_path)
+    except SceneError as exc:
+        res.status, res.reason = "refused", str(exc)
+        return res
+    except OSError as exc:
+        res.reason = f"{scene_path}: {(exc.strerror or str(exc)).lower()}"
+        return res
+    try:
+        img = theirs if theirs is not None else read_image(image_path)
+    except ImageError as exc:
+        res.reason = str(exc)
+        return res
+    H, W = img.shape[:2]
+    W, H = columns or W, rows or H
+    if (H, W) != img.shape[:2]:
+        res.reason = (f"{image_path}: the image is {img.shape[1]}x{img.shape[0]}, expected "
+                      f"{W}x{H} (--columns/--rows)")
+        return res
+    if W < 2 or H < 2:
+        res.reason = f"{image_path}: {W}x{H} is too small for the course's corner sampling"
+        return res
+    res.columns, res.rows, res.theirs = W, H, img
+    r = Renderer(scene, W, H)
+    notes = Rules()
+    fixed = ()
+    if rules is not None:
+        fixed += tuple(n for n, _, _ in DIMENSIONS if n != "max_dist")
+    if max_dist is not None:
+        fixed += ("max_dist",)
+    final_rules, md, res.findings = infer(r, img, rules or notes,
+                                          DEFAULT_MAX_DIST if max_dist is None else max_dist,
+                                          fixed)
+    res.rules, res.max_dist = final_rules.describe(), md
+    ours = r.image(final_rules, md)
+    res.ours = ours
+    res.classes, res.variant_counts = classify(scene, r, img, final_rules, md, notes)
+    res.counts = {c: int((res.classes == i).sum()) for i, c in enumerate(CLASSES)}
+    res.deviations = [WORDS[(f.rule, f.value)] for f in res.findings
+                      if (f.rule, f.value) in WORDS and f.determined]
+    if hits_path:
+        res.hits = check_hits(r, final_rules, hits_path)
+    wrong = res.classes == CLASSES.index("wrong")
+    res.status = "pass" if not wrong.any() and not res.hits.get("wrong") else "fail"
+    if wrong.any():
+        res.worst = worst_region(wrong)
+        ids, _ = r.ids(final_rules)
+        on = ids[wrong]
+        objs = [(int(k), int(n)) for k, n in zip(*np.unique(on, return_counts=True))]
+        objs.sort(key=lambda kn: -kn[1])
+        res.worst["objects"] = [_describe(scene, k, n) for k, n in objs[:3]]
+    res.seconds = round(time.perf_counter() - t0, 3)
+    return res
+
+
+def _describe(scene, k: int, n: int) -> str:
+    if k < 0:
+        return f"{n} where rt_core sees no object"
+    o = scene.objects[k]
+    return f"{n} on object {k} ({o.kind}, line {o.line})"
+
+
+def classify(scene, r: Renderer, theirs: np.ndarray, rules, md: float, notes):
+    """(classes (rows, columns) of CLASSES indices, {rule: pixels it explains})."""
+    from mitsuba_ref.shade_oracle import K_DECISION, MARGINS, U, shade_pixels
+    ours = r.image(rules, md)
+    diff = np.abs(ours.astype(np.int16) - theirs.astype(np.int16)).max(-1)
+    cls = np.where(diff == 0, 0, np.where(diff == 1, 1, 4)).astype(np.int8)
+    bad = np.flatnonzero(cls.ravel() == 4)
+    if len(bad):
+        # the float64 shading oracle's margins: a decision within K·u of its threshold
+        orc = shade_pixels(scene, r.cam.columns, r.cam.rows, bad, r.cam.sampling, rules, md)
+        near = np.zeros(len(bad), bool)
+        for m in MARGINS:
+            near |= orc[m] < K_DECISION * U["f64"]
+        flat = cls.ravel()
+        flat[bad[near]] = CLASSES.index("boundary")
+    # pixels the inferred variants explain: wrong under the notes' value of that rule
+    variants = {}
+    notes_md = DEFAULT_MAX_DIST
+    for name, values, _ in DIMENSIONS:
+        v = md if name == "max_dist" else getattr(rules, name)
+        base = notes_md if name == "max_dist" else getattr(notes, name)
+        if v == base:
+            continue
+        alt = r.image(*_config(rules, md, name, base))
+        flips = _differs(alt, theirs) & (cls <= 1)
+        if name != "max_dist":
+            cls[flips] = CLASSES.index("variant")
+            variants[f"{name}={v}"] = int(flips.sum())
+    return cls, variants
+
+
+def worst_region(mask: np.ndarray) -> dict:
+    """The bounding box of the largest 8-connected group of ``mask`` pixels."""
+    H, W = mask.shape
+    seen = np.zeros_like(mask)
+    best = None
+    for start in zip(*np.nonzero(mask)):
+        if seen[start]:
+            continue
+        stack, comp = [start], []
+        seen[start] = True
+        while stack:
+            y, x = stack.pop()
+            comp.append((y, x))
+            for dy in (-1, 0, 1):
+                for dx in (-1, 0, 1):
+                    yy, xx = y + dy, x + dx
+                    if 0 <= yy < H and 0 <= xx < W and mask[yy, xx] and not seen[yy, xx]:
+                        seen[yy, xx] = True
+                        stack.append((yy, xx))
+        if best is None or len(comp) > len(best):
+            best = comp
+    ys, xs = zip(*best)
+    return {"pixels": int(mask.sum()), "largest_group": len(best),
+            "rows": [int(min(ys)), int(max(ys))], "columns": [int(min(xs)), int(max(xs))]}
+
+
+# --- hit dumps ------------------------------------------------------------------------------------
+
+def read_hits(path: str, W: int, H: int):
+    """A hit dump: one line per pixel, ``column row object t`` (row 0 the top, object −1 and
+    t anything on a miss).  (ids (H, W) int, t (H, W) float); pixels not listed are −2."""
+    ids = np.full((H, W), -2, np.int64)
+    ts = np.full((H, W), np.nan)
+    with open(path, "r", encoding="utf-8", errors="replace") as f:
+        for no, line in enumerate(f, 1):
+            parts = line.split()
+            if not parts or parts[0].startswith("#"):
+                continue
+            if len(parts) < 4:
+                raise ValueError(f"{path}:{no}: expected 'column row object t', found "
+                                 f"{line.strip()[:40]!r}")
+            try:
+                x, y, k, t = int(parts[0]), int(parts[1]), int(parts[2]), float(parts[3])
+            except ValueError:
+                raise ValueError(f"{path}:{no}: expected integers column row object and a "
+                                 f"number t, found {line.strip()[:40]!r}") from None
+            if not (0 <= x < W and 0 <= y < H):
+                raise ValueError(f"{path}:{no}: pixel ({x}, {y}) is outside the {W}x{H} image")
+            ids[y, x], ts[y, x] = k, t
+    return ids, ts
+
+
+def check_hits(r: Renderer, rules, path: str) -> dict:
+    """Object id by id and depth by depth against rt_core f64 (exact decisions): ids must be
+    equal; depth within 1e-9 relative."""
+    W, H = r.cam.columns, r.cam.rows
+    try:
+        theirs, tt = read_hits(path, W, H)
+    except (OSError, ValueError) as exc:
+        return {"error": str(exc), "wrong": 1}
+    ids, t = r.ids(rules)
+    listed = theirs != -2
+    id_wrong = listed & (theirs != ids)
+    both = listed & (theirs == ids) & (ids >= 0)
+    rel = np.where(both, np.abs(tt - t) / np.maximum(np.abs(t), 1e-300), 0.0)
+    depth_wrong = both & ~(rel <= 1e-9)
+    return {"pixels": int(listed.sum()), "missing": int((~listed).sum()),
+            "id_wrong": int(id_wrong.sum()), "depth_wrong": int(depth_wrong.sum()),
+            "depth_max_rel": float(rel.max(initial=0.0)),
+            "wrong": int(id_wrong.sum() + depth_wrong.sum() + (~listed).sum())}
+
+
+# --- running the user's tracer --------------------------------------------------------------------
+
+def run_tracer(template: str, scene: str, columns: int, rows: int, workdir: str,
+               timeout: float) -> tuple[str | None, str | None, str]:
+    """Run ``template`` for one scene: (image path or None, hit-dump path or None, failure
+    reason or '').  Placeholders: {scene} {out} {columns} {rows} {hits}; the command runs in
+    a shell (redirections as the course programs use them), in its own process group, killed
+    whole on timeout."""
+    stem = Path(scene).stem
+    out = os.path.join(workdir, f"{stem}.ppm")
+    hits = os.path.join(workdir, f"{stem}.hits")
+    cmd = template.format(scene=shlex.quote(str(scene)), out=shlex.quote(out),
+                          columns=columns, rows=rows, hits=shlex.quote(hits))
+    try:
+        p = subprocess.Popen(cmd, shell=True, stdout=subprocess.DEVNULL,
+                             stderr=subprocess.PIPE, stdin=subprocess.DEVNULL,
+                             start_new_session=True)
+    except OSError as exc:
+        return None, None, f"cannot run {cmd!r}: {exc.strerror or exc}"
+    try:
+        _, err = p.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(p.pid, signal.SIGKILL)
+        p.communicate()
+        return None, None, f"timed out after {timeout:g} s: {cmd}"
+    tail = err.decode("utf-8", "replace").strip().splitlines()[-1:] if err else []
+    said = f" ({tail[0][:200]})" if tail else ""
+    if p.returncode < 0 or p.returncode > 128:
+        sig = -p.returncode if p.returncode < 0 else p.returncode - 128
+        try:
+            name = signal.Signals(sig).name
+        except ValueError:
+            name = f"signal {sig}"
+        return None, None, f"crashed with {name}: {cmd}{said}"
+    if p.returncode != 0:
+        return None, None, f"exited with status {p.returncode}: {cmd}{said}"
+    if not os.path.exists(out):
+        return None, None, f"wrote no image to {{out}}: {cmd}"
+    return out, (hits if "{hits}" in template and os.path.exists(hits) else None), ""
+
+
+def check_run(template: str, scenes, columns: int, rows: int | None, timeout: float = 60.0,
+              **kw) -> list:
+    """Run the user's tracer on each scene, then check its image."""
+    from rt_core.parser import parse_scene
+    from rt_core.scene import SceneError
+    results = []
+    with tempfile.TemporaryDirectory(prefix="rtval-check-") as work:
+        for s in scenes:
+            try:
+                sc = parse_scene(s)
+            except SceneError as exc:
+                results.append(SceneCheck(str(s), None, "refused", str(exc)))
+                continue
+            except OSError as exc:
+                results.append(SceneCheck(str(s), None, "error",
+                                          f"{s}: {(exc.strerror or str(exc)).lower()}"))
+                continue
+            h = rows if rows is not None else sc.default_rows(columns)
+            img, hits, why = run_tracer(template, s, columns, h, work, timeout)
+            if why:
+                results.append(SceneCheck(str(s), None, "error", why, columns, h))
+                continue
+            res = check_image(s, img, columns=columns, rows=h, hits_path=hits, **kw)
+            res.image = "(--run)"
+            results.append(res)
+    return results
+
+
+# --- outputs --------------------------------------------------------------------------------------
+
+def class_image(cls: np.ndarray) -> np.ndarray:
+    lut = np.array([COLORS[c][1] for c in CLASSES], np.uint8)
+    return lut[cls]
+
+
+def junit_xml(results) -> str:
+    from xml.sax.saxutils import escape, quoteattr
+    fails = sum(r.status == "fail" for r in results)
+    errors = sum(r.status in ("error", "refused") for r in results)
+    out = ['<?xml version="1.0" encoding="UTF-8"?>',
+           f'<testsuite name="rtval check" tests="{len(results)}" failures="{fails}" '
+           f'errors="{errors}" time="{sum(r.seconds for r in results):.3f}">']
+    for r in results:
+        out.append(f'  <testcase classname="rtval.check" name={quoteattr(Path(r.scene).name)} '
+                   f'time="{r.seconds:.3f}">')
+        if r.status == "fail":
+            msg = f"{r.counts.get('wrong', 0)} wrong pixels"
+            body = "\n".join([f"rules: {r.rules}, max_dist={r.max_dist:g}"] + r.deviations +
+                             [f"worst region: {r.worst}"])
+            out.append(f'    <failure message={quoteattr(msg)}>{escape(body)}</failure>')
+        elif r.status in ("error", "refused"):
+            out.append(f'    <error message={quoteattr(r.reason)}/>')
+        else:
+            out.append(f'    <system-out>{escape(_one_line(r))}</system-out>')
+        out.append("  </testcase>")
+    out.append("</testsuite>")
+    return "\n".join(out) + "\n"
+
+
+def _one_line(r: SceneCheck) -> str:
+    if r.status in ("error", "refused"):
+        return f"{r.status.upper()} {r.scene}: {r.reason}"
+    counts = ", ".join(f"{c} {r.counts.get(c, 0)}" for c in CLASSES if r.counts.get(c))
+    return f"{'PASS' if r.ok else 'FAIL'} {r.scene} {r.columns}x{r.rows}: {counts}"
+
+
+def text_report(results) -> str:
+    lines = []
+    for r in results:
+        lines.append(_one_line(r))
+        if r.status in ("pass", "fail"):
+            det = [f"{f.rule}={f.value:g}" if isinstance(f.value, float) else f"{f.rule}={f.value}"
+                   for f in r.findings if f.determined]
+            und = [f.rule for f in r.findings if not f.determined]
+            lines.append("  rules: " + (", ".join(det) if det else "none determined") +
+                         (f"; undetermined: {', '.join(und)}" if und else ""))
+            for d in r.deviations:
+                lines.append(f"  deviation: {d}")
+            if r.worst:
+                lines.append(f"  wrong: {r.worst['pixels']} pixels, the largest group "
+                             f"{r.worst['largest_group']} in rows {r.worst['rows'][0]}-"
+                             f"{r.worst['rows'][1]}, columns {r.worst['columns'][0]}-"
+                             f"{r.worst['columns'][1]}; " + "; ".join(r.worst["objects"]))
+            if r.hits:
+                lines.append(f"  hit dump: {r.hits}")
+    n = len(results)
+    ok = sum(r.ok for r in results)
+    lines.append(f"{ok} of {n} scenes pass")
+    return "\n".join(lines)
+
+
+def write_report(results, directory: str) -> str:
+    """An HTML page, failures first: reference, theirs and the class image side by side, the
+    inferred rules; refused or crashed scenes with the reason."""
+    from html import escape
+    from rt_core.imageio import write_png
+    os.makedirs(directory, exist_ok=True)
+    order = {"fail": 0, "error": 1, "refused": 2, "pass": 3}
+    rows = []
+    for k, r in enumerate(sorted(results, key=lambda r: order.get(r.status, 4))):
+        cells = ""
+        if r.classes is not None:
+            for what, img in (("rt_core", r.ours), ("theirs", r.theirs),
+                              ("classes", class_image(r.classes))):
+                name = f"{k:03d}-{Path(r.scene).stem}-{what}.png"
+                write_png(os.path.join(directory, name), img)
+                cells += (f'<td><img src="{escape(name)}" alt="{what}" '
+                          f'style="image-rendering:pixelated;max-width:320px"></td>')
+        else:
+            cells = f'<td colspan="3">{escape(r.reason)}</td>'
+        info = escape(_one_line(r))
+        if r.findings:
+            info += "<br>rules: " + escape(", ".join(
+                f"{f.rule}={f.value}{'' if f.determined else ' (undetermined)'}"
+                for f in r.findings))
+        for d in r.deviations:
+            info += f"<br>deviation: {escape(d)}"
+        if r.worst:
+            info += "<br>wrong: " + escape(str(r.worst))
+        rows.append(f'<tr class="{r.status}"><td>{info}</td>{cells}</tr>')
+    legend = " ".join(f'<span style="background:rgb{COLORS[c][1]};color:white;padding:2px 6px">'
+                      f'{c} ({COLORS[c][0]})</span>' for c in CLASSES)
+    ok = sum(r.ok for r in results)
+    html = ("<!doctype html><meta charset='utf-8'><title>rtval check</title>"
+            "<style>body{font-family:sans-serif} td{vertical-align:top;padding:4px}"
+            "tr.fail td:first-child{color:#b00} tr.error td:first-child{color:#a60}</style>"
+            f"<h1>rtval check: {ok} of {len(results)} scenes pass</h1><p>{legend}</p>"
+            "<table><tr><th>scene</th><th>rt_core (f64)</th><th>theirs</th><th>classes</th>"
+            "</tr>" + "".join(rows) + "</table>")
+    path = os.path.join(directory, "index.html")
+    from rt_core.outputs import atomic_write
+
+    def write(tmp):
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(html)
+    atomic_write(path, write)
+    return path
