@@ -182,13 +182,12 @@ def infer(r: Renderer, theirs: np.ndarray, start_rules, start_max_dist: float, f
     for _ in range(3):
         changed = False
         for name, values in dims:
-            best = (count((rules, md)), _value(rules, md, name))
-            for v in values:
-                c = count(_config(rules, md, name, v))
-                if c < best[0]:
-                    best = (c, v)
-            if best[1] != _value(rules, md, name):
-                rules, md = _config(rules, md, name, best[1])
+            # the fewest differing pixels; on a tie the notes' value (the first), so that a
+            # rule the image cannot tell apart stays as the notes have it
+            counts = [count(_config(rules, md, name, v)) for v in values]
+            best = values[counts.index(min(counts))]
+            if best != _value(rules, md, name):
+                rules, md = _config(rules, md, name, best)
                 changed = True
         if not changed:
             break

@@ -1,0 +1,305 @@
+"""rtval check on material nobody tuned it to: a course tracer written in C from the notes
+(tests/ctracer), its -D builds reproducing the known deviations and bugs, and rt_core's own
+images under each rule variant.
+
+* the correct build passes every bundled scene and a sample of the course scenes (their
+  few differences from rt_core are ``boundary``, decided by the float64 shading oracle);
+* each deviation build is named (the rule inferred, the words said), each bug build fails;
+* the boundary class is honest both ways: a plane moved by 1e-3, a finite plane one pixel too
+  wide, are ``wrong``;
+* --run: hangs, crashes, non-zero exits and bad images are per-scene results; JSON, JUnit and
+  the HTML report; the hit dump; bad input is one line and exit 2.
+"""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tools.harness.check import CLASSES, check_image, check_run
+
+REPO = Path(__file__).resolve().parents[1]
+CT = REPO / "tests" / "ctracer"
+COURSE = REPO.parent / "shared" / "course-scenes"
+SCENES = sorted((REPO / "scenes").glob("*.txt")) + sorted((CT / "scenes").glob("*.txt"))
+
+
+@pytest.fixture(scope="session")
+def ctracer(tmp_path_factory):
+    if not shutil.which("cc"):
+        pytest.skip("no C compiler (cc): the C course tracer cannot be built")
+    out = tmp_path_factory.mktemp("ct")
+    subprocess.run(["sh", str(CT / "build.sh"), str(out)], check=True, capture_output=True)
+    return out
+
+
+def _render(binary, scene, columns, tmp, rows=None, hits=False):
+    img = tmp / f"{Path(scene).stem}.{binary.name}.ppm"
+    cmd = [str(binary), str(columns)] + ([str(rows)] if rows else [])
+    if hits:
+        cmd += ["--hits", str(img.with_suffix(".hits"))]
+    with open(scene, "rb") as fin, open(img, "wb") as fout:
+        subprocess.run(cmd, stdin=fin, stdout=fout, check=True)
+    return img
+
+
+@pytest.mark.parametrize("scene", SCENES, ids=[p.stem for p in SCENES])
+def test01_the_notes_build_passes(ctracer, scene, tmp_path):
+    img = _render(ctracer / "course", scene, 65, tmp_path)
+    r = check_image(scene, img)
+    assert r.status == "pass", (r.counts, r.worst)
+    assert r.counts["wrong"] == 0 and r.counts["match"] > 0.9 * r.columns * r.rows
+    # nothing about the notes' own build is called a deviation
+    assert r.deviations == [], r.deviations
+
+
+def _course_sample():
+    if not COURSE.is_dir():
+        return []
+    from tools.harness.validate import default_scene_paths
+    from rt_core.parser import parse_scene
+    from rt_core.scene import SceneError
+    out = []
+    for p in default_scene_paths():
+        if COURSE.resolve() not in Path(p).resolve().parents:
+            continue
+        try:
+            if parse_scene(p).objects:
+                out.append(p)
+        except SceneError:
+            pass
+    return out
+
+
+COURSE_SCENES = _course_sample()
+
+
+@pytest.mark.parametrize("scene", COURSE_SCENES[::6],
+                         ids=[Path(p).stem for p in COURSE_SCENES[::6]])
+def test02_the_notes_build_passes_course_scenes(ctracer, scene, tmp_path):
+    """A sample of the real course scenes (the whole set is test02b, slow): the C tracer's
+    MAX_DIST is 50000, which check infers where it matters."""
+    img = _render(ctracer / "course", scene, 48, tmp_path)
+    r = check_image(scene, img)
+    assert r.status == "pass", (r.counts, r.worst, r.rules)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scene", COURSE_SCENES, ids=[Path(p).stem for p in COURSE_SCENES])
+def test02b_the_notes_build_passes_every_course_scene(ctracer, scene, tmp_path):
+    img = _render(ctracer / "course", scene, 64, tmp_path)
+    assert check_image(scene, img).status == "pass"
+
+
+# (build, scene, the rule it must be inferred as, value)
+VARIANTS = [
+    ("course_edges_open", CT / "scenes" / "edges.txt", "edges", "open"),
+    ("course_clip_ge", CT / "scenes" / "clip_z0.txt", "screen_clip", ">="),
+    ("course_ties_last", CT / "scenes" / "ties.txt", "ties", "last"),
+    ("course_tmin", CT / "scenes" / "tmin.txt", "t_min", 1e-4),
+    ("course_clip_spheres", CT / "scenes" / "clip_sphere.txt", "clip_spheres", True),
+    ("course_reflect_segment", REPO / "scenes" / "shade_mirrors.txt", "reflect", "segment"),
+    ("course_rows_shifted", REPO / "scenes" / "shade_tiles.txt", "rows", "shifted"),
+    ("course_tile_noproject", CT / "scenes" / "tiles_tilted.txt", "tile_project", False),
+    ("course_tile_add_first", REPO / "scenes" / "shade_tiles.txt", "tile_add_first", True),
+]
+
+
+@pytest.mark.parametrize("build,scene,rule,value", VARIANTS, ids=[v[0] for v in VARIANTS])
+def test03_each_deviation_is_named(ctracer, build, scene, rule, value, tmp_path):
+    img = _render(ctracer / build, scene, 65, tmp_path)
+    r = check_image(scene, img)
+    assert r.status == "pass", (r.counts, r.rules)
+    f = next(f for f in r.findings if f.rule == rule)
+    assert f.value == value and f.determined and f.pixels > 0, f
+    assert len(r.deviations) == 1, r.deviations
+    assert r.counts["variant"] > 0
+    # the same image checked under the notes' rules: those pixels are no longer explained
+    # by a variant (wrong, or boundary where the decision itself is at 0: a plane lying in
+    # z = 0, whose clip a float64 tracer may decide either way)
+    from rt_core.rules import Rules
+    strict = check_image(scene, img, rules=Rules(), max_dist=r.max_dist)
+    assert strict.counts["variant"] == 0
+    assert strict.counts["wrong"] + strict.counts["boundary"] >= f.pixels // 2, strict.counts
+
+
+BUGS = [("course_alias_xform", REPO / "scenes" / "fplane_tilted.txt"),
+        ("course_inv_square", REPO / "scenes" / "shade_shadows.txt"),
+        ("course_no_shadows", REPO / "scenes" / "shade_shadows.txt")]
+
+
+@pytest.mark.parametrize("build,scene", BUGS, ids=[b[0] for b in BUGS])
+def test04_each_bug_fails(ctracer, build, scene, tmp_path):
+    img = _render(ctracer / build, scene, 65, tmp_path)
+    r = check_image(scene, img)
+    assert r.status == "fail" and r.counts["wrong"] > 50, r.counts
+    assert r.worst["pixels"] == r.counts["wrong"] and r.worst["objects"]
+
+
+# --- rt_core's own images under each variant --------------------------------------------------
+
+# (t_min needs a plane within 1e-4 of the viewpoint: the C tracer's tmin scene, test03)
+RT_VARIANTS = ["edges=open", "screen_clip=>=", "clip_spheres=true", "reflect=segment",
+               "rows=shifted", "tile_add_first=true"]
+
+
+def _rt_image(scene_text, columns, rows, rules_text="", max_dist=1000.0):
+    from rt_core import backend
+    from rt_core.camera import make_camera
+    from rt_core.parser import parse_text
+    from rt_core.render import render_image
+    from rt_core.rules import Rules
+    rules = Rules.parse(rules_text)
+    sc = parse_text(scene_text)
+    cam = make_camera(sc, columns, rows, rules=rules)
+    imgs, _ = render_image(sc, cam, backend.types("f64"), rules, geometry=False, shade=True,
+                           max_dist=max_dist)
+    rgb = np.stack([imgs[c] for c in "RGB"], -1)
+    return np.floor(255 * np.clip(rgb, 0, 1)).astype(np.uint8)
+
+
+VARIANT_SCENE = """16 12  0.25 0.5 6
+pointlight 9 9 9  -3 5 4
+plane 1 1 1  3 3 3  0 0 0   0 1 0  0 -5 0
+tplane 1 1 1  4 4 4  0 0 0   0 0 1  -8 -6 -6  1 0.3 0  1.5 1.5  0 0 2  0 0 4  0 0 0
+fplane 2 0 0  6 0 0  0 0 0   0 0 1  -4 -2 0  1 0 0  3 3
+fplane 0 2 0  0 6 0  1 1 1   0.3 0 1  1 -3 -2  0 1 0  2.5 4
+sphere 0 0 2  0 0 6  1 1 1   2 3 -1  1.5
+sphere 2 2 0  6 6 0  0 0 0   -5 3 0.5  1
+"""
+
+
+@pytest.mark.parametrize("variant", RT_VARIANTS)
+def test05_rt_core_variant_images_are_inferred(variant, tmp_path):
+    from rt_core.imageio import write_ppm
+    scene = tmp_path / "v.txt"
+    scene.write_text(VARIANT_SCENE)
+    img = tmp_path / "v.ppm"
+    write_ppm(str(img), _rt_image(VARIANT_SCENE, 97, 73, variant))
+    r = check_image(scene, img)
+    assert r.status == "pass", r.counts
+    assert r.counts["match"] + r.counts["variant"] == r.columns * r.rows, r.counts
+    name, value = variant.split("=", 1)
+    f = next(f for f in r.findings if f.rule == name)
+    assert str(f.value).lower() == value and f.determined, f
+    assert r.variant_counts == {f"{name}={f.value}": r.counts["variant"]}
+
+
+# --- the boundary class is honest --------------------------------------------------------------
+
+def test06_real_errors_are_wrong_not_boundary(tmp_path):
+    """A finite plane a pixel's worth too wide: wrong pixels, none excused.  A plane moved by
+    1e-3 (the floor, 1/165 of a pixel here: the 8-bit image cannot show it) is caught by
+    the hit dump's depths."""
+    from rt_core.imageio import write_ppm
+    scene = tmp_path / "s.txt"
+    scene.write_text(VARIANT_SCENE)
+    wide = VARIANT_SCENE.replace("1 0 0  3 3", "1 0 0  3.165 3")        # 16/97 wider
+    img = tmp_path / "wide.ppm"
+    write_ppm(str(img), _rt_image(wide, 97, 73))
+    r = check_image(scene, img)
+    assert r.status == "fail" and r.counts["wrong"] >= 10, r.counts
+    assert r.deviations == [] and r.counts["variant"] == 0
+    moved = VARIANT_SCENE.replace("0 -5 0\n", "0 -5.001 0\n")
+    img = tmp_path / "moved.ppm"
+    write_ppm(str(img), _rt_image(moved, 97, 73))
+    hits = tmp_path / "moved.hits"
+    _write_hits(moved, 97, 73, hits)
+    r = check_image(scene, img, hits_path=str(hits))
+    assert r.status == "fail" and r.hits["depth_wrong"] > 1000, r.hits
+    assert r.hits["id_wrong"] < 10
+
+
+def _write_hits(text, W, H, path):
+    from rt_core.parser import parse_text
+    from rt_core.render import render_geometry
+    g = render_geometry(parse_text(text), W, H, precision="f64")
+    with open(path, "w") as f:
+        for r in range(H):
+            for x in range(W):
+                k = int(g["object.id"][r, x])
+                f.write(f"{x} {r} {k} {g['depth.Z'][r, x] if k >= 0 else 0:.17g}\n")
+
+
+def test07_a_correct_tracer_differs_only_at_boundaries(ctracer, tmp_path):
+    """Where the C tracer (float64, another formulation) and rt_core differ on a course
+    scene, the float64 oracle finds a decision within its bound: boundary, not wrong."""
+    if not COURSE.is_dir():
+        pytest.skip("../shared/course-scenes is not there")
+    scene = COURSE / "numeric" / "m4__v1_r04.txt"
+    img = _render(ctracer / "course", scene, 64, tmp_path)
+    r = check_image(scene, img)
+    assert r.status == "pass", r.counts
+    assert r.counts["boundary"] > 0, r.counts
+
+
+# --- --run, outputs, hit dumps, bad input -----------------------------------------------------
+
+def test08_run_reports_each_failure_per_scene(ctracer, tmp_path):
+    good = f"{ctracer / 'course'} {{columns}} {{rows}} < {{scene}} > {{out}}"
+    scenes = [str(REPO / "scenes" / "seed_fplane.txt"), str(REPO / "scenes" / "mixed.txt")]
+    res = check_run(good, scenes, 40, None)
+    assert [r.status for r in res] == ["pass", "pass"]
+    cases = {"sleep 30": "timed out", "kill -SEGV $$": "crashed with SIGSEGV",
+             "exit 3": "exited with status 3", "echo P6 garbage > {out}": "PPM",
+             "true": "wrote no image"}
+    for cmd, why in cases.items():
+        r, = check_run(cmd + " # {scene} {out}", scenes[:1], 40, None, timeout=1.0)
+        assert r.status == "error" and why in r.reason, (cmd, r.reason)
+
+
+def test09_cli_outputs_and_exit_codes(ctracer, tmp_path):
+    from tools.cli import main
+    scene = REPO / "scenes" / "shade_shadows.txt"
+    run = f"{ctracer / 'course_no_shadows'} {{columns}} < {{scene}} > {{out}}"
+    junit, report = tmp_path / "j.xml", tmp_path / "rep"
+    assert main(["check", str(scene), "--run", run, "--columns", "40", "--junit", str(junit),
+                 "--report", str(report)]) == 1
+    suite = ET.parse(junit).getroot()
+    assert suite.get("tests") == "1" and suite.get("failures") == "1"
+    html = (report / "index.html").read_text()
+    assert "wrong" in html and len(list(report.glob("*.png"))) == 3
+    good = _render(ctracer / "course", scene, 40, tmp_path)
+    assert main(["check", str(scene), str(good)]) == 0
+
+
+def test10_json(ctracer, tmp_path, capsys):
+    from tools.cli import main
+    scene = CT / "scenes" / "edges.txt"
+    img = _render(ctracer / "course_edges_open", scene, 65, tmp_path)
+    assert main(["check", str(scene), str(img), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    f = {x["rule"]: x for x in out[0]["findings"]}
+    assert f["edges"]["value"] == "open" and f["edges"]["determined"]
+    assert set(out[0]["counts"]) == set(CLASSES)
+
+
+def test11_hit_dump(ctracer, tmp_path):
+    scene = REPO / "scenes" / "fplane_tilted.txt"
+    good = _render(ctracer / "course", scene, 65, tmp_path, hits=True)
+    r = check_image(scene, good, hits_path=str(good.with_suffix(".hits")))
+    assert r.status == "pass" and r.hits["id_wrong"] == 0 and r.hits["pixels"] == 65 * 48
+    assert r.hits["depth_max_rel"] < 1e-9
+    bad = _render(ctracer / "course_alias_xform", scene, 65, tmp_path, hits=True)
+    r = check_image(scene, bad, hits_path=str(bad.with_suffix(".hits")))
+    assert r.status == "fail" and r.hits["id_wrong"] > 50
+
+
+def test12_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
+    from tools.cli import main
+    scene = REPO / "scenes" / "seed_fplane.txt"
+    missing = tmp_path / "nope.ppm"
+    assert main(["check", str(scene), str(missing)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("rtval check: ") and "nope.ppm" in err[-1]
+    trunc = tmp_path / "t.ppm"
+    trunc.write_bytes(b"P6 40 30 255\n" + b"\0" * 100)
+    assert main(["check", str(scene), str(trunc)]) == 2
+    assert "truncated" in capsys.readouterr().err
+    assert main(["check", str(scene)]) == 2          # no image, no --run
+    assert main(["check", str(scene), "--run", "x {scene}", "--columns", "8"]) == 2
