@@ -100,6 +100,8 @@ def read_image(path: str) -> np.ndarray:
                 return np.asarray(im.convert("RGB"), np.uint8).copy()
         except Exception as exc:
             raise ImageError(f"{path}: not a readable PNG: {exc}") from None
+    if not data:
+        raise ImageError(f"{path}: the image file is empty")
     if data[:2] not in (b"P6", b"P3"):
         head = data[:2].decode("ascii", "replace")
         raise ImageError(f"{path}: not a PPM (P6/P3) or PNG image (it starts with {head!r})")
