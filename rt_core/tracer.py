@@ -270,8 +270,7 @@ def _decide_flagged(ks: KernelScene, cam, rules: Rules, st: Best, d):
             E = np.stack([np.asarray(c.numpy(), np.float64) for c in (g.x, g.y, g.z)], 1)
             ids, ts = decide_rays(ks.scene, rules, E.tolist(), objs=objs)
         else:
-            ids, ts = decide(ks.scene, cam.columns, cam.rows, cam.sampling, rules, pix, objs,
-                             cam.row_shift)
+            ids, ts = _decided(ks.scene, cam, rules, pix, objs)
     # scattered into the arrays by one kernel that always runs, with two masked-off lanes
     # added (so that it never has one lane, a literal, and runs when nothing is flagged):
     # the kernels a render compiles do not depend on what was flagged
@@ -286,6 +285,30 @@ def _decide_flagged(ks: KernelScene, cam, rules: Rules, st: Best, d):
         dr.scatter(target, values, idx, mask)
         dr.eval(target)
     return t, oid, oid >= 0
+
+
+# exact answers of camera rays, kept across renders of one scene: renders that differ only in
+# shading (the distance cut-off, a tile or reflection variant) flag the same rays
+_DECIDED: dict = {}
+GEOMETRY_RULES = ("t_min", "screen_clip", "clip_spheres", "edges", "ties")
+
+
+def _decided(scene, cam, rules: Rules, pix, objs):
+    key = (id(scene), cam.columns, cam.rows, cam.sampling, cam.row_shift,
+           tuple(getattr(rules, k) for k in GEOMETRY_RULES))
+    entry = _DECIDED.get(key)
+    if entry is None or entry[0] is not scene:
+        if len(_DECIDED) > 16:
+            _DECIDED.clear()
+        entry = _DECIDED[key] = (scene, {})
+    known = entry[1]
+    todo = np.array([p for p in pix.tolist() if p not in known], np.int64)
+    if len(todo):
+        ids, ts = decide(scene, cam.columns, cam.rows, cam.sampling, rules, todo, objs,
+                         cam.row_shift)
+        known.update(zip(todo.tolist(), zip(ids.tolist(), ts.tolist())))
+    out = [known[p] for p in pix.tolist()]
+    return np.array([o[0] for o in out], np.int32), np.array([o[1] for o in out])
 
 
 def surface(ks: KernelScene, d, t, oid, hit, o=None):

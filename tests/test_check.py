@@ -263,6 +263,7 @@ def test09_cli_outputs_and_exit_codes(ctracer, tmp_path):
                  "--report", str(report)]) == 1
     suite = ET.parse(junit).getroot()
     assert suite.get("tests") == "1" and suite.get("failures") == "1"
+    assert any(p.get("name") == "drjit" for p in suite.iter("property"))
     html = (report / "index.html").read_text()
     assert "wrong" in html and len(list(report.glob("*.png"))) == 3
     good = _render(ctracer / "course", scene, 40, tmp_path)
@@ -278,6 +279,8 @@ def test10_json(ctracer, tmp_path, capsys):
     f = {x["rule"]: x for x in out[0]["findings"]}
     assert f["edges"]["value"] == "open" and f["edges"]["determined"]
     assert set(out[0]["counts"]) == set(CLASSES)
+    prov = out[0]["provenance"]
+    assert prov["image_sha256"] and prov["scene_sha256"] and prov["versions"]["drjit"]
 
 
 def test11_hit_dump(ctracer, tmp_path):

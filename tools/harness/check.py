@@ -108,6 +108,7 @@ class SceneCheck:
     worst: dict = field(default_factory=dict)
     seconds: float = 0.0
     hits: dict = field(default_factory=dict)
+    provenance: dict = field(default_factory=dict)   # what was checked, by what
     classes: np.ndarray | None = None        # (rows, columns) class index
     ours: np.ndarray | None = None
     theirs: np.ndarray | None = None
@@ -313,6 +314,7 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
         res.reason = f"{image_path}: {W}x{H} is too small for the course's corner sampling"
         return res
     res.columns, res.rows, res.theirs = W, H, img
+    res.provenance = provenance(scene, img)
     r = Renderer(scene, W, H)
     notes = Rules()
     fixed = ()
@@ -342,6 +344,18 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
         res.worst["objects"] = [_describe(scene, k, n) for k, n in objs[:3]]
     res.seconds = round(time.perf_counter() - t0, 3)
     return res
+
+
+def provenance(scene, img: np.ndarray) -> dict:
+    """The scene's and the image's sha256, the reference (rt_core float64, exact decisions,
+    corner sampling) and the versions that made the verdict."""
+    import hashlib
+    from rt_core.render import versions
+    return {"scene_sha256": scene.sha256, "dialect": scene.dialect,
+            "image_sha256": hashlib.sha256(np.ascontiguousarray(img).tobytes()).hexdigest(),
+            "reference": "rt_core float64, exact decisions, corner sampling",
+            "boundary": "mitsuba_ref.shade_oracle float64 margins < 64 u",
+            "versions": versions()}
 
 
 def _describe(scene, k: int, n: int) -> str:
@@ -528,9 +542,13 @@ def junit_xml(results) -> str:
     from xml.sax.saxutils import escape, quoteattr
     fails = sum(r.status == "fail" for r in results)
     errors = sum(r.status in ("error", "refused") for r in results)
+    from rt_core.render import versions
     out = ['<?xml version="1.0" encoding="UTF-8"?>',
            f'<testsuite name="rtval check" tests="{len(results)}" failures="{fails}" '
-           f'errors="{errors}" time="{sum(r.seconds for r in results):.3f}">']
+           f'errors="{errors}" time="{sum(r.seconds for r in results):.3f}">',
+           "  <properties>"] + [
+           f'    <property name={quoteattr(k)} value={quoteattr(str(v))}/>'
+           for k, v in versions().items()] + ["  </properties>"]
     for r in results:
         out.append(f'  <testcase classname="rtval.check" name={quoteattr(Path(r.scene).name)} '
                    f'time="{r.seconds:.3f}">')
@@ -583,8 +601,10 @@ def text_report(results) -> str:
 def write_report(results, directory: str) -> str:
     """An HTML page, failures first: reference, theirs and the class image side by side, the
     inferred rules; refused or crashed scenes with the reason."""
+    import json
     from html import escape
     from rt_core.imageio import write_png
+    from rt_core.render import versions
     os.makedirs(directory, exist_ok=True)
     order = {"fail": 0, "error": 1, "refused": 2, "pass": 3}
     rows = []
@@ -617,7 +637,8 @@ def write_report(results, directory: str) -> str:
             "tr.fail td:first-child{color:#b00} tr.error td:first-child{color:#a60}</style>"
             f"<h1>rtval check: {ok} of {len(results)} scenes pass</h1><p>{legend}</p>"
             "<table><tr><th>scene</th><th>rt_core (f64)</th><th>theirs</th><th>classes</th>"
-            "</tr>" + "".join(rows) + "</table>")
+            "</tr>" + "".join(rows) + "</table>"
+            f"<p><small>{escape(json.dumps(versions()))}</small></p>")
     path = os.path.join(directory, "index.html")
     from rt_core.outputs import atomic_write
 
