@@ -23,6 +23,7 @@ independent of it and of the kernels).
 from __future__ import annotations
 
 import decimal
+import math
 from fractions import Fraction
 
 import numpy as np
@@ -76,6 +77,7 @@ class _Exact:
         if obj.kind == "sphere":
             self.Q = tuple(exact(c) - v for c, v in zip(obj.center, V))
             self.cc = _dot(self.Q, self.Q) - exact(obj.radius) ** 2
+            self.fQ, self.fcc = tuple(float(c) for c in self.Q), float(self.cc)
             return
         N = tuple(exact(c) for c in obj.given_normal)
         self.N = N
@@ -91,6 +93,15 @@ class _Exact:
             w, h = (exact(c) for c in obj.size)
             self.w2 = w * w * PP
             self.h2 = h * h * NN * PP
+        # float copies for a quick screen (``_surely_missed``)
+        f = lambda v: tuple(float(c) for c in v)
+        self.fQ = f(self.Q)
+        if obj.kind == "sphere":
+            return
+        self.fN, self.fNQ = f(self.N), float(self.NQ)
+        if obj.kind == "fplane":
+            self.fp, self.fy = f(self.p), f(self.y)
+            self.fw2, self.fh2 = float(self.w2), float(self.h2)
 
 
 def _plane(o: _Exact, E, EE, Vz, rules: Rules, tmin2):
@@ -130,6 +141,42 @@ def _sphere(o: _Exact, E, EE, Vz, rules: Rules):
         if z > 0 or (z == 0 and rules.screen_clip == ">="):
             return None
     return s
+
+
+SCREEN = 1e-6      # relative: float64 arithmetic errs by ~1e-15 here, so this never misjudges
+
+
+def _surely_missed(o: _Exact, fE, fEE) -> bool:
+    """A float screen before the exact test: True only where a decision fails by far more
+    than float64 could err (then the exact test would fail too)."""
+    nE = math.sqrt(fEE)
+    if o.kind == "sphere":
+        b = o.fQ[0] * fE[0] + o.fQ[1] * fE[1] + o.fQ[2] * fE[2]
+        nQ2 = o.fQ[0] ** 2 + o.fQ[1] ** 2 + o.fQ[2] ** 2
+        if b < -SCREEN * math.sqrt(nQ2) * nE:
+            return True                       # centre behind the viewpoint
+        D = b * b - fEE * o.fcc
+        return D < -SCREEN * (b * b + fEE * abs(o.fcc) + 1e-300)
+    nd = o.fN[0] * fE[0] + o.fN[1] * fE[1] + o.fN[2] * fE[2]
+    scale = (abs(o.fN[0] * fE[0]) + abs(o.fN[1] * fE[1]) + abs(o.fN[2] * fE[2]))
+    if abs(nd) <= SCREEN * scale:
+        return False                          # nearly parallel: let the exact test decide
+    s = o.fNQ / nd
+    nq = abs(o.fNQ)
+    if s < 0 and nq > SCREEN * (math.sqrt(sum(c * c for c in o.fN)) *
+                                math.sqrt(sum(c * c for c in o.fQ))):
+        return True                           # behind the viewpoint
+    if o.kind != "fplane" or s <= 0:
+        return False
+    H = tuple(s * e - q for e, q in zip(fE, o.fQ))
+    a = o.fp[0] * H[0] + o.fp[1] * H[1] + o.fp[2] * H[2]
+    bb = o.fy[0] * H[0] + o.fy[1] * H[1] + o.fy[2] * H[2]
+    nH = math.sqrt(H[0] ** 2 + H[1] ** 2 + H[2] ** 2) + math.sqrt(sum(c * c for c in o.fQ))
+    pa = math.sqrt(sum(c * c for c in o.fp)) * nH
+    ya = math.sqrt(sum(c * c for c in o.fy)) * nH
+    return (a < -SCREEN * pa or bb < -SCREEN * ya or
+            a * a > o.fw2 * (1 + SCREEN) + SCREEN * pa * pa or
+            bb * bb > o.fh2 * (1 + SCREEN) + SCREEN * ya * ya)
 
 
 def _less(a, b) -> int:
@@ -192,8 +239,12 @@ def decide_rays(scene: Scene, rules: Rules, rays, distance: bool = False, objs=N
     for k, E in enumerate(rays):
         E = tuple(Fraction(c) for c in E)
         EE = _dot(E, E)
+        fE = tuple(float(c) for c in E)
+        fEE = fE[0] ** 2 + fE[1] ** 2 + fE[2] ** 2
         best, best_s = -1, None
         for j, o in enumerate(objs):
+            if _surely_missed(o, fE, fEE):
+                continue
             s = (_sphere(o, E, EE, V[2], rules) if o.kind == "sphere"
                  else _plane(o, E, EE, V[2], rules, tmin2))
             if s is None:
