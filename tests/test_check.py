@@ -307,3 +307,17 @@ def test12_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
     assert "truncated" in capsys.readouterr().err
     assert main(["check", str(scene)]) == 2          # no image, no --run
     assert main(["check", str(scene), "--run", "x {scene}", "--columns", "8"]) == 2
+
+
+def test13_hint_for_outline_only_differences():
+    """Wrong pixels along most object outlines and nowhere else read as antialiasing (a
+    hint beside the verdict); a wrong block inside an object does not."""
+    from tools.harness.check import hints
+    ids = np.zeros((40, 40), int)
+    ids[10:30, 10:30] = 1
+    outline = np.zeros_like(ids, bool)
+    outline[10:30, [9, 10, 29, 30]] = outline[[9, 10, 29, 30], 10:30] = True
+    assert any("antialiased" in h for h in hints(ids, outline))
+    block = np.zeros_like(outline)
+    block[15:25, 15:25] = True
+    assert hints(ids, block) == []

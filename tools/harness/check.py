@@ -105,6 +105,7 @@ class SceneCheck:
     max_dist: float = DEFAULT_MAX_DIST
     findings: list = field(default_factory=list)
     deviations: list = field(default_factory=list)
+    hints: list = field(default_factory=list)       # what the wrong pixels look like
     worst: dict = field(default_factory=dict)
     seconds: float = 0.0
     hits: dict = field(default_factory=dict)
@@ -381,6 +382,7 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
         objs = [(int(k), int(n)) for k, n in zip(*np.unique(on, return_counts=True))]
         objs.sort(key=lambda kn: -kn[1])
         res.worst["objects"] = [_describe(scene, k, n) for k, n in objs[:3]]
+        res.hints = hints(ids, wrong)
     res.seconds = round(time.perf_counter() - t0, 3)
     return res
 
@@ -395,6 +397,22 @@ def provenance(scene, img: np.ndarray) -> dict:
             "reference": "rt_core float64, exact decisions, corner sampling",
             "boundary": "mitsuba_ref.shade_oracle float64 margins < 64 u",
             "versions": versions()}
+
+
+def hints(ids: np.ndarray, wrong: np.ndarray) -> list:
+    """Plain-words guesses about what the wrong pixels look like (not part of the verdict)."""
+    out = []
+    edge = np.zeros_like(wrong)
+    edge[:, 1:] |= ids[:, 1:] != ids[:, :-1]
+    edge[:, :-1] |= ids[:, 1:] != ids[:, :-1]
+    edge[1:] |= ids[1:] != ids[:-1]
+    edge[:-1] |= ids[1:] != ids[:-1]
+    on_edge = (wrong & edge).sum()
+    if wrong.sum() >= 20 and on_edge >= 0.9 * wrong.sum() and on_edge >= 0.3 * edge.sum():
+        out.append("the wrong pixels lie on object outlines, along most of them: antialiased "
+                   "or jittered samples? (a pixel-exact comparison needs one sample per "
+                   "pixel at the course's grid corners)")
+    return out
 
 
 def _describe(scene, k: int, n: int) -> str:
@@ -636,6 +654,8 @@ def text_report(results) -> str:
                          (f"; undetermined: {', '.join(und)}" if und else ""))
             for d in r.deviations:
                 lines.append(f"  deviation: {d}")
+            for h in r.hints:
+                lines.append(f"  hint: {h}")
             if r.worst:
                 lines.append(f"  wrong: {r.worst['pixels']} pixels, the largest group "
                              f"{r.worst['largest_group']} in rows {r.worst['rows'][0]}-"
