@@ -27,8 +27,8 @@ def add_parser(sub) -> None:
     p.add_argument("--rows", type=positive_int, default=None,
                    help="image height (default: the image's, or int(h/w*columns) with --run)")
     p.add_argument("--rules", type=rules_arg, default=None, metavar="NAME=VALUE,...",
-                   help="fix the hit rules instead of inferring them "
-                        "(edges, screen_clip, ties, t_min, clip_spheres)")
+                   help="fix the rules instead of inferring them (edges, screen_clip, ties, "
+                        "t_min, clip_spheres, reflect, rows, tile_add_first, tile_project)")
     p.add_argument("--max-dist", type=nonneg_float, default=None, metavar="D",
                    help="fix the reflection cut-off instead of inferring it")
     p.add_argument("--hits", metavar="FILE",
