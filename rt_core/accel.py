@@ -53,10 +53,10 @@ MARGIN = 2.0 ** -12
 # the object id rides along as a float (exact below 2**24).  (Scalar gathers: Dr.Jit's
 # packet gathers of Array4f were no faster here, and chose between packet and scalar code
 # from call to call, which broke kernel reuse.)
-LAYOUT = {"sphere": ("qx", "qy", "qz", "radius", "c", "id", "grp", "bo", "bs", "ic"),
+LAYOUT = {"sphere": ("qx", "qy", "qz", "radius", "c", "id", "grp", "bo", "bsic"),
           "plane": ("qx", "qy", "qz", "nq", "nx", "ny", "nz", "g", "id", "grp", "bz"),
           "fplane": ("qx", "qy", "qz", "nq", "nx", "ny", "nz", "g", "w", "xx", "xy", "xz", "h",
-                     "yx", "yy", "yz", "id", "grp", "bz", "bw", "bh")}
+                     "yx", "yy", "yz", "id", "grp", "bz", "bm")}
 LAYOUT["tplane"] = LAYOUT["plane"]
 BOUNDED = ("sphere", "fplane")
 

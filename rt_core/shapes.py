@@ -72,14 +72,10 @@ class ObjectConstants:
     grp: int = 0             # objects of one group are the same plane or sphere: equal t
     # bounds of the certified decisions (see "Certified decisions" below), for unit rays
     bz: float = 0.0          # plane kinds: the clip's z·|n·d|
-    bu: float = 0.0          # fplane: u·|n·d| >= 0, v·|n·d| >= 0, u <= w, v <= h
-    bv: float = 0.0
-    bw: float = 0.0
-    bh: float = 0.0
+    bm: float = 0.0          # fplane: u·|n·d| >= 0, v·|n·d| >= 0, u <= w, v <= h (one bound)
     bo: float = 0.0          # sphere: outline r√a − |q×d| and front q·d; for t's bound
-    # bo + √(the discriminant's error) (bs) and 1/c (ic)
-    bs: float = 0.0
-    ic: float = 0.0
+    # (bo + √(the discriminant's error))/c (bsic)
+    bsic: float = 0.0
 
 
 _CTX = decimal.Context(prec=40, Emax=10 ** 6, Emin=-10 ** 6)
@@ -148,7 +144,7 @@ def object_constants(scene: Scene) -> list[ObjectConstants]:
     return out
 
 
-BOUND_FIELDS = ("bz", "bu", "bv", "bw", "bh", "bo", "bs", "ic")
+BOUND_FIELDS = ("bz", "bm", "bo", "bsic")
 
 
 # The certified decisions' bounds, for rays with |d| <= 1 (unit directions): each is the
@@ -167,8 +163,8 @@ def _plane_bounds(vz, q, n, g, X, Y, size) -> dict:
         an = sum(abs(c) for c in n)
         bu = k * sum(abs(y) * c for y, c in zip(Y, cab))
         bv = k * sum(abs(x) * c for x, c in zip(X, cab))
-        out.update(bu=bu, bv=bv, bw=bu + 2 * k * abs(size[0]) * an,
-                   bh=bv + 2 * k * abs(size[1]) * an)
+        # one bound for the four edges (bw >= bu, bh >= bv): they are tested as one
+        out["bm"] = max(bu + 2 * k * abs(size[0]) * an, bv + 2 * k * abs(size[1]) * an)
     return out
 
 
@@ -183,7 +179,8 @@ def _sphere_bounds(q, r, c) -> dict:
         # the viewpoint inside or on the sphere (exact on the host): the near root is <= 0,
         # a certain miss; a NaN bound fails both comparisons of the outline test
         bo = math.nan
-    return {"bo": bo, "bs": bs, "ic": 1.0 / c if c > 0 else 0.0}
+    # t's bound is t·(bs·t/c + K u): one constant bs/c
+    return {"bo": bo, "bsic": bs / c if c > 0 else 0.0}
 
 
 def _first(N) -> int:
@@ -278,9 +275,18 @@ class _Cert:
 
 
 def _clip_test(cert: _Cert, F, zs, bz, rules: Rules):
-    """The screen clip on z·|n·d| (z <= 0 passes with '>', z < 0 with '>=')."""
-    if rules.screen_clip != "off":
-        cert.test(F, -zs, bz, rules.screen_clip == ">=")
+    """The screen clip on z·|n·d| (z <= 0 passes with '>', z < 0 with '>='): certain where
+    z <= −bound, possible where z <= bound."""
+    if rules.screen_clip == "off":
+        return
+    if isinstance(bz, (int, float)):
+        b, nb = dr.opaque(F, bz), dr.opaque(F, -bz)
+    else:
+        b, nb = bz, -bz
+    strict = rules.screen_clip == ">="
+    c, p = ((zs < nb), (zs < b)) if strict else ((zs <= nb), (zs <= b))
+    cert.certain = c if cert.certain is True else cert.certain & c
+    cert.possible = p if cert.possible is True else cert.possible & p
 
 
 def plane_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = False):
@@ -316,15 +322,22 @@ def _plane(d, o, obj, rules: Rules, vz: float, cert: bool = False):
         assert o is None, "certified decisions are for rays from the viewpoint"
         bden = KB * U64 * KD * cert          # Σ|n_i d_i| <= |n||d| <= KD·cert
         tb = dr.abs(t) * dr.fma(dr.abs(inv_den), bden, KB * U64)
-        tmin = dr.opaque(F, rules.t_min)
-        # t = n·q/(n·d): with n·d within its bound of 0, t may be anything (unless n·q = 0
-        # exactly, a plane through the viewpoint: t = 0)
-        # with t_min = 0 this covers an unsure n·d too: then tb > |t|, so t + tb > 0, or
-        # (n·d = ±0) t + tb = −inf + inf is NaN, which '~(... <=)' counts as possible
-        possible = ~(t + tb <= tmin)
-        if rules.t_min > 0:
-            possible |= (dr.abs(den) <= bden) & (nq != 0)
-        cinfo = [_Cert(t - tb > tmin, possible), tb]
+        if rules.t_min == 0:
+            # t > 0 is sign(n·q)·sign(n·d) > 0: certain where n·d is beyond its bound (n·q
+            # is exact), possible where t > 0 or n·d is within it (unless n·q = 0 exactly,
+            # a plane through the viewpoint, t = 0; t is NaN there when n·d = 0 too)
+            t_pos, den_ok = t > 0, dr.abs(den) > bden
+            if isinstance(obj.nq, (int, float)):     # n·q on the host (its sign is folded
+                maybe = ~den_ok if obj.nq != 0 else False     # into the kernel already)
+            else:
+                maybe = ~den_ok & (nq != 0)
+            cinfo = [_Cert(t_pos & den_ok, t_pos | maybe if maybe is not False else t_pos),
+                     tb]
+        else:
+            # t = n·q/(n·d): with n·d within its bound of 0, t may be anything
+            tmin = dr.opaque(F, rules.t_min)
+            possible = ~(t + tb <= tmin) | ((dr.abs(den) <= bden) & (nq != 0))
+            cinfo = [_Cert(t - tb > tmin, possible), tb]
     if rules.screen_clip != "off":
         # hit z = zn/den with zn = vz'·den + n·q'·d.z = vz'·(n.x d.x + n.y d.y) + g'·d.z,
         # g' = n·q' + n.z·vz' (host constant g; see the module docstring): nothing cancels
@@ -398,11 +411,7 @@ def fplane_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = F
     # the four edges as one test: their least value against the largest of their bounds
     # (a larger bound is still a bound)
     m = dr.minimum(dr.minimum(su, wd - su), dr.minimum(sv, hd - sv))
-    if isinstance(obj.bw, (int, float)):
-        bm = max(obj.bw, obj.bh)            # bw >= bu and bh >= bv
-    else:
-        bm = dr.maximum(obj.bw, obj.bh)
-    bm = _scaled(bm, cert)
+    bm = _scaled(obj.bm, cert)
     c.test(F, m, bm, rules.edges == "open")
     return (t, *c.split(), tb)
 
@@ -444,11 +453,11 @@ def sphere_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = F
     # t = c/(b' + s): its error from b' and from s = √disc, |√x − √y| <= √|x−y| (a loose
     # bound far from tangency, but t's bound only decides which near ties are re-decided)
     # (t > 0 on every hit, and the bound matters on hits only)
-    tb = t * dr.fma(opaque(F, _scaled(obj.bs, cert)) * t, opaque(F, obj.ic), KB * U64)
+    tb = t * dr.fma(opaque(F, _scaled(obj.bsic, cert)), t, KB * U64)
     c = _Cert(True, True)
     bo = _scaled(obj.bo, cert)              # NaN when c <= 0: never passes
-    c.test(F, ra - cn, bo, True)
-    c.test(F, bh, bo, True)
+    # outline r√a − |q×d| > 0 and front q·d > 0 share their bound: one test on the least
+    c.test(F, dr.minimum(ra - cn, bh), bo, True)
     if rules.clip_spheres and rules.screen_clip != "off":
         zb = dr.fma(dr.abs(t), dr.abs(d.z), dr.opaque(F, abs(vz))) * (KB * U64) + tb
         _clip_test(c, F, z, zb, rules)

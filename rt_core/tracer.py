@@ -147,9 +147,10 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, c
             hit = res[1]
             if skip is not None:
                 hit &= oid != skip
+            # (one object: no ties, so no t bound to carry)
             st.fold(res[0], hit, oid, rules, single_kind,
-                    *((res[2], res[3], dr.opaque(T.Int32, obj.grp) if shared else None)
-                      if cert else ()))
+                    *((res[2], res[3] if len(ks.consts) > 1 else None,
+                       dr.opaque(T.Int32, obj.grp) if shared else None) if cert else ()))
     if cert:
         return _decide_flagged(ks, cam, rules, st, d)
     hit = st.id >= 0
@@ -220,7 +221,8 @@ class Best:
             if getattr(self, "fresh", False):
                 # the first object: no other hit yet
                 self.fresh = False
-                self.tb = dr.select(upd, tb, self.tb)
+                if tb is not None:
+                    self.tb = dr.select(upd, tb, self.tb)
                 self.lo2 = dr.select(hit, self.lo2, unsure)
                 if grp is not None:
                     self.grp = dr.select(upd, grp, self.grp)
