@@ -37,7 +37,6 @@ kappa_t·u_p (rt_core: <= 1.25 measured on every family, both precisions).
 from __future__ import annotations
 
 import math
-import re
 from dataclasses import dataclass, field
 from decimal import Decimal
 from fractions import Fraction
@@ -567,16 +566,15 @@ def trace_exact(xs: XScene, d: np.ndarray, rules: Rules = Rules(), rays=None) ->
 
 # --- the camera, exactly ----------------------------------------------------------------------
 
-def camera_offsets(window, viewpoint, columns: int, rows: int, sampling: str = "corners"):
-    """Exact world − viewpoint of every pixel, image order (top row first), as integer
-    triples E with a common positive denominator: a list of E and the denominator.
-    ``window`` and ``viewpoint``: numbers (Fractions, or floats taken exactly)."""
+def _offsets(window, viewpoint, columns: int, rows: int, pixels, sampling: str):
+    """Exact world − viewpoint of the given pixels (image order, top row first) as integer
+    triples with one common positive denominator: (list of triples, denominator)."""
     ww, wh = (Fraction(c) for c in window)
     vx, vy, vz = (Fraction(c) for c in viewpoint)
     out = []
-    for i in range(columns * rows):
-        r = i // columns
-        x, y = i - r * columns, rows - 1 - r
+    for i in pixels:
+        r, x = divmod(int(i), columns)
+        y = rows - 1 - r
         if sampling == "corners":
             wx = Fraction(x, columns - 1) * ww - ww / 2
             wy = Fraction(y, rows - 1) * wh - wh / 2
@@ -588,6 +586,13 @@ def camera_offsets(window, viewpoint, columns: int, rows: int, sampling: str = "
     for e in out:
         L = math.lcm(L, *(c.denominator for c in e))
     return [tuple(int(c * L) for c in e) for e in out], L
+
+
+def camera_offsets(window, viewpoint, columns: int, rows: int, sampling: str = "corners"):
+    """Exact world − viewpoint of every pixel, image order (top row first), as integer
+    triples E with a common positive denominator: a list of E and the denominator.
+    ``window`` and ``viewpoint``: numbers (Fractions, or floats taken exactly)."""
+    return _offsets(window, viewpoint, columns, rows, range(columns * rows), sampling)
 
 
 def direction_error(window, viewpoint, columns: int, rows: int, d: np.ndarray,
@@ -609,23 +614,8 @@ def ideal_rays(window, viewpoint, columns: int, rows: int, pixels, sampling: str
     """The course's ideal rays (exact corner-grid or centre samples − viewpoint) of the given
     pixel indices (image order), as ``(rays, d)`` for ``trace_exact``: integer triples with
     their denominator, and the unit directions rounded to float64."""
-    ww, wh = (Fraction(c) for c in window)
-    vx, vy, vz = (Fraction(c) for c in viewpoint)
-    E = []
-    for i in pixels:
-        r, x = divmod(int(i), columns)
-        y = rows - 1 - r
-        if sampling == "corners":
-            wx = Fraction(x, columns - 1) * ww - ww / 2
-            wy = Fraction(y, rows - 1) * wh - wh / 2
-        else:
-            wx = Fraction(2 * x + 1, 2 * columns) * ww - ww / 2
-            wy = Fraction(2 * y + 1, 2 * rows) * wh - wh / 2
-        E.append((wx - vx, wy - vy, -vz))
-    L = 1
-    for e in E:
-        L = math.lcm(L, *(c.denominator for c in e))
-    rays = [(tuple(int(c * L) for c in e), L) for e in E]
-    d = np.array([[float(c) for c in e] for e in E], np.float64).reshape(-1, 3)
+    E, L = _offsets(window, viewpoint, columns, rows, pixels, sampling)
+    rays = [(e, L) for e in E]
+    d = np.array([[c / L for c in e] for e in E], np.float64).reshape(-1, 3)
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     return rays, d

@@ -110,7 +110,7 @@ def primary_offsets(scene: Scene, cam: Camera, T):
     sc = Fraction(2) ** k
     op = lambda v: dr.opaque(F, float(v * sc))
 
-    def axis(ix, s, c, n, edge0, edge1):
+    def axis(ix, s, c, edge0, edge1):
         # (ix)·s + c with s = hi + lo: the lo product first, then one fma
         hi, lo = _split(s * sc, T.precision)
         w = dr.fma(ix, dr.opaque(F, hi), dr.fma(ix, dr.opaque(F, lo), op(c)))
@@ -124,8 +124,8 @@ def primary_offsets(scene: Scene, cam: Camera, T):
     # x − c = (x − c_hi) − c_lo and y − c = ((rows − 1 − c_hi) − r) − c_lo: integers first
     ix = F(x) - dr.opaque(F, float(hx))
     iy = dr.opaque(F, float(cam.rows - 1 + cam.row_shift - hy)) - F(r)
-    wx = axis(ix, sx, cx, cam.columns, (-hx, -ww / 2 - vx), (cam.columns - 1 - hx, ww / 2 - vx))
-    wy = axis(iy, sy, cy, cam.rows, (-hy, -wh / 2 - vy), (cam.rows - 1 - hy, wh / 2 - vy))
+    wx = axis(ix, sx, cx, (-hx, -ww / 2 - vx), (cam.columns - 1 - hx, ww / 2 - vx))
+    wy = axis(iy, sy, cy, (-hy, -wh / 2 - vy), (cam.rows - 1 - hy, wh / 2 - vy))
     # (with row_shift the row above the window, y = rows, is no edge: its fma value stays)
     wz = op(-vz) + dr.zeros(F, cam.size)
     return T.Array3(wx, wy, wz)

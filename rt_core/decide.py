@@ -78,6 +78,7 @@ class _Exact:
             self.Q = tuple(exact(c) - v for c, v in zip(obj.center, V))
             self.cc = _dot(self.Q, self.Q) - exact(obj.radius) ** 2
             self.fQ, self.fcc = tuple(float(c) for c in self.Q), float(self.cc)
+            self.nQ = math.sqrt(sum(c * c for c in self.fQ))
             return
         N = tuple(exact(c) for c in obj.given_normal)
         self.N = N
@@ -95,12 +96,14 @@ class _Exact:
             self.h2 = h * h * NN * PP
         # float copies for a quick screen (``_surely_missed``)
         f = lambda v: tuple(float(c) for c in v)
+        norm = lambda v: math.sqrt(sum(c * c for c in v))
         self.fQ = f(self.Q)
-        if obj.kind == "sphere":
-            return
+        self.nQ = norm(self.fQ)
         self.fN, self.fNQ = f(self.N), float(self.NQ)
+        self.nN = norm(self.fN)
         if obj.kind == "fplane":
             self.fp, self.fy = f(self.p), f(self.y)
+            self.np, self.ny = norm(self.fp), norm(self.fy)
             self.fw2, self.fh2 = float(self.w2), float(self.h2)
 
 
@@ -152,8 +155,7 @@ def _surely_missed(o: _Exact, fE, fEE) -> bool:
     nE = math.sqrt(fEE)
     if o.kind == "sphere":
         b = o.fQ[0] * fE[0] + o.fQ[1] * fE[1] + o.fQ[2] * fE[2]
-        nQ2 = o.fQ[0] ** 2 + o.fQ[1] ** 2 + o.fQ[2] ** 2
-        if b < -SCREEN * math.sqrt(nQ2) * nE:
+        if b < -SCREEN * o.nQ * nE:
             return True                       # centre behind the viewpoint
         D = b * b - fEE * o.fcc
         return D < -SCREEN * (b * b + fEE * abs(o.fcc) + 1e-300)
@@ -163,17 +165,15 @@ def _surely_missed(o: _Exact, fE, fEE) -> bool:
         return False                          # nearly parallel: let the exact test decide
     s = o.fNQ / nd
     nq = abs(o.fNQ)
-    if s < 0 and nq > SCREEN * (math.sqrt(sum(c * c for c in o.fN)) *
-                                math.sqrt(sum(c * c for c in o.fQ))):
+    if s < 0 and nq > SCREEN * o.nN * o.nQ:
         return True                           # behind the viewpoint
     if o.kind != "fplane" or s <= 0:
         return False
     H = tuple(s * e - q for e, q in zip(fE, o.fQ))
     a = o.fp[0] * H[0] + o.fp[1] * H[1] + o.fp[2] * H[2]
     bb = o.fy[0] * H[0] + o.fy[1] * H[1] + o.fy[2] * H[2]
-    nH = math.sqrt(H[0] ** 2 + H[1] ** 2 + H[2] ** 2) + math.sqrt(sum(c * c for c in o.fQ))
-    pa = math.sqrt(sum(c * c for c in o.fp)) * nH
-    ya = math.sqrt(sum(c * c for c in o.fy)) * nH
+    nH = math.sqrt(H[0] ** 2 + H[1] ** 2 + H[2] ** 2) + o.nQ
+    pa, ya = o.np * nH, o.ny * nH
     return (a < -SCREEN * pa or bb < -SCREEN * ya or
             a * a > o.fw2 * (1 + SCREEN) + SCREEN * pa * pa or
             bb * bb > o.fh2 * (1 + SCREEN) + SCREEN * ya * ya)

@@ -33,7 +33,8 @@ import numpy as np
 
 from .rules import Rules
 from .scene import sub, unit
-from .shapes import KIND_CODE, opaque3
+from .kinds import KIND_CODE
+from .shapes import opaque3
 from .jitlog import NullLog
 from .tracer import KernelScene, closest_hit, occluded, surface
 

@@ -52,7 +52,7 @@ import drjit as dr
 from .rules import Rules
 from .scene import Scene, Sphere, exact
 
-from .kinds import KIND_CODE, PLANE_KINDS, dispatch  # noqa: F401  (re-exported)
+from .kinds import dispatch
 
 
 @dataclass(frozen=True)
@@ -224,21 +224,21 @@ def _check(d):
 
 # --- level 1: t and mask -----------------------------------------------------------------------
 #
-# Certified decisions (``cert``: the largest |d| of the rays, 1 for the camera's; rays from the
-# viewpoint): each function returns t, the
-# masks ``certain`` (a hit in exact arithmetic for sure: the hit mask) and ``possible`` (a
-# hit in exact arithmetic is possible: the verdict is unsure where possible & ~certain), and
-# ``tb``, a bound on the error of t.  A value f
-# computed from inputs with componentwise relative errors (host constants: one rounding from
-# the exact value, rt_core/shapes.object_constants; ray components: at most 6 units, the
-# camera's fma plus the normalisation's product, the common scale factor being irrelevant to
-# every decision) and k rounded operations is within (Σ input errors + k)·u·f_abs of the exact
-# value on the scene's numbers and the ideal ray, where f_abs is f evaluated with every term
-# replaced by its absolute value (the standard forward bound of a polynomial).  Every decision
-# here needs at most 16 units; KB = 32 covers it twice, and the bounds are computed from
-# absolute values only, so a term that is exactly 0 contributes nothing: a decision whose
-# every term is exact (a plane in z = 0, an axis-aligned edge hit by an exact sample) has
-# bound 0 and is certain.  rt_core/decide.py decides the flagged rays exactly.
+# Certified decisions (``cert``: the largest |d| of the rays, 1 for the camera's; rays from
+# the viewpoint): each function returns t, the masks ``certain`` (a hit in exact arithmetic
+# for sure: the hit mask) and ``possible`` (a hit in exact arithmetic is possible: the verdict
+# is unsure where possible & ~certain), and ``tb``, a bound on the error of t.
+#
+# A value f computed from inputs with componentwise relative errors (host constants: one
+# rounding from the exact value, ``object_constants``; ray components: a few units, the
+# camera's double-float sample and the normalisation's product, the common scale factor
+# being irrelevant to every decision) and k rounded operations is within
+# (Σ input errors + k)·u·f_abs of the exact value on the scene's numbers and the ideal ray,
+# f_abs being f with every term replaced by its absolute value.  Every decision here needs at
+# most 16 units; KB = 32 covers it twice.  With |d_i| <= |d| <= 1 each f_abs is bounded by a
+# constant of the object (``_plane_bounds``, ``_sphere_bounds``), so a bound costs no work per
+# ray; a constant that is 0 (a plane in z = 0: n.x = n.y = g = 0) makes its decision certain.
+# rt_core/decide.py decides the flagged rays exactly.
 
 U64 = 2.0 ** -53
 KB = 32.0
@@ -265,9 +265,12 @@ class _Cert:
             b, nb = dr.opaque(F, b), dr.opaque(F, -b)
         else:
             nb = -b
-        c, p = ((v > b) if strict else (v >= b)), ((v > nb) if strict else (v >= nb))
-        self.certain = c if self.certain is True else self.certain & c
-        self.possible = p if self.possible is True else self.possible & p
+        self.add((v > b) if strict else (v >= b), (v > nb) if strict else (v >= nb))
+
+    def add(self, certain, possible):
+        """One more decision, as its own 'certainly passes' and 'possibly passes' masks."""
+        self.certain = certain if self.certain is True else self.certain & certain
+        self.possible = possible if self.possible is True else self.possible & possible
 
     def split(self):
         """(certain hit, possible hit): unsure is possible & ~certain"""
@@ -283,10 +286,10 @@ def _clip_test(cert: _Cert, F, zs, bz, rules: Rules):
         b, nb = dr.opaque(F, bz), dr.opaque(F, -bz)
     else:
         b, nb = bz, -bz
-    strict = rules.screen_clip == ">="
-    c, p = ((zs < nb), (zs < b)) if strict else ((zs <= nb), (zs <= b))
-    cert.certain = c if cert.certain is True else cert.certain & c
-    cert.possible = p if cert.possible is True else cert.possible & p
+    if rules.screen_clip == ">=":
+        cert.add(zs < nb, zs < b)
+    else:
+        cert.add(zs <= nb, zs <= b)
 
 
 def plane_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = False):

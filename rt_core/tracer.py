@@ -23,8 +23,8 @@ from .backend import Types
 from .decide import decide, decide_rays, prepare as prepare_exact
 from .rules import Rules
 from .scene import Scene, SceneError
-from .shapes import (BOUND_FIELDS, KIND_CODE, PLANE_KINDS, ObjectConstants, object_constants,
-                     object_t)
+from .kinds import KIND_CODE, PLANE_KINDS
+from .shapes import BOUND_FIELDS, ObjectConstants, object_constants, object_t
 
 backend.require("llvm")     # fail early, with a message, on an LLVM that would abort kernels
 
@@ -175,12 +175,12 @@ class Best:
     def __init__(self, t, id):
         self.t, self.id = t, id
         self.cert = False
+        self.fresh = True           # no object folded in yet
 
     def certify(self, T, n, shared: bool = True):
         self.cert = True
         self.shared = shared
         self.tb = dr.zeros(T.Float, n)
-        self.fresh = True
         self.grp = dr.full(T.Int32, -1, n) if shared else None
         # the least lower bound of the other hits; −inf marks a ray to decide exactly
         self.lo2 = dr.full(T.Float, dr.inf, n)
@@ -218,7 +218,7 @@ class Best:
             # ``grp`` is None when no two objects share a plane or sphere)
             # an unsure object (possible, not certain) sets lo2 = −inf: the ray is flagged
             unsure = dr.select(possible, -dr.inf, dr.inf)
-            if getattr(self, "fresh", False):
+            if self.fresh:
                 # the first object: no other hit yet
                 self.fresh = False
                 if tb is not None:

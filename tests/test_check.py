@@ -321,3 +321,15 @@ def test13_hint_for_outline_only_differences():
     block = np.zeros_like(outline)
     block[15:25, 15:25] = True
     assert hints(ids, block) == []
+
+
+def test14_a_bad_hit_dump_is_bad_input(ctracer, tmp_path, capsys):
+    from tools.cli import main
+    scene = REPO / "scenes" / "seed_fplane.txt"
+    img = _render(ctracer / "course", scene, 40, tmp_path)
+    hits = tmp_path / "h.hits"
+    hits.write_text("0 0 0 1.5\n3 x 0 2\n")
+    assert main(["check", str(scene), str(img), "--hits", str(hits)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{hits}:2:" in err[0]
+    assert main(["check", str(scene), str(img), "--hits", str(tmp_path / "none")]) == 2

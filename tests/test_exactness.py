@@ -11,7 +11,6 @@ exact oracle (mitsuba_ref/exact.py, which reads the files itself).
 from __future__ import annotations
 
 import random
-from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
@@ -184,7 +183,6 @@ def test04_f64_decides_exactly(path, rules):
 def test05_nd_is_sign_exact_without_the_filter():
     """n·d itself, without the certified re-decision: exactly opposite products cancel to 0
     (the parallel rays of m4__v1_a04 miss), which an unpaired fma would not do."""
-    import drjit as dr
     from rt_core.camera import primary_directions
     from rt_core.tracer import closest_hit, prepare
     path, W, H = COURSE / "numeric" / "m4__v1_a04.txt", 400, 333

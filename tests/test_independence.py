@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rt_core.kinds import KINDS
+from rt_core.kinds import KIND_CODE, KINDS
 
 REPO = Path(__file__).resolve().parents[1]
 REFERENCES = ("mitsuba_ref.oracle", "mitsuba_ref.exact", "mitsuba_ref.scenefile",
@@ -103,7 +103,7 @@ def test04_every_table_covers_every_kind():
               "convert._SHAPES": convert._SHAPES, "accel.LAYOUT": accel.LAYOUT,
               "scenefile.LAYOUT": {k: v for k, v in scenefile.LAYOUT.items() if k in KINDS},
               "parser._GROUPS": {k: v for k, v in parser._GROUPS.items() if k in KINDS},
-              "shapes.KIND_CODE": shapes.KIND_CODE}
+              "kinds.KIND_CODE": KIND_CODE}
     for name, table in tables.items():
         assert set(table) == set(KINDS), name
 

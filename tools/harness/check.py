@@ -134,9 +134,9 @@ class Renderer:
         from rt_core import backend
         from rt_core.camera import make_camera
         self.scene, self.T = scene, backend.types("f64")
-        self.cam = make_camera(scene, columns, rows)
         self.cameras = {r: make_camera(scene, columns, rows, rules=_rows(r))
                         for r in ("course", "shifted")}
+        self.cam = self.cameras["course"]
         self.cache = {}
 
     def image(self, rules, max_dist: float) -> np.ndarray:
@@ -233,7 +233,13 @@ def infer(r: Renderer, theirs: np.ndarray, start_rules, start_max_dist: float, f
     rules, md = start_rules, start_max_dist
     bnd = Boundary(r, md)
     total = r.cam.columns * r.cam.rows
-    diff = lambda cfg: _differs(r.image(*cfg), theirs)
+    masks = {}
+
+    def diff(cfg):
+        """The pixels that differ by more than one level under config ``cfg`` (kept)."""
+        if cfg not in masks:
+            masks[cfg] = _differs(r.image(*cfg), theirs)
+        return masks[cfg]
 
     def delta(a, b) -> float:
         """Unexcused differing pixels of config a minus those of config b."""
@@ -372,7 +378,13 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
     res.deviations = [WORDS[(f.rule, f.value)] for f in res.findings
                       if (f.rule, f.value) in WORDS and f.determined]
     if hits_path:
-        res.hits = check_hits(r, final_rules, hits_path)
+        try:
+            res.hits = check_hits(r, final_rules, hits_path)
+        except (OSError, ValueError) as exc:
+            res.status = "error"
+            res.reason = str(exc) if isinstance(exc, ValueError) else \
+                f"{hits_path}: {(exc.strerror or str(exc)).lower()}"
+            return res
     wrong = res.classes == CLASSES.index("wrong")
     res.status = "pass" if not wrong.any() and not res.hits.get("wrong") else "fail"
     if wrong.any():
@@ -503,10 +515,7 @@ def check_hits(r: Renderer, rules, path: str) -> dict:
     """Object id by id and depth by depth against rt_core f64 (exact decisions): ids must be
     equal; depth within 1e-9 relative."""
     W, H = r.cam.columns, r.cam.rows
-    try:
-        theirs, tt = read_hits(path, W, H)
-    except (OSError, ValueError) as exc:
-        return {"error": str(exc), "wrong": 1}
+    theirs, tt = read_hits(path, W, H)      # OSError, ValueError: the caller reports them
     ids, t = r.ids(rules)
     listed = theirs != -2
     id_wrong = listed & (theirs != ids)
