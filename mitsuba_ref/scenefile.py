@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from decimal import Decimal
 from fractions import Fraction
 
+from rt_core.inputfile import read_input
 from rt_core.kinds import KEYWORDS, KINDS, kind_of_code, kind_of_keyword
 
 # number groups after the type token: (field, count); None = not geometry (materials)
@@ -96,8 +97,7 @@ def read_text(text: str) -> File:
 
 
 def read(path) -> File:
-    with open(path, "rb") as fh:
-        return read_text(fh.read().decode("utf-8", "replace"))
+    return read_text(read_input(path, "scene").decode("utf-8", "replace"))
 
 
 def _exact(tok: str) -> Fraction:

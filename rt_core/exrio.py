@@ -1,16 +1,22 @@
 """OpenEXR I/O: float32 channels named ``layer.channel`` plus string header attributes.
 
-Writes go to a temporary name in the target directory and are renamed into place, so a
-failed or interrupted write never leaves a partial file.
+Writes go to a temporary name in the target directory, are checked to be complete (the
+binding does not report a failed flush when the file is closed: a small EXR on a full disk
+would be lost silently) and are renamed into place, so a failed or interrupted write never
+leaves a partial file.
 """
 from __future__ import annotations
 
 import os
 
+import struct
+
 import numpy as np
 import OpenEXR
 
+from .inputfile import check_input
 from .native import native_output_captured
+from .usererror import InputError
 from .outputs import atomic_write  # noqa: F401  (re-exported: EXR writers use it)
 
 
@@ -36,7 +42,54 @@ def write_exr(path: str, channels: dict, attrs: dict | None = None,
     header = {"compression": compression, "type": OpenEXR.scanlineimage}
     for k, v in (attrs or {}).items():
         header[k] = str(v)
-    atomic_write(path, lambda tmp: OpenEXR.File(header, data).write(tmp))
+    atomic_write(path, lambda tmp: OpenEXR.File(header, data).write(tmp), verify=incomplete)
+
+
+def incomplete(path: str) -> str | None:
+    """Why a single-part scanline EXR is not complete, or None: the header ends, the
+    offset table points at chunks that follow one another and the last one ends the file.
+    (What ``write_exr`` writes; the chunk count comes from the table itself, so no table of
+    lines per chunk per compression is needed.)"""
+    size = os.path.getsize(path)
+    with open(path, "rb") as f:
+        head = f.read(8)
+        if len(head) < 8 or head[:4] != b"\x76\x2f\x31\x01":
+            return "the file is truncated (no EXR header)"
+        pos, buf = 8, b""
+        while True:                                   # attributes: name\0 type\0 size value
+            f.seek(pos)
+            buf = f.read(1 << 16)
+            if not buf:
+                return "the file is truncated (in its header)"
+            if buf[0] == 0:                           # the header's terminating null byte
+                pos += 1
+                break
+            name_end = buf.find(b"\0")
+            type_end = buf.find(b"\0", name_end + 1)
+            if name_end < 0 or type_end < 0 or type_end + 5 > len(buf):
+                return "the file is truncated (in its header)"
+            (n,) = struct.unpack_from("<i", buf, type_end + 1)
+            pos += type_end + 5 + n
+        f.seek(pos)
+        first = f.read(8)
+        if len(first) < 8:
+            return "the file is truncated (no chunk table)"
+        (start,) = struct.unpack("<Q", first)
+        count = (start - pos) // 8
+        if start <= pos or (start - pos) % 8 or start >= size:
+            return "the file is incomplete (its chunk table was not written)"
+        f.seek(pos)
+        table = np.frombuffer(f.read(8 * count), "<u8")
+        end = start
+        for off in np.sort(table):
+            if off != end:
+                return "the file is incomplete (a chunk is missing)"
+            f.seek(int(off) + 4)
+            (n,) = struct.unpack("<i", f.read(4) or b"\xff\xff\xff\xff")
+            end = int(off) + 8 + n
+        if end != size:
+            return "the file is truncated (its last chunk is short)"
+    return None
 
 
 def _native_reason(path: str, lines: list[str]) -> str | None:
@@ -56,6 +109,10 @@ def read_exr(path: str) -> tuple[dict, dict]:
     path = os.fspath(path)
     if not os.path.exists(path):
         raise ExrError(f"{path}: no such file")
+    try:
+        check_input(path, "EXR")
+    except InputError as exc:
+        raise ExrError(str(exc)) from None
     try:
         with open(path, "rb") as f:
             magic = f.read(4)

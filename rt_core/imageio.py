@@ -14,6 +14,8 @@ from __future__ import annotations
 import numpy as np
 
 from .exrio import atomic_write
+from .inputfile import read_input
+from .usererror import InputError
 
 
 def _check(pixels) -> np.ndarray:
@@ -88,8 +90,9 @@ def read_image(path: str) -> np.ndarray:
     """A (rows, columns, 3) uint8 image from a binary (P6) or ASCII (P3) PPM or a PNG, row 0
     the top.  16-bit PPMs (maxval > 255) are scaled to 8 bits; PNG through Pillow."""
     try:
-        with open(path, "rb") as f:
-            data = f.read()
+        data = read_input(path, "image")
+    except InputError as exc:
+        raise ImageError(str(exc)) from None
     except OSError as exc:
         raise ImageError(f"{path}: cannot read the image: {exc.strerror or exc}") from None
     if data[:8] == b"\x89PNG\r\n\x1a\n":

@@ -1,7 +1,10 @@
 """Writing outputs: atomically (temporary name, then rename), strict JSON, figures.
 
-Every file rtval writes goes through ``atomic_write``, so a failed or interrupted run never
-leaves a partial file behind.
+Every file rtval writes goes through ``atomic_write``: the content goes to a temporary file
+beside the target, is checked (a lost write on a full disk is an error, not a short file),
+and is renamed into place.  A failed, interrupted or terminated run leaves neither a partial
+file nor its temporary; one killed outright (SIGKILL) leaves a ``.tmp-rtval-PID-*`` file that
+the next write into the same directory removes.
 """
 from __future__ import annotations
 
@@ -10,43 +13,186 @@ import json
 import math
 import os
 import stat
+import sys
 import tempfile
 from pathlib import Path
 
+TMP_PREFIX = ".tmp-rtval-"
+_LIVE: set[str] = set()          # this process's temporaries (removed at exit, see cleanup())
 
-def atomic_write(path: str, write) -> None:
-    """Call ``write(tmp_path)`` and rename the result to ``path`` only if it succeeded.
+
+class WriteError(OSError):
+    """An output that could not be written; ``str(err)`` is one line naming the target."""
+    exit_code = 2
+
+    def __init__(self, path: str, reason: str, hint: str = ""):
+        super().__init__(f"{path}: cannot write: {reason}" + (f"; {hint}" if hint else ""))
+        self.target = path
+
+
+_HINTS = {errno.ENOSPC: "free some space or write elsewhere",
+          errno.EDQUOT: "free some space or write elsewhere",
+          errno.EROFS: "the file system is read-only: write elsewhere",
+          errno.EACCES: "no permission: write elsewhere",
+          errno.EPERM: "no permission: write elsewhere"}
+
+
+def _reason(exc: BaseException, tmp: str, path: str) -> tuple[str, str]:
+    """(one-line reason, hint) of a failed write, naming ``path`` and never the temporary."""
+    code = getattr(exc, "errno", None)
+    if isinstance(exc, OSError) and exc.strerror:
+        text = exc.strerror
+    else:
+        text = (str(exc).splitlines() or [type(exc).__name__])[0]
+        for e, name in ((errno.ENOSPC, "No space left on device"),
+                        (errno.EDQUOT, "Disk quota exceeded"),
+                        (errno.EROFS, "Read-only file system"),
+                        (errno.EACCES, "Permission denied")):
+            if name.lower() in text.lower():
+                code, text = e, name
+                break
+    text = (text.replace(tmp, path) if tmp else text).rstrip(". ")
+    return text[:1].lower() + text[1:], _HINTS.get(code, "")
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_stale(directory: str) -> list[str]:
+    """Remove the temporaries that killed rtval runs left in ``directory`` (their process is
+    gone); say so on stderr.  Returns the names removed."""
+    removed = []
+    try:
+        names = os.listdir(directory)
+    except OSError:
+        return removed
+    for name in names:
+        if not name.startswith(TMP_PREFIX):
+            continue
+        pid = name[len(TMP_PREFIX):].split("-", 1)[0]
+        if not pid.isdigit() or int(pid) == os.getpid() or _pid_alive(int(pid)):
+            continue
+        try:
+            os.unlink(os.path.join(directory, name))
+            removed.append(name)
+        except OSError:
+            pass
+    if removed:
+        print(f"rtval: removed {len(removed)} temporary file(s) left in {directory} by a "
+              f"killed run ({', '.join(sorted(removed)[:3])}{', ...' if len(removed) > 3 else ''})",
+              file=sys.stderr)
+    return removed
+
+
+def cleanup() -> None:
+    """Remove this process's temporaries (on SIGTERM and at exit; writes in progress die)."""
+    for tmp in list(_LIVE):
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        _LIVE.discard(tmp)
+
+
+def _checked(write, tmp: str, path: str, verify) -> None:
+    """``write(tmp)``, then ``verify(tmp)``; any failure becomes one WriteError naming
+    ``path``."""
+    try:
+        write(tmp)
+        size = os.path.getsize(tmp)
+        problem = "the file came out empty" if size == 0 else (verify(tmp) if verify else None)
+    except WriteError:
+        raise
+    except (OSError, RuntimeError) as exc:     # the EXR binding raises RuntimeError
+        reason, hint = _reason(exc, tmp, path)
+        raise WriteError(path, reason, hint) from None
+    if problem:
+        free = _free_bytes(os.path.dirname(tmp))
+        if free is not None and free < (1 << 20):
+            raise WriteError(path, f"no space left on device ({problem})",
+                             _HINTS[errno.ENOSPC])
+        raise WriteError(path, problem)
+
+
+def _free_bytes(directory: str) -> int | None:
+    try:
+        st = os.statvfs(directory)
+    except OSError:
+        return None
+    return st.f_bavail * st.f_frsize
+
+
+def _copy_into(src: str, path: str) -> None:
+    """Copy ``src`` into an existing non-regular file (a device, a pipe), every write
+    checked."""
+    try:
+        with open(src, "rb") as f, open(path, "wb", buffering=0) as out:
+            while chunk := f.read(1 << 20):
+                view = memoryview(chunk)
+                while view:
+                    n = out.write(view)
+                    view = view[n:]
+    except OSError as exc:
+        reason, hint = _reason(exc, src, path)
+        raise WriteError(path, reason, hint) from None
+
+
+def atomic_write(path: str, write, verify=None) -> None:
+    """Call ``write(tmp_path)`` and rename the result to ``path`` only if it succeeded and
+    ``verify(tmp_path)`` (if given) returns no problem.
 
     A symlink is written through (its target is replaced); an existing non-regular file
-    (``/dev/null``, a pipe) is written directly, since it cannot be replaced; the new file
-    gets the mode of the file it replaces, or 0666 less the umask."""
-    path = os.path.realpath(os.fspath(path))
-    if os.path.isdir(path):
-        raise IsADirectoryError(errno.EISDIR, "is a directory, expected a file name", path)
-    if os.path.exists(path) and not os.path.isfile(path):
-        write(path)
+    (``/dev/null``, a pipe) gets the bytes copied in with every write checked; the new file
+    gets the mode of the file it replaces, or 0666 less the umask.  Failures raise
+    WriteError (one line naming ``path``); no temporary is left behind."""
+    shown = os.fspath(path)
+    if os.path.isdir(shown):
+        raise IsADirectoryError(errno.EISDIR, "is a directory, expected a file name", shown)
+    ext = os.path.splitext(shown)[1]
+    if os.path.exists(shown) and not os.path.isfile(shown):
+        with tempfile.TemporaryDirectory(prefix=f"rtval-{os.getpid()}-") as d:
+            tmp = os.path.join(d, "out" + ext)
+            _checked(write, tmp, shown, verify)
+            _copy_into(tmp, shown)
         return
+    path = os.path.realpath(shown)
     directory = os.path.dirname(path)
     try:
         os.makedirs(directory, exist_ok=True)
     except FileExistsError:
         raise NotADirectoryError(errno.ENOTDIR, "not a directory", directory) from None
+    except OSError as exc:
+        raise WriteError(shown, f"cannot create {directory} ({(exc.strerror or str(exc)).lower()})") from None
+    remove_stale(directory)
     if os.path.exists(path):
         mode = stat.S_IMODE(os.stat(path).st_mode)
     else:
         umask = os.umask(0)
         os.umask(umask)
         mode = 0o666 & ~umask
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=os.path.splitext(path)[1], dir=directory)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f"{TMP_PREFIX}{os.getpid()}-", suffix=ext,
+                                   dir=directory)
+    except OSError as exc:
+        reason, hint = _reason(exc, "", shown)
+        raise WriteError(shown, reason, hint) from None
+    _LIVE.add(tmp)
     os.close(fd)
     try:
-        write(tmp)
+        _checked(write, tmp, shown, verify)
         os.chmod(tmp, mode)
         os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
+    finally:
+        _LIVE.discard(tmp)
+        if os.path.lexists(tmp):
             os.unlink(tmp)
-        raise
 
 
 def jsonable(x):

@@ -46,12 +46,12 @@ parses as its own course program read it
 """
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import math
 import re
 from dataclasses import dataclass
-from pathlib import Path
-
+from .inputfile import read_input
 from .scene import (GeometryError, Material, Num, PointLight, Scene, SceneError, make_fplane,
                     make_plane, make_sphere, make_tplane)
 
@@ -150,6 +150,7 @@ class _Ctx:
 
     def __init__(self, text: str, path: str):
         self.path = path
+        self.header_at: tuple = ()
         text = text.lstrip("\ufeff").replace("\r\n", "\n").replace("\r", "\n")
         self.lines: list[list[_Tok]] = []   # tokens per line, comments removed
         for lineno, raw in enumerate(text.split("\n"), 1):
@@ -274,7 +275,8 @@ def _read_header(ctx: _Ctx, group):
     """The two header groups (window w h, viewpoint x y z) with the dialect's reader."""
     window, wloc = group("header", *_HEADER[0])
     _check_window(ctx, window, wloc)
-    viewpoint, _ = group("header", *_HEADER[1])
+    viewpoint, vloc = group("header", *_HEADER[1])
+    ctx.header_at = tuple((t.line, t.col) for t in wloc + vloc)
     return window, viewpoint
 
 
@@ -287,6 +289,10 @@ def _read_object(ctx: _Ctx, kind: str, start: _Tok, group, lights: list, objects
         values.append(v)
         where.append(locs)
     obj = _build(ctx, kind, start, values, where)
+    if kind != "pointlight":          # where each number is, for errors found later
+        obj = dataclasses.replace(obj, at=tuple(
+            (name, tuple((t.line, t.col) for t in locs))
+            for (name, _, _), locs in zip(_GROUPS[kind], where)))
     (lights if kind == "pointlight" else objects).append(obj)
 
 
@@ -400,7 +406,8 @@ def _parse(text: str, path: str, sha: str) -> Scene:
     parse = _parse_keyword if dialect == "keyword" else _parse_numeric
     window, viewpoint, lights, objects = parse(ctx)
     return Scene(window=tuple(window), viewpoint=tuple(viewpoint), lights=tuple(lights),
-                 objects=tuple(objects), path=path, dialect=dialect, sha256=sha)
+                 objects=tuple(objects), path=path, dialect=dialect, sha256=sha,
+                 header_at=ctx.header_at)
 
 
 def parse_text(text: str | bytes, path: str = "<string>") -> Scene:
@@ -416,5 +423,5 @@ def parse_scene(path) -> Scene:
     """Parse a scene file (either dialect). ``Scene.sha256`` is the hash of the file's bytes.
 
     Raises SceneError for any problem in the content; OSError (missing file, ...) as is."""
-    data = Path(path).read_bytes()
+    data = read_input(path, "scene")
     return _parse(data.decode("utf-8", "replace"), str(path), hashlib.sha256(data).hexdigest())

@@ -7,7 +7,7 @@ among non-light objects in file order.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from decimal import Decimal
 from fractions import Fraction
 from typing import Tuple, Union
@@ -75,7 +75,8 @@ def unit(v: Vec3, what: str = "vector") -> Vec3:
 
 
 def fmt(v) -> str:
-    return "(" + ", ".join(f"{c:g}" for c in v) + ")"
+    """Numbers as written in the file where known (``Num``), else ``%g``."""
+    return "(" + ", ".join(c.text if isinstance(c, Num) else f"{c:g}" for c in v) + ")"
 
 
 def plane_frame(normal: Vec3, orient: Vec3) -> tuple[Vec3, Vec3, Vec3]:
@@ -115,6 +116,7 @@ class Sphere:
     center: Vec3
     radius: float
     line: int = 0
+    at: tuple = field(default=(), compare=False, repr=False)
     kind = "sphere"
 
 
@@ -125,6 +127,7 @@ class Plane:
     point: Vec3
     line: int = 0
     given_normal: Vec3 = ()  # as written in the file
+    at: tuple = field(default=(), compare=False, repr=False)   # see locate()
     kind = "plane"
 
 
@@ -140,6 +143,7 @@ class FPlane:
     ydir: Vec3              # rotmat row 1
     line: int = 0
     given_normal: Vec3 = ()  # as written in the file
+    at: tuple = field(default=(), compare=False, repr=False)   # see locate()
     kind = "fplane"
 
     @property
@@ -168,6 +172,7 @@ class TPlane:
     background: Material
     line: int = 0
     given_normal: Vec3 = ()  # as written in the file
+    at: tuple = field(default=(), compare=False, repr=False)   # see locate()
     kind = "tplane"
 
     @property
@@ -176,6 +181,15 @@ class TPlane:
 
 
 SceneObject = Union[Sphere, Plane, FPlane, TPlane]
+
+
+def locate(obj, name: str, index: int = 0):
+    """(line, col) of number ``index`` of the object's group ``name`` ("center", "point",
+    ...) as the parser recorded it in ``obj.at``; (obj.line, None) when not recorded."""
+    for group, places in obj.at:
+        if group == name and index < len(places):
+            return places[index]
+    return (obj.line or None, None)
 KINDS = tuple(_KINDS)
 
 
@@ -188,6 +202,7 @@ class Scene:
     path: str = "<memory>"
     dialect: str = "keyword"
     sha256: str = ""
+    header_at: tuple = field(default=(), compare=False, repr=False)  # (line, col) of w h x y z
 
     def kinds(self) -> tuple[str, ...]:
         """Object kinds present, in the fixed order of KINDS."""
@@ -195,8 +210,19 @@ class Scene:
         return tuple(k for k in KINDS if k in present)
 
     def default_rows(self, columns: int) -> int:
-        """The keyword programs' rule: rows = int(world_h / world_w * columns)."""
-        return int(self.window[1] / self.window[0] * columns)
+        """The keyword programs' rule: rows = int(world_h / world_w * columns).  A window so
+        tall that no image can have that many rows is a SceneError at its height."""
+        rows = self.window[1] / self.window[0] * columns
+        if not rows < 2 ** 31:
+            line, col = self.header_at[1] if self.header_at else (None, None)
+            raise SceneError(f"header: world window {fmt(self.window)} gives int(h/w·columns) = "
+                             f"{rows:.3g} rows at {columns} columns, more than an image can "
+                             "have; fix the window or give --rows", self.path, line, col)
+        return int(rows)
+
+    def at_viewpoint(self, axis: int):
+        """(line, col) of the viewpoint's coordinate ``axis``, or (None, None)."""
+        return self.header_at[2 + axis] if self.header_at else (None, None)
 
 
 def make_fplane(material: Material, normal: Vec3, point: Vec3, orient: Vec3,

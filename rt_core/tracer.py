@@ -22,7 +22,7 @@ from . import accel, backend
 from .backend import Types
 from .decide import decide, decide_rays, prepare as prepare_exact
 from .rules import Rules
-from .scene import Scene, SceneError
+from .scene import Scene, SceneError, locate
 from .kinds import KIND_CODE, PLANE_KINDS
 from .shapes import BOUND_FIELDS, ObjectConstants, object_constants, object_t
 
@@ -74,8 +74,7 @@ def prepare(scene: Scene, T: Types) -> KernelScene:
         consts = None
     if consts is None or any(not _finite(c) for c in consts):
         bad = next((o for o in scene.objects if not _finite_obj(scene, o)), scene.objects[0])
-        raise SceneError(f"{bad.kind}: its distance from the viewpoint overflows float64; "
-                         "numbers this large are out of range", scene.path, bad.line or None)
+        raise _overflow(scene, bad)
     limit = FLOAT_MAX[T.precision]
     for c in consts:
         big = max(_magnitudes(c))
@@ -84,9 +83,25 @@ def prepare(scene: Scene, T: Types) -> KernelScene:
             raise SceneError(f"{o.kind}: a constant of its intersection test ({big:.3g}) "
                              f"exceeds the {T.precision} range ({limit:.3g})"
                              + ("; render with --precision f64" if T.precision == "f32" else ""),
-                             scene.path, o.line or None)
+                             scene.path, o.line or None)  # a product of several fields
     by_kind = {k: [c for c in consts if c.kind == k] for k in KIND_CODE}
     return KernelScene(scene, T, consts, by_kind)
+
+
+def _overflow(scene: Scene, obj) -> SceneError:
+    """The error for an object too far from the viewpoint for float64, at whichever of the
+    two has the larger coordinate (the one at fault)."""
+    name = "center" if obj.kind == "sphere" else "point"
+    pos = obj.center if obj.kind == "sphere" else obj.point
+    i = max(range(3), key=lambda k: max(abs(pos[k]), abs(scene.viewpoint[k])))
+    if abs(scene.viewpoint[i]) >= abs(pos[i]):
+        line, col = scene.at_viewpoint(i)
+        return SceneError(f"header: the viewpoint is so far from the {obj.kind} on line "
+                          f"{obj.line} that their distance overflows float64; numbers this "
+                          "large are out of range", scene.path, line, col)
+    line, col = locate(obj, name, i)
+    return SceneError(f"{obj.kind}: its distance from the viewpoint overflows float64; "
+                      "numbers this large are out of range", scene.path, line, col)
 
 
 def _magnitudes(c: ObjectConstants):

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from rt_core.outputs import atomic_write, json_text, save_figure, write_json
+from rt_core.outputs import WriteError, atomic_write, json_text, save_figure, write_json
 
 
 def _strict(text):
@@ -26,8 +26,9 @@ def test02_failed_write_leaves_nothing(tmp_path):
     def boom(tmp):
         open(tmp, "w").write("partial")
         raise RuntimeError("disk on fire")
-    with pytest.raises(RuntimeError):
+    with pytest.raises(WriteError, match=r"out\.txt: cannot write: disk on fire") as err:
         atomic_write(tmp_path / "out.txt", boom)
+    assert ".tmp" not in str(err.value)
     assert list(tmp_path.iterdir()) == []
 
 

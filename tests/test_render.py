@@ -191,7 +191,12 @@ def test11_float64_overflow_is_one_line(tmp_path):
     scene = tmp_path / "huge.txt"
     scene.write_text(SPHERE_AT.format(z="-1e200", r="1"))          # |q|² overflows float64
     r = rtval("render", scene, "--columns", 16, "--precision", "f64", "-o", tmp_path / "a.exr")
-    assert r.returncode == 2 and "huge.txt:3" in r.stderr and "Traceback" not in r.stderr
+    # at the number at fault: the centre's z (line 7, column 5), not just the object's line
+    assert r.returncode == 2 and "huge.txt:7:5: sphere" in r.stderr and "Traceback" not in r.stderr
+    # a viewpoint far off is the viewpoint's fault: its column in the header
+    scene.write_text(SPHERE_AT.format(z="-1", r="1").replace("0 0 3", "0 0 1e300"))
+    r = rtval("render", scene, "--columns", 16, "--precision", "f64", "-o", tmp_path / "a.exr")
+    assert r.returncode == 2 and "huge.txt:2:5: header: the viewpoint" in r.stderr
 
 
 def test12_values_beyond_float32_in_an_f64_render_are_counted(tmp_path):

@@ -10,11 +10,25 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
 
 COMMANDS = ["check", "render", "convert", "compare", "validate", "exr", "gallery", "bench", "report",
             "stability"]
 USAGE_EXIT = 64
+
+
+class Terminated(BaseException):
+    """SIGTERM or SIGHUP: unwinds like Ctrl-C, so that every write in progress removes its
+    temporary file and every child process is stopped."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _terminate(signum, frame):
+    raise Terminated(signum)
 
 
 class Parser(argparse.ArgumentParser):
@@ -37,8 +51,15 @@ def main(argv=None) -> int:
     if hasattr(args, "before_import"):      # e.g. pick Dr.Jit's kernel cache before it loads
         args.before_import(args)
     from rt_core.errors import USER_ERRORS
+    from rt_core.outputs import cleanup
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, _terminate)
     try:
         return int(args.func(args) or 0)
+    except Terminated as e:
+        cleanup()
+        print(f"rtval: terminated by {signal.Signals(e.signum).name}", file=sys.stderr)
+        return 128 + e.signum
     except USER_ERRORS as e:
         if isinstance(e, OSError) and e.filename:
             msg = f"{e.filename}: {(e.strerror or str(e)).lower()}"
@@ -47,6 +68,7 @@ def main(argv=None) -> int:
         print(f"rtval {args.command}: {msg}", file=sys.stderr)
         return getattr(e, "exit_code", 2)
     except KeyboardInterrupt:
+        cleanup()
         print("rtval: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:

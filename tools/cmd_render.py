@@ -86,6 +86,7 @@ def run(args) -> int:
     from rt_core.errors import InputError
     from rt_core.imageio import write_png, write_ppm
     from rt_core.jitlog import KernelLog
+    from rt_core.outputs import WriteError
     from rt_core.parser import parse_scene
     from rt_core.render import nonfinite_count, provenance, render_image, write_images
     from rt_core.rules import Rules
@@ -123,6 +124,8 @@ def run(args) -> int:
                 write_ppm(path, pixels)
             else:
                 write_png(path, pixels, attrs)
+        except WriteError:
+            raise                       # one line naming the target already
         except OSError as e:
             raise InputError(f"{path}: cannot write ({e.strerror or e})") from None
     size = f"{cam.columns}x{cam.rows} {args.precision}"

@@ -14,6 +14,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from rt_core.exrio import ExrError, atomic_write, read_exr, write_exr
+from rt_core.outputs import WriteError
 
 # idiff's process return codes
 PASS, WARN, FAIL, MISMATCH, FILE_ERROR = 0, 1, 2, 3, 4
@@ -360,6 +361,8 @@ def diff(path_a, path_b, channels=None, thresholds: Thresholds | None = None,
             write_exr(out, {n: err[..., i].astype(np.float32) for i, n in enumerate(names)}, attrs)
         except ExrError:
             raise
+        except WriteError as e:       # one line naming the target already; exr's code 4
+            raise ExrError(str(e)) from None
         except Exception as e:
             raise ExrError(f"{out}: cannot write the difference image ({_oneline(e)})") from None
         result["diff_image"] = out
@@ -560,6 +563,8 @@ def preview(path, out, channel: str | None = None) -> dict:
             if str(k).startswith("rtval."):
                 info.add_text(str(k), str(v))
         atomic_write(out, lambda tmp: canvas.save(tmp, format="PNG", pnginfo=info))
+    except WriteError as e:
+        raise ExrError(str(e)) from None
     except Exception as e:
         raise ExrError(f"{out}: cannot write the PNG ({_oneline(e)})") from None
     legend.update(file=img.path, output=out, width=canvas.width, height=canvas.height,

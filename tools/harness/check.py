@@ -24,6 +24,7 @@ The verdict: ``pass`` when no pixel is ``wrong`` under the inferred (or given) r
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import shlex
@@ -490,6 +491,8 @@ def worst_region(mask: np.ndarray) -> dict:
 def read_hits(path: str, W: int, H: int):
     """A hit dump: one line per pixel, ``column row object t`` (row 0 the top, object −1 and
     t anything on a miss).  (ids (H, W) int, t (H, W) float); pixels not listed are −2."""
+    from rt_core.inputfile import check_input
+    check_input(path, "hit dump")
     ids = np.full((H, W), -2, np.int64)
     ts = np.full((H, W), np.nan)
     with open(path, "r", encoding="utf-8", errors="replace") as f:
@@ -553,6 +556,10 @@ def run_tracer(template: str, scene: str, columns: int, rows: int, workdir: str,
         os.killpg(p.pid, signal.SIGKILL)
         p.communicate()
         return None, None, f"timed out after {timeout:g} s: {cmd}"
+    except BaseException:             # rtval itself interrupted or terminated: stop the run
+        with contextlib.suppress(OSError):
+            os.killpg(p.pid, signal.SIGKILL)
+        raise
     tail = err.decode("utf-8", "replace").strip().splitlines()[-1:] if err else []
     said = f" ({tail[0][:200]})" if tail else ""
     if p.returncode < 0 or p.returncode > 128:
