@@ -7,6 +7,7 @@ pixel centres, ``((x+½)/W·ww - ww/2, ...)``.  Image row 0 is the top (y = H-1)
 from __future__ import annotations
 
 import math
+import dataclasses
 from dataclasses import dataclass
 from fractions import Fraction
 
@@ -28,10 +29,24 @@ class Camera:
     sx: float               # sample spacing in world units (host float64)
     sy: float
     row_shift: int = 0      # 1: image row r samples course row H − r (a course variant)
+    row0: int = 0           # a tile: image rows row0 .. row0 + band − 1 of the full grid
+    band: int = 0           # (0: every row)
+
+    @property
+    def tile_rows(self) -> int:
+        """Rows traced: the tile's, or the image's."""
+        return self.band or self.rows
 
     @property
     def size(self) -> int:
-        return self.columns * self.rows
+        """Rays traced: columns × tile_rows."""
+        return self.columns * self.tile_rows
+
+    def tiles(self, max_pixels: int):
+        """The image as bands of whole rows of at most ``max_pixels`` (at least one row)."""
+        step = max(1, max_pixels // self.columns)
+        for r in range(0, self.rows, step):
+            yield dataclasses.replace(self, row0=r, band=min(step, self.rows - r))
 
 
 def make_camera(scene: Scene, columns: int, rows: int | None = None,
@@ -98,7 +113,7 @@ def primary_offsets(scene: Scene, cam: Camera, T):
     opaque values, so scenes that differ only in numbers share the compiled kernel."""
     F = T.Float
     i = dr.arange(T.UInt32, cam.size)
-    r = i // cam.columns                    # image row; course row y = rows − 1 − r
+    r = i // cam.columns                    # image row − row0; course row y = rows − 1 − row
     x = i - r * cam.columns
     sx, hx, cx = _axis_offsets(cam, scene, 0)
     sy, hy, cy = _axis_offsets(cam, scene, 1)
@@ -123,7 +138,7 @@ def primary_offsets(scene: Scene, cam: Camera, T):
     vx, vy = exact(scene.viewpoint[0]), exact(scene.viewpoint[1])
     # x − c = (x − c_hi) − c_lo and y − c = ((rows − 1 − c_hi) − r) − c_lo: integers first
     ix = F(x) - dr.opaque(F, float(hx))
-    iy = dr.opaque(F, float(cam.rows - 1 + cam.row_shift - hy)) - F(r)
+    iy = dr.opaque(F, float(cam.rows - 1 + cam.row_shift - hy - cam.row0)) - F(r)
     wx = axis(ix, sx, cx, (-hx, -ww / 2 - vx), (cam.columns - 1 - hx, ww / 2 - vx))
     wy = axis(iy, sy, cy, (-hy, -wh / 2 - vy), (cam.rows - 1 - hy, wh / 2 - vy))
     # (with row_shift the row above the window, y = rows, is no edge: its fma value stays)

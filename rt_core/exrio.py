@@ -34,7 +34,7 @@ def write_exr(path: str, channels: dict, attrs: dict | None = None,
         a = np.asarray(arr)
         if a.dtype != np.uint32:
             with np.errstate(over="ignore", invalid="ignore"):   # counted by the caller
-                a = a.astype(np.float32)
+                a = a.astype(np.float32, copy=False)
         if a.ndim != 2 or (shape is not None and a.shape != shape):
             raise ExrError(f"{path}: channel {name} has shape {a.shape}, expected {shape}")
         shape = a.shape
@@ -104,8 +104,21 @@ def _native_reason(path: str, lines: list[str]) -> str | None:
     return None
 
 
-def read_exr(path: str) -> tuple[dict, dict]:
-    """Return (channels {name: 2-D array}, header {name: value}); ExrError if unreadable."""
+DEEP = ("deepscanline", "deeptile")
+
+
+def _storage(header) -> str:
+    t = header.get("type")
+    return getattr(t, "name", str(t) if t is not None else "scanlineimage")
+
+
+def read_exr(path: str, deep_ok: bool = False) -> tuple[dict, dict]:
+    """Return (channels {name: 2-D array}, header {name: value}); ExrError if unreadable.
+
+    Every part of a multi-part file is read: its channels are named ``part.channel`` (the
+    part's name, or ``part<i>``) and must share one data window; the header is part 0's with
+    ``parts`` added (their names).  A deep file is refused (``deep_ok``: its channels are
+    per-pixel sample arrays, for ``info``)."""
     path = os.fspath(path)
     if not os.path.exists(path):
         raise ExrError(f"{path}: no such file")
@@ -124,11 +137,34 @@ def read_exr(path: str) -> tuple[dict, dict]:
     try:
         with native_output_captured() as native:
             f = OpenEXR.File(path, separate_channels=True)
-            chans = {name: np.array(ch.pixels) for name, ch in f.channels().items()}
-            header = dict(f.header())
+            parts = [(p.name() if hasattr(p, "name") else "", dict(p.header),
+                      {name: ch.pixels for name, ch in p.channels.items()}) for p in f.parts]
     except Exception as e:  # the OpenEXR binding raises plain RuntimeError/OSError
         reason = (_native_reason(path, native)
                   or (str(e).splitlines()[0] if str(e) else type(e).__name__))
         raise ExrError(f"{path}: cannot read OpenEXR file, truncated or corrupt "
                        f"({reason})") from None
+    if not parts:
+        raise ExrError(f"{path}: the file has no parts")
+    deep = [i for i, (_, h, _) in enumerate(parts) if _storage(h) in DEEP]
+    if deep and not deep_ok:
+        raise ExrError(f"{path}: a deep EXR ({_storage(parts[deep[0]][1])}): rtval compares "
+                       "flat images only; flatten it first (oiiotool IN --flatten -o OUT)")
+    header = dict(parts[0][1])
+    if len(parts) == 1:
+        chans = {k: v if _storage(header) in DEEP else np.asarray(v)
+                 for k, v in parts[0][2].items()}
+        return chans, header
+    names = [n or f"part{i}" for i, (n, _, _) in enumerate(parts)]
+    chans, shape = {}, None
+    for pname, (_, h, ch) in zip(names, parts):
+        for k, v in ch.items():
+            a = v if _storage(h) in DEEP else np.asarray(v)
+            if shape is not None and a.shape != shape:
+                raise ExrError(f"{path}: a multi-part EXR whose parts differ in size "
+                               f"({pname} is {a.shape[1]} x {a.shape[0]}, part 0 is "
+                               f"{shape[1]} x {shape[0]}); rtval reads parts of one size")
+            shape = a.shape
+            chans[f"{pname}.{k}"] = a
+    header["parts"] = names
     return chans, header

@@ -164,6 +164,10 @@ def atomic_write(path: str, write, verify=None) -> None:
         return
     path = os.path.realpath(shown)
     directory = os.path.dirname(path)
+    created, d = [], directory              # the directories this write creates, deepest first
+    while d and not os.path.exists(d) and d != os.path.dirname(d):
+        created.append(d)
+        d = os.path.dirname(d)
     try:
         os.makedirs(directory, exist_ok=True)
     except FileExistsError:
@@ -181,18 +185,32 @@ def atomic_write(path: str, write, verify=None) -> None:
         fd, tmp = tempfile.mkstemp(prefix=f"{TMP_PREFIX}{os.getpid()}-", suffix=ext,
                                    dir=directory)
     except OSError as exc:
+        _remove_dirs(created)
         reason, hint = _reason(exc, "", shown)
         raise WriteError(shown, reason, hint) from None
     _LIVE.add(tmp)
     os.close(fd)
+    done = False
     try:
         _checked(write, tmp, shown, verify)
         os.chmod(tmp, mode)
         os.replace(tmp, path)
+        done = True
     finally:
         _LIVE.discard(tmp)
         if os.path.lexists(tmp):
             os.unlink(tmp)
+        if not done:
+            _remove_dirs(created)
+
+
+def _remove_dirs(created: list) -> None:
+    """Remove the directories a failed write created, deepest first, while empty."""
+    for d in created:
+        try:
+            os.rmdir(d)
+        except OSError:
+            break
 
 
 def jsonable(x):

@@ -81,7 +81,8 @@ def render_image(scene: Scene, cam: Camera, T: backends.Types, rules: Rules = Ru
 
 def to_images(flat: dict, cam: Camera) -> dict:
     """Flat Dr.Jit arrays -> (rows, columns) numpy arrays, row 0 the top of the image."""
-    return {k: np.asarray(v.numpy()).reshape(cam.rows, cam.columns) for k, v in flat.items()}
+    return {k: np.asarray(v.numpy()).reshape(cam.tile_rows, cam.columns)
+            for k, v in flat.items()}
 
 
 def render_geometry(scene: Scene, columns: int, rows: int | None = None, precision: str = "f32",
@@ -148,3 +149,36 @@ def write_images(path: str, images: dict, attrs: dict) -> None:
     """Write AOVs as float32 EXR (atomically), recording the count of non-finite values."""
     attrs = dict(attrs, **{"rtval.nonfinite": str(nonfinite_count(images))})
     write_exr(path, images, attrs)
+
+
+# a tile's rays: bounded working memory (the kernels' arrays) whatever the image size
+TILE_PIXELS = 1 << 21      # 1920×1080 is one band
+
+
+def render_tiled(scene: Scene, cam: Camera, T: backends.Types, rules: Rules = Rules(), *,
+                 tile_pixels: int = TILE_PIXELS, geometry: bool = True, shade: bool = False,
+                 max_dist: float = DEFAULT_MAX_DIST, log=None, progress=None):
+    """``render_image`` band by band of whole rows (``Camera.tiles``), each band's arrays
+    copied into the image's: memory grows with the outputs only, not with the kernels'
+    working arrays.  Every ray is traced as in one whole-image render (the same offsets,
+    the same exact decisions), so the images are identical.  Geometry channels are kept as
+    float32 (what the EXR holds); R, G, B in the render's precision (the 8-bit image
+    quantizes them).  Returns (images, ShadeResult without arrays, or None)."""
+    images, summary = {}, None
+    for tile in cam.tiles(tile_pixels):
+        part, res = render_image(scene, tile, T, rules, geometry=geometry, shade=shade,
+                                 max_dist=max_dist, log=log)
+        for name, a in part.items():
+            if name not in images:
+                dtype = a.dtype if name in "RGB" else np.float32
+                images[name] = np.empty((cam.rows, cam.columns), dtype)
+            images[name][tile.row0:tile.row0 + tile.tile_rows] = a
+        if res is not None:
+            summary = summary or shading.ShadeResult(rgb=None)
+            summary.bounces = max(summary.bounces, res.bounces)
+            summary.capped = summary.capped or res.capped
+            summary.left_active += res.left_active
+        del part, res
+        if progress is not None:
+            progress(tile.row0 + tile.tile_rows, cam.rows)
+    return images, summary

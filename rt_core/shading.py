@@ -259,6 +259,12 @@ def quantize(rgb: np.ndarray) -> np.ndarray:
     """The course's pixel value: floor(255 · clamp(I, 0, 1)) per channel, in I's precision
     (float32 arithmetic for f32 renders, as a float32 tracer would do it)."""
     a = np.asarray(rgb)
-    # NaN (counted and reported by the caller) becomes 0; ±inf clamps like any value
-    a = np.where(np.isnan(a), a.dtype.type(0), a)
-    return np.floor(a.dtype.type(255) * np.clip(a, 0, 1)).astype(np.uint8)
+    flat = a.reshape(-1)
+    out = np.empty(flat.shape, np.uint8)
+    # in blocks, so that the temporaries stay small for a large image
+    for k in range(0, flat.size, 1 << 22):
+        b = flat[k:k + (1 << 22)]
+        # NaN (counted and reported by the caller) becomes 0; ±inf clamps like any value
+        b = np.where(np.isnan(b), a.dtype.type(0), b)
+        out[k:k + (1 << 22)] = np.floor(a.dtype.type(255) * np.clip(b, 0, 1))
+    return out.reshape(a.shape)

@@ -287,7 +287,7 @@ def _decide_flagged(ks: KernelScene, cam, rules: Rules, st: Best, d):
             E = np.stack([np.asarray(c.numpy(), np.float64) for c in (g.x, g.y, g.z)], 1)
             ids, ts = decide_rays(ks.scene, rules, E.tolist(), objs=objs)
         else:
-            ids, ts = _decided(ks.scene, cam, rules, pix, objs)
+            ids, ts = _decided(ks.scene, cam, rules, pix + cam.row0 * cam.columns, objs)
     # scattered into the arrays by one kernel that always runs, with two masked-off lanes
     # added (so that it never has one lane, a literal, and runs when nothing is flagged):
     # the kernels a render compiles do not depend on what was flagged

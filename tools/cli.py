@@ -60,6 +60,11 @@ def main(argv=None) -> int:
         cleanup()
         print(f"rtval: terminated by {signal.Signals(e.signum).name}", file=sys.stderr)
         return 128 + e.signum
+    except BrokenPipeError:       # (an OSError: caught before USER_ERRORS)
+        # stdout closed early (rtval ... | head): not an error of ours
+        import os
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except USER_ERRORS as e:
         if isinstance(e, OSError) and e.filename:
             msg = f"{e.filename}: {(e.strerror or str(e)).lower()}"
@@ -71,11 +76,6 @@ def main(argv=None) -> int:
         cleanup()
         print("rtval: interrupted", file=sys.stderr)
         return 130
-    except BrokenPipeError:
-        # stdout closed early (rtval ... | head): not an error of ours
-        import os
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-        return 0
 
 
 if __name__ == "__main__":

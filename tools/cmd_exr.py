@@ -198,6 +198,10 @@ def run_info(args) -> int:
             (dx0, dy0), (dx1, dy1) = r["display_window"]
             print(f"  display window  ({dx0}, {dy0}) - ({dx1}, {dy1})")
         print(f"  compression     {r['compression']}")
+        print(f"  storage         {r['storage']}")
+        if r["parts"]:
+            print(f"  parts ({len(r['parts'])})       {', '.join(r['parts'])} "
+                  "(channels named part.channel; header attributes of part 0)")
         print(f"  channels ({len(r['channels'])}):")
         w = max(len(c["name"]) for c in r["channels"])
         for c in r["channels"]:

@@ -58,6 +58,7 @@ def run(args) -> int:
     from rt_core.errors import InputError
     from rt_core.exrio import atomic_write
     from rt_core.imageio import write_png
+    from rt_core.memory import guard, render_bytes
     from rt_core.parser import parse_scene
     from rt_core.render import provenance, render_image, versions
     from rt_core.rules import Rules
@@ -74,6 +75,8 @@ def run(args) -> int:
         try:
             scene = parse_scene(str(path))
             cam = make_camera(scene, args.columns)
+            guard(lambda px: render_bytes(px, args.precision, True, False, px), "render",
+                  cam.columns, cam.rows)
             images, res = render_image(scene, cam, T, geometry=False, shade=True)
         except (SceneError, InputError) as e:
             if args.scenes:

@@ -11,7 +11,7 @@ import os
 import tempfile
 import sys
 
-from .options import add_image_options, nonneg_float
+from .options import add_image_options, nonneg_float, positive_int
 
 
 def add_parser(sub) -> None:
@@ -34,6 +34,10 @@ def add_parser(sub) -> None:
     p.add_argument("--max-dist", type=nonneg_float, default=None, metavar="D",
                    help="reflections stop once a path is this long (the notes' MAX_DIST; "
                         "default 1000)")
+    p.add_argument("--tile", type=positive_int, default=None, metavar="ROWS",
+                   help="trace the image in bands of ROWS rows, so that memory grows with the "
+                        "outputs only (default: bands of about 2 million pixels); the image "
+                        "is the same")
     p.add_argument("--explain", action="store_true",
                    help="print on stderr the object kinds, the passes that ran and the Dr.Jit "
                         "kernels they compiled and launched")
@@ -88,7 +92,9 @@ def run(args) -> int:
     from rt_core.jitlog import KernelLog
     from rt_core.outputs import WriteError
     from rt_core.parser import parse_scene
-    from rt_core.render import nonfinite_count, provenance, render_image, write_images
+    from rt_core.memory import band_that_fits, guard, render_bytes
+    from rt_core.render import (TILE_PIXELS, nonfinite_count, provenance, render_tiled,
+                                write_images)
     from rt_core.rules import Rules
     from rt_core import shading
     from rt_core.shading import DEFAULT_MAX_DIST, quantize
@@ -102,9 +108,14 @@ def run(args) -> int:
     scene = parse_scene(args.scene)
     T = backend.types(args.precision, args.backend)
     cam = make_camera(scene, args.columns, args.rows, args.sampling, rules)
+    need = lambda px, band: render_bytes(px, args.precision, shade, bool(args.output), band)
+    band = (args.tile * cam.columns if args.tile else
+            band_that_fits(lambda b: need(cam.columns * cam.rows, b), TILE_PIXELS))
+    guard(lambda px: need(px, band), "render", cam.columns, cam.rows, "or fewer outputs")
     with (KernelLog() if args.explain else contextlib.nullcontext()) as log:
-        images, res = render_image(scene, cam, T, rules, geometry=bool(args.output),
-                                   shade=shade, max_dist=max_dist, log=log)
+        images, res = render_tiled(scene, cam, T, rules, tile_pixels=band,
+                                   geometry=bool(args.output), shade=shade, max_dist=max_dist,
+                                   log=log)
     if args.explain:
         for line in explain_lines(scene, log, res, max_dist):
             print(f"rtval render: explain: {line}", file=sys.stderr)
@@ -113,7 +124,11 @@ def run(args) -> int:
     if shade:
         extra.update(max_dist=repr(max_dist), reflection_bounces=res.bounces)
     attrs = provenance(scene, cam, args.precision, args.backend, rules, **extra)
-    pixels = quantize(np.stack([images[c] for c in "RGB"], -1)) if shade else None
+    pixels = None
+    if shade:                   # channel by channel: no (rows, columns, 3) float temporary
+        pixels = np.empty((cam.rows, cam.columns, 3), np.uint8)
+        for k, c in enumerate("RGB"):
+            pixels[..., k] = quantize(images[c])
     bad = nonfinite_count(images)
     # everything is computed: write each output (atomically)
     for opt, path in outs:

@@ -49,10 +49,12 @@ class Image:
         return None if m is None else np.asarray(m, dtype=np.float64) > 0.5
 
 
-def load(path) -> Image:
-    """Read ``path``; ExrError (one line naming the file) if it is unreadable or empty."""
+def load(path, deep_ok: bool = False) -> Image:
+    """Read ``path``; ExrError (one line naming the file) if it is unreadable or empty.
+    Every part of a multi-part file is read (channels ``part.channel``); a deep file only
+    with ``deep_ok`` (``info``)."""
     path = os.fspath(path)
-    chans, header = read_exr(path)
+    chans, header = read_exr(path, deep_ok=deep_ok)
     if not chans:
         raise ExrError(f"{path}: the file has no channels")
     return Image(path, {k: chans[k] for k in sorted(chans)}, header)
@@ -116,7 +118,7 @@ def info(path) -> dict:
     ``attributes`` holds all header attributes except the channel list (given as
     ``channels``); ``provenance`` repeats the ``rtval.*`` ones.
     """
-    img = load(path)
+    img = load(path, deep_ok=True)
     hdr = img.header
     attrs = {k: _plain(v) for k, v in sorted(hdr.items()) if k != "channels"}
     for key in ("dataWindow", "displayWindow"):
@@ -127,7 +129,7 @@ def info(path) -> dict:
     channels = []
     for name, arr in img.channels.items():
         xs, ys = sampling.get(name, (1, 1))
-        channels.append({"name": name, "type": PIXEL_TYPES.get(arr.dtype, str(arr.dtype)),
+        channels.append({"name": name, "type": _pixel_type(arr),
                          "x_sampling": int(xs), "y_sampling": int(ys)})
     return {
         "file": img.path,
@@ -137,10 +139,21 @@ def info(path) -> dict:
         "data_window": attrs.get("dataWindow"),
         "display_window": attrs.get("displayWindow"),
         "channels": channels,
+        "parts": hdr.get("parts", []),
+        "storage": _plain(hdr.get("type", "scanlineimage")),
         "layers": _layers(img.channels),
         "attributes": attrs,
         "provenance": {k: v for k, v in attrs.items() if k.startswith("rtval.")},
     }
+
+
+def _pixel_type(arr) -> str:
+    """HALF/FLOAT/UINT; a deep channel (per-pixel sample arrays) as ``deep FLOAT``."""
+    if arr.dtype == object:
+        first = next((a for a in arr.flat if getattr(a, "size", 0)), None)
+        return "deep " + (PIXEL_TYPES.get(first.dtype, str(first.dtype)) if first is not None
+                          else "(no samples)")
+    return PIXEL_TYPES.get(arr.dtype, str(arr.dtype))
 
 
 def _layers(names) -> dict:

@@ -333,7 +333,9 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
                 hits_path: str | None = None, theirs: np.ndarray | None = None) -> SceneCheck:
     """Check one image of one scene.  ``rules``/``max_dist`` given: no inference of those."""
     from rt_core.imageio import ImageError, read_image
+    from rt_core.memory import check_bytes, guard
     from rt_core.parser import parse_scene
+    from rt_core.usererror import InputError
     from rt_core.rules import Rules
     from rt_core.scene import SceneError
     t0 = time.perf_counter()
@@ -360,6 +362,11 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
     if W < 2 or H < 2:
         res.reason = f"{image_path}: {W}x{H} is too small for the course's corner sampling"
         return res
+    try:
+        guard(check_bytes, "check of", W, H, "(render your image smaller)")
+    except InputError as exc:
+        res.reason = f"{image_path}: {exc}"
+        return res
     res.columns, res.rows, res.theirs = W, H, img
     res.provenance = provenance(scene, img)
     r = Renderer(scene, W, H)
@@ -381,9 +388,9 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
     if hits_path:
         try:
             res.hits = check_hits(r, final_rules, hits_path)
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, InputError) as exc:
             res.status = "error"
-            res.reason = str(exc) if isinstance(exc, ValueError) else \
+            res.reason = str(exc) if isinstance(exc, (ValueError, InputError)) else \
                 f"{hits_path}: {(exc.strerror or str(exc)).lower()}"
             return res
     wrong = res.classes == CLASSES.index("wrong")

@@ -14,6 +14,7 @@ import numpy as np
 
 from rt_core import backend
 from rt_core.camera import make_camera, primary_directions
+from rt_core.memory import compare_bytes, guard
 from rt_core.render import provenance, to_images, trace_geometry, write_images
 from rt_core.rules import Rules
 from rt_core.scene import Scene
@@ -77,6 +78,7 @@ def compare(scene: Scene, columns: int, rows: int | None = None, precision: str 
         raise ValueError(f"mode must be one of {MODES}")
     T = backend.types(precision, backend_name)
     cam = make_camera(scene, columns, rows, sampling)
+    guard(lambda px: compare_bytes(px, precision), "compare", cam.columns, cam.rows)
     note = ""
     if mode == "camera":
         setup = sensor_setup(scene, cam.columns, cam.rows, sampling)

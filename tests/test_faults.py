@@ -1,0 +1,359 @@
+"""Bad input and faults: one line naming the file, the documented exit code, no traceback, no
+output or temporary file left behind (issue 16's reproducers, each first failing).
+
+A full disk is ``/dev/full`` and, where this process may mount one, a 64 KiB tmpfs filled up;
+a memory limit is an address-space rlimit on the child process.
+"""
+from __future__ import annotations
+
+import os
+import resource
+import signal
+import stat
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rt_core import backend
+from rt_core.camera import make_camera
+from rt_core.exrio import ExrError, incomplete, read_exr, write_exr
+from rt_core.memory import guard, render_bytes
+from rt_core.outputs import TMP_PREFIX, WriteError, atomic_write
+from rt_core.parser import parse_scene
+from rt_core.render import render_image, render_tiled
+from rt_core.rules import Rules
+from rt_core.usererror import InputError
+
+REPO = Path(__file__).resolve().parents[1]
+SEED = REPO / "scenes" / "seed_fplane.txt"
+PRECISIONS = ("f32", "f64")
+
+
+def rtval(*args, limit_as=None, timeout=120):
+    def pre():
+        if limit_as:
+            resource.setrlimit(resource.RLIMIT_AS, (limit_as, limit_as))
+    return subprocess.run([sys.executable, "-m", "tools.cli", *map(str, args)],
+                          capture_output=True, text=True, cwd=REPO, timeout=timeout,
+                          preexec_fn=pre if limit_as else None)
+
+
+def one_line(r, code: int, *needles):
+    """The run failed with ``code`` and said so in one line containing ``needles``."""
+    err = r.stderr.strip()
+    assert r.returncode == code, (r.returncode, err)
+    assert "Traceback" not in err and len(err.splitlines()) == 1, err
+    for n in needles:
+        assert n in err, (n, err)
+    assert TMP_PREFIX not in err and ".tmp-" not in err, err     # the target, not a temporary
+    return err
+
+
+def scene_with_header(tmp_path, header: str) -> Path:
+    lines = [ln for ln in SEED.read_text().splitlines() if not ln.startswith("#")]
+    body = "\n".join(lines).replace("10 7.5", header, 1)
+    p = tmp_path / "h.txt"
+    p.write_text(body)
+    return p
+
+
+@pytest.fixture(scope="module")
+def full_dir(tmp_path_factory):
+    """A directory on a full file system (a 64 KiB tmpfs, filled)."""
+    d = tmp_path_factory.mktemp("full")
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(d)],
+                       capture_output=True)
+    if r.returncode:
+        pytest.skip("cannot mount a small tmpfs here (not root, or no mount permission); "
+                    "/dev/full covers the device case")
+    with open(d / "fill", "wb") as f:
+        try:
+            f.write(b"\0" * (1 << 17))
+        except OSError:
+            pass
+    yield d
+    subprocess.run(["umount", str(d)], capture_output=True)
+
+
+# --- 1. the default row count overflows --------------------------------------------------
+
+@pytest.mark.parametrize("header,col", [("1e-320 6", 8), ("1e-300 1e300", 8), ("8 1e308", 3)])
+def test01_overflowing_default_rows_is_one_line_at_the_window(tmp_path, header, col):
+    p = scene_with_header(tmp_path, header)
+    one_line(rtval("render", p, "--columns", 32, "-o", tmp_path / "x.exr"), 2,
+             f"h.txt:2:{col}: header: world window", "give --rows")
+    assert not (tmp_path / "x.exr").exists()
+
+
+# --- 2, 3. a full disk: tracebacks and lost writes --------------------------------------------
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="no /dev/full on this system")
+@pytest.mark.parametrize("opt,columns", [("-o", 32), ("-o", 4), ("--ppm", 4), ("--png", 32)])
+def test02_dev_full_is_an_error_not_a_success(opt, columns):
+    args = ["--rows", 3] if columns == 4 else []
+    one_line(rtval("render", SEED, "--columns", columns, *args, opt, "/dev/full"), 2,
+             "/dev/full: cannot write: no space left on device", "write elsewhere")
+
+
+@pytest.mark.parametrize("opt,name", [("-o", "x.exr"), ("--ppm", "x.ppm"), ("--png", "x.png")])
+def test03_full_file_system_small_write_is_not_lost(full_dir, opt, name):
+    r = rtval("render", SEED, "--columns", 4, "--rows", 3, opt, full_dir / name)
+    one_line(r, 2, f"{full_dir / name}: cannot write: no space left on device")
+    assert sorted(p.name for p in full_dir.iterdir()) == ["fill"]
+
+
+def test04_full_file_system_other_commands(full_dir, tmp_path):
+    one_line(rtval("convert", SEED, "--columns", 41, "--rows", 31, "-o", full_dir / "s.xml"), 2,
+             f"{full_dir / 's.xml'}: cannot write: no space left on device")
+    a, b = tmp_path / "a.exr", tmp_path / "b.exr"
+    for p, c in ((a, 8), (b, 8)):
+        assert rtval("render", SEED, "--columns", c, "-o", p).returncode == 0
+    one_line(rtval("exr", "diff", a, b, "-o", full_dir / "d.exr"), 4,
+             f"{full_dir / 'd.exr'}: cannot write")
+    one_line(rtval("exr", "diff", a, b, "-o", "/dev/full"), 4, "/dev/full: cannot write")
+    r = rtval("validate", SEED, "--columns", 16, "-o", full_dir / "v")
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert f"{full_dir / 'v'}/" in r.stderr.strip().splitlines()[-1] and \
+        "no space left on device" in r.stderr.strip().splitlines()[-1]
+    one_line(rtval("gallery", SEED, "-o", full_dir / "g"), 2,
+             f"{full_dir / 'g' / 'seed_fplane.png'}: cannot write: no space left on device")
+    # nothing left: no file, no temporary, no directory the failed writes created
+    assert sorted(p.name for p in full_dir.iterdir()) == ["fill"]
+
+
+@pytest.mark.parametrize("cut", [0, 9, 200, 0.5, -1])
+def test05_incomplete_exr_is_detected(tmp_path, cut):
+    p = tmp_path / "a.exr"
+    write_exr(str(p), {"R": np.random.default_rng(1).random((40, 30))})
+    assert incomplete(str(p)) is None
+    data = p.read_bytes()
+    n = int(len(data) * cut) if isinstance(cut, float) else (len(data) + cut if cut < 0 else cut)
+    p.write_bytes(data[:n])
+    assert incomplete(str(p)) is not None
+
+
+def test06_a_short_write_is_refused_and_leaves_nothing(tmp_path):
+    good = tmp_path / "good.exr"
+    write_exr(str(good), {"R": np.ones((20, 20), np.float32)})
+    data = good.read_bytes()
+    target = tmp_path / "out.exr"
+    with pytest.raises(WriteError, match=r"out\.exr: cannot write: the file is truncated"):
+        atomic_write(target, lambda tmp: Path(tmp).write_bytes(data[:-10]), verify=incomplete)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["good.exr"]
+
+
+def test06b_write_exr_checks_what_the_binding_wrote(tmp_path, monkeypatch):
+    """The binding loses a failed last flush silently (a small EXR on a full disk): a file
+    whose tail is missing must be an error, not a success."""
+    import OpenEXR
+    import rt_core.exrio as exrio
+    real = OpenEXR.File
+
+    class LosesTail:
+        def __init__(self, *a):
+            self.f = real(*a)
+
+        def write(self, path):
+            self.f.write(path)
+            with open(path, "r+b") as fh:
+                fh.truncate(os.path.getsize(path) - 100)
+    monkeypatch.setattr(exrio.OpenEXR, "File", LosesTail)
+    with pytest.raises(WriteError, match=r"o\.exr: cannot write: .*truncated"):
+        write_exr(str(tmp_path / "o.exr"), {"R": np.ones((30, 20))})
+    assert os.listdir(tmp_path) == []
+
+
+# --- 4. deep and multi-part EXRs -----------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def odd_exrs(tmp_path_factory):
+    import OpenEXR
+    d = tmp_path_factory.mktemp("exr")
+    deep = np.empty((3, 4), object)
+    for i in range(3):
+        for j in range(4):
+            deep[i, j] = np.arange(i + j, dtype=np.float32)
+    OpenEXR.File({"type": OpenEXR.deepscanline, "compression": OpenEXR.ZIPS_COMPRESSION},
+                 {"Z": deep}).write(str(d / "deep.exr"))
+    parts = [OpenEXR.Part({"type": OpenEXR.scanlineimage,
+                           "compression": OpenEXR.ZIP_COMPRESSION}, {c: np.full((4, 5), v,
+                                                                                 np.float32)},
+                          name=n) for n, c, v in (("a", "R", 1.0), ("b", "G", 2.0))]
+    OpenEXR.File(parts).write(str(d / "multi.exr"))
+    return d
+
+
+@pytest.mark.parametrize("cmd", [("stats",), ("preview", "-o", "p.png"), ("diff", "@")])
+def test07_deep_exr_is_refused_in_one_line(odd_exrs, tmp_path, cmd):
+    deep = odd_exrs / "deep.exr"
+    args = [deep if a == "@" else (tmp_path / a if a.endswith(".png") else a) for a in cmd]
+    one_line(rtval("exr", cmd[0], deep, *args[1:]), 4, "deep.exr: a deep EXR", "--flatten")
+    assert not (tmp_path / "p.png").exists()
+
+
+def test08_deep_info_and_every_part_of_a_multi_part_file(odd_exrs):
+    r = rtval("exr", "info", odd_exrs / "deep.exr")
+    assert r.returncode == 0 and "deep FLOAT" in r.stdout and "deepscanline" in r.stdout
+    r = rtval("exr", "info", odd_exrs / "multi.exr")
+    assert r.returncode == 0 and "parts (2)" in r.stdout and "a.R" in r.stdout \
+        and "b.G" in r.stdout
+    r = rtval("exr", "stats", odd_exrs / "multi.exr")
+    rows = {ln.split()[0]: ln.split() for ln in r.stdout.splitlines()[2:]}
+    assert r.returncode == 0 and rows["a.R"][3] == "1" and rows["b.G"][3] == "2"
+
+
+# --- 5. memory --------------------------------------------------------------------------------
+
+def test09_too_large_is_refused_before_allocating():
+    t0 = time.monotonic()
+    r = rtval("compare", SEED, "--columns", 20000, "--mode", "rays")
+    err = one_line(r, 2, "compare 20000x15000 needs ~", "available", "use --columns <= ")
+    assert time.monotonic() - t0 < 60, "refused only after allocating"
+    suggested = int(err.rsplit("<= ", 1)[1].split()[0])
+    assert 2 <= suggested < 20000
+
+
+def test10_guard_suggests_a_size_that_fits(monkeypatch):
+    import rt_core.memory as memory
+    monkeypatch.setattr(memory, "available", lambda: (2e9, "a test"))
+    need = lambda px: render_bytes(px, "f64", True, True, 1 << 18)
+    guard(need, "render", 300, 200)                       # fits: no error
+    with pytest.raises(InputError, match=r"needs ~.*2\.0 GB available \(a test\)") as e:
+        guard(need, "render", 20000, 15000)
+    cols = int(str(e.value).rsplit("<= ", 1)[1].split()[0])
+    assert need(cols * (cols * 15000 // 20000 + 1)) <= 0.9 * 2e9 < need((cols + 1) ** 2)
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+@pytest.mark.parametrize("name", ["shade_mirrors.txt", "mixed.txt",
+                                  "../../shared/course-scenes/numeric/m4__v1_r04.txt"])
+def test11_tiled_render_equals_one_render(precision, name):
+    path = REPO / "scenes" / name
+    if not path.exists():
+        pytest.skip(f"{path} is not there")
+    scene = parse_scene(path)
+    rules = Rules.parse("screen_clip=>=,rows=shifted")     # exact decisions on the edge rows
+    T = backend.types(precision, "llvm")
+    cam = make_camera(scene, 97, None, "corners", rules)
+    whole, rw = render_image(scene, cam, T, rules, geometry=True, shade=True)
+    bands, rb = render_tiled(scene, cam, T, rules, tile_pixels=97 * 5 + 3, geometry=True,
+                             shade=True)
+    for k, a in whole.items():
+        assert np.array_equal(a.astype(bands[k].dtype), bands[k], equal_nan=True), k
+    assert (rw.bounces, rw.capped, rw.left_active) == (rb.bounces, rb.capped, rb.left_active)
+
+
+def test12_render_under_a_memory_limit_refuses_or_fits(tmp_path):
+    """Under an address-space limit, a render is refused in one line or it works: never a
+    crash (it used to segfault or raise numpy's MemoryError)."""
+    limit = 3 << 30
+    r = rtval("render", SEED, "--columns", 10000, "--ppm", tmp_path / "a.ppm",
+              "--precision", "f64", limit_as=limit)
+    err = one_line(r, 2, "needs ~", "address-space limit", "use --columns <= ")
+    cols = int(err.rsplit("<= ", 1)[1].split()[0])
+    r = rtval("render", SEED, "--columns", cols, "--ppm", tmp_path / "a.ppm",
+              "--precision", "f64", limit_as=limit, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert (tmp_path / "a.ppm").stat().st_size > cols * cols // 2
+
+
+@pytest.mark.parametrize("name,precision,shade", [("shade_mirrors.txt", "f64", True),
+                                                  ("mixed.txt", "f32", True),
+                                                  ("mixed.txt", "f64", False)])
+def test13_estimate_bounds_the_measured_peak(tmp_path, name, precision, shade):
+    """The per-pixel figures are upper bounds: the real peak RSS of a render with one band
+    and of one with several stays below the estimate."""
+    for columns, tile in ((1000, None), (1600, 100)):
+        out = ["--ppm", tmp_path / "a.ppm"] if shade else []
+        args = ["render", REPO / "scenes" / name, "--columns", columns, "--rows",
+                columns * 3 // 4, "--precision", precision, "-o", tmp_path / "a.exr", *out]
+        if tile:
+            args += ["--tile", tile]
+        code = ("import resource, subprocess, sys; r = subprocess.run(sys.argv[1:]); "
+                "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)")
+        r = subprocess.run([sys.executable, "-c", code, sys.executable, "-m", "tools.cli",
+                            *map(str, args)], capture_output=True, text=True, cwd=REPO)
+        assert r.returncode == 0, r.stderr
+        peak = int(r.stdout.split()[-1]) * 1024
+        pixels = columns * (columns * 3 // 4)
+        band = tile * columns if tile else 1 << 21
+        assert peak < render_bytes(pixels, precision, shade, True, band), (columns, peak)
+
+
+# --- 6. temporaries on SIGTERM and SIGKILL ------------------------------------------------
+
+def _start_large_render(tmp_path):
+    p = subprocess.Popen([sys.executable, "-m", "tools.cli", "render",
+                          str(REPO / "scenes" / "mixed.txt"), "--columns", "3000",
+                          "-o", str(tmp_path / "o.exr"), "--tile", "100"],
+                         cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    t0 = time.monotonic()
+    while not any(n.startswith(TMP_PREFIX) for n in os.listdir(tmp_path)):
+        assert p.poll() is None and time.monotonic() - t0 < 120, "no temporary appeared"
+        time.sleep(0.01)
+    return p
+
+
+def test14_sigterm_removes_the_temporary(tmp_path):
+    p = _start_large_render(tmp_path)
+    p.send_signal(signal.SIGTERM)
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == 128 + signal.SIGTERM and "terminated by SIGTERM" in err, err
+    assert "Traceback" not in err and os.listdir(tmp_path) == []
+
+
+def test15_a_killed_runs_temporary_is_removed_by_the_next_run(tmp_path):
+    p = _start_large_render(tmp_path)
+    p.kill()
+    p.wait()
+    left = [n for n in os.listdir(tmp_path) if n.startswith(TMP_PREFIX)]
+    assert left and not (tmp_path / "o.exr").exists()
+    r = rtval("render", SEED, "--columns", 8, "-o", tmp_path / "small.exr")
+    assert r.returncode == 0 and "removed 1 temporary file(s)" in r.stderr and left[0] in r.stderr
+    assert os.listdir(tmp_path) == ["small.exr"]
+
+
+def test15b_sigterm_during_validate_leaves_no_temporary(tmp_path):
+    out = tmp_path / "v"
+    p = subprocess.Popen([sys.executable, "-m", "tools.cli", "validate", str(SEED),
+                          str(REPO / "scenes" / "mixed.txt"), "--columns", "300", "-o", str(out)],
+                         cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    t0 = time.monotonic()
+    while not (out / "exr").exists():                      # it has begun writing
+        assert p.poll() is None and time.monotonic() - t0 < 120
+        time.sleep(0.01)
+    p.send_signal(signal.SIGTERM)
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == 128 + signal.SIGTERM and "Traceback" not in err, err
+    assert not [f for _, _, fs in os.walk(tmp_path) for f in fs if f.startswith(TMP_PREFIX)]
+
+
+def test16_a_live_runs_temporary_is_left_alone(tmp_path):
+    live = tmp_path / f"{TMP_PREFIX}{os.getpid()}-abc.exr"     # this test process is alive
+    live.write_bytes(b"x")
+    assert rtval("render", SEED, "--columns", 8, "-o", tmp_path / "s.exr").returncode == 0
+    assert live.exists()
+
+
+# --- 7. inputs that are not regular files, or too large ---------------------------------------
+
+def test17_devices_fifos_directories_and_huge_files_are_refused(tmp_path):
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    big = tmp_path / "big.txt"
+    with open(big, "wb") as f:
+        f.truncate(65 << 20)                                # sparse: no disk used
+    cases = [("render", "/dev/zero", "is a character device, not a scene file"),
+             ("render", fifo, "is a FIFO (named pipe), not a scene file"),
+             ("render", tmp_path, "is a directory; give a scene file"),
+             ("render", big, "65 MiB is too large for a scene file")]
+    for cmd, path, msg in cases:
+        one_line(rtval(cmd, path, "--columns", 8, "-o", tmp_path / "o.exr", timeout=60), 2,
+                 f"{path}: {msg}")
+    one_line(rtval("exr", "info", fifo, timeout=60), 4, "is a FIFO")
+    one_line(rtval("check", SEED, fifo, timeout=60), 2, "is a FIFO (named pipe), not an image")
+    assert sorted(os.listdir(tmp_path)) == ["big.txt", "fifo"]
