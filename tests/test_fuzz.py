@@ -228,3 +228,32 @@ def test05_damaged_exrs_long(exr_bytes, tmp_path):
         p.write_bytes(data)
         _check_exr(p)
     run()
+
+
+# --- images a course tracer wrote (rtval check) ----------------------------------------------
+
+@pytest.fixture(scope="module")
+def image_bytes(tmp_path_factory):
+    from rt_core.imageio import ppm_bytes, write_png
+    d = tmp_path_factory.mktemp("fuzz_img")
+    px = np.random.default_rng(3).integers(0, 256, (7, 9, 3), dtype=np.uint8)
+    write_png(str(d / "a.png"), px)
+    p3 = "P3\n# a comment\n9 7\n255\n" + " ".join(map(str, px.ravel())) + "\n"
+    return [ppm_bytes(px), (d / "a.png").read_bytes(), p3.encode()]
+
+
+def test06_damaged_images_read_or_fail_in_one_line(image_bytes, tmp_path):
+    from rt_core.imageio import ImageError, read_image
+
+    @settings(max_examples=300, derandomize=True, **SETTINGS)
+    @given(damaged(image_bytes))
+    def run(data):
+        p = tmp_path / "t.img"
+        p.write_bytes(data)
+        try:
+            img = read_image(str(p))
+        except ImageError as e:
+            assert str(e).startswith(str(p)) and "\n" not in str(e), str(e)
+            return
+        assert img.dtype == np.uint8 and img.ndim == 3 and img.shape[2] == 3
+    run()
