@@ -198,6 +198,33 @@ def sensor_setup(scene: Scene, columns: int, rows: int | None, sampling: str = "
                        cam.columns, cam.rows, square, note, +1)
 
 
+def _point_light(light, T) -> dict:
+    return {"type": "point", "position": [float(c) for c in light.center],
+            "intensity": {"type": "rgb", "value": [float(c) for c in light.emissivity]}}
+
+
+def _spot_light(light, T) -> dict:
+    """Mitsuba's ``spot``: cutoff_angle = the course's half-angle θ, and beam_width = θ
+    too, so that the intensity is constant inside the cone and 0 outside, as in the course
+    (Mitsuba's falls off as 1/d², the course's diffuse term as 1/d: the shading is an
+    approximation, as for point lights)."""
+    theta = float(light.theta)
+    return {"type": "spot", "cutoff_angle": theta, "beam_width": theta,
+            "to_world": T().look_at(origin=[float(c) for c in light.center],
+                                    target=[float(c) for c in light.aim],
+                                    up=_up(light.center, light.aim)),
+            "intensity": {"type": "rgb", "value": [float(c) for c in light.emissivity]}}
+
+
+def _up(center, aim) -> list:
+    """An up vector not parallel to aim − centre."""
+    a = [float(x) - float(c) for x, c in zip(aim, center)]
+    return [1, 0, 0] if abs(a[1]) > 0.9 * math.sqrt(sum(x * x for x in a)) else [0, 1, 0]
+
+
+_LIGHTS = {"pointlight": _point_light, "spotlight": _spot_light}
+
+
 def scene_dict(scene: Scene, columns: int, rows: int | None = None, sampling: str = "corners",
                shading: bool = False, integrator: bool = True, only=None,
                clip: bool = True) -> dict:
@@ -222,8 +249,7 @@ def scene_dict(scene: Scene, columns: int, rows: int | None = None, sampling: st
         d[sid] = shape
     if shading:
         for i, light in enumerate(scene.lights):
-            d[f"light{i}"] = {"type": "point", "position": list(light.center),
-                              "intensity": {"type": "rgb", "value": list(light.emissivity)}}
+            d[f"light{i}"] = dispatch(_LIGHTS, light.kind)(light, T)
     s = sensor_setup(scene, columns, rows, sampling, clip)
     vx, vy, vz = scene.viewpoint
     d["sensor"] = {
@@ -309,7 +335,7 @@ def _xml_value(name: str, v, indent: str) -> list:
 
 TAGS = {"rectangle": "shape", "sphere": "shape", "perspective": "sensor", "stratified":
         "sampler", "hdrfilm": "film", "box": "rfilter", "aov": "integrator", "path": "integrator",
-        "diffuse": "bsdf", "point": "emitter", "rgb": "rgb"}
+        "diffuse": "bsdf", "point": "emitter", "spot": "emitter", "rgb": "rgb"}
 
 
 def _xml_object(d: dict, indent: str, name: str | None = None) -> list:

@@ -1,9 +1,11 @@
 """The course scene format's numbers as written, read independently of rt_core's parser.
 
 Both dialects (notes/course-format.md): the keyword dialect (``pointlight``, ``sphere``,
-``plane``, ``fplane``, ``tplane``; ``#`` comments; groups may wrap lines) and the numeric one
-(codes 10, 13, 14, 15, 16 on their own line; every line ``numbers [free text]``, one group a
-line).  The references read a scene only through this module, so a bug in rt_core's parser or
+``plane``, ``fplane``, ``tplane`` and the forms of rt_core.kinds.FORMS; ``#`` comments; groups
+may wrap lines) and the numeric one (codes on their own line; every line ``numbers [free
+text]``, one group a line; cd's 9000/9001 header flags add a number after every MAT; nw's
+refraction index may follow the code).  Only the forms table (names, codes, field counts) is
+shared with rt_core: a table, not arithmetic.  The references read a scene only through this module, so a bug in rt_core's parser or
 scene model cannot pass a comparison with them.  Files must already be valid (rt_core's
 parser reports errors with file, line and column); this reader only extracts numbers and
 raises ``ValueError`` on what it cannot read.
@@ -19,11 +21,12 @@ from decimal import Decimal
 from fractions import Fraction
 
 from rt_core.inputfile import read_input
-from rt_core.kinds import KEYWORDS, KINDS, kind_of_code, kind_of_keyword
+from rt_core.kinds import HEADER_FLAGS, KEYWORDS, KINDS, LIGHTS, form_of_code, form_of_keyword
 
 # number groups after the type token: (field, count); None = not geometry (materials)
 LAYOUT = {
     "pointlight": (("emissivity", 3), ("center", 3)),
+    "spotlight": (("emissivity", 3), ("center", 3), ("aim", 3), ("theta", 1)),
     "sphere": (("ambient", 3), ("diffuse", 3), ("specular", 3), ("center", 3), ("radius", 1)),
     "plane": (("ambient", 3), ("diffuse", 3), ("specular", 3), ("normal", 3), ("point", 3)),
     "fplane": (("ambient", 3), ("diffuse", 3), ("specular", 3), ("normal", 3), ("point", 3),
@@ -43,12 +46,14 @@ class Item:
     line: int
     x: dict = field(default_factory=dict)
     f: dict = field(default_factory=dict)
+    form: str = ""              # the FORMS name when not the plain kind
+    extras: tuple = ()          # the form's and the flags' fields, as read (not geometry)
 
     def __getattr__(self, name):       # obj.center, obj.radius, ... as floats
         f = self.__dict__.get("f", {})
         if name in f:
             v = f[name]
-            return v[0] if name == "radius" else v
+            return v[0] if name in ("radius", "theta") else v
         raise AttributeError(name)
 
 
@@ -59,12 +64,13 @@ class File:
     lights: tuple
     objects: tuple
     dialect: str
+    flags: tuple = ()           # cd's header flags
 
     def floats(self) -> "File":
         """The same scene with the header as floats (what a float reference reads)."""
         return File(tuple(float(c) for c in self.window),
                     tuple(float(c) for c in self.viewpoint), self.lights, self.objects,
-                    self.dialect)
+                    self.dialect, self.flags)
 
     def default_rows(self, columns: int) -> int:
         """rows = int(world_h / world_w · columns), the keyword programs' rule."""
@@ -106,10 +112,26 @@ def _exact(tok: str) -> Fraction:
     return Fraction(Decimal(tok))
 
 
-def _make(kind, values, line, nobj):
+def _make(form, values, line, nobj, extras=()):
+    kind = form.kind
     x = {name: vals for (name, _), vals in zip(LAYOUT[kind], values)}
     f = {name: tuple(float(c) for c in vals) for name, vals in x.items()}
-    return Item(kind, -1 if kind == "pointlight" else nobj, line, x, f)
+    return Item(kind, -1 if kind in LIGHTS else nobj, line, x, f,
+                "" if form.name == kind else form.name, tuple(extras))
+
+
+def _read_item(form, take, word, flags=(), extras=()):
+    """The groups of one object: the kind's (with the flags' numbers after each MAT), then
+    the form's extra fields."""
+    values, extras = [], list(extras)
+    for name, n in LAYOUT[form.kind]:
+        values.append(take(n))
+        if name.endswith("specular"):
+            side = "background " if name.startswith("bg_") else ""
+            extras += [(side + HEADER_FLAGS[fl], take(1)[0]) for fl in flags]
+    for name, n in form.extra:
+        extras.append((name, word() if n == 0 else take(1)[0] if n == 1 else take(n)))
+    return values, extras
 
 
 def _keyword(lines) -> File:
@@ -124,14 +146,22 @@ def _keyword(lines) -> File:
         pos += n
         return vals
 
+    def word():
+        nonlocal pos
+        if pos >= len(toks):
+            raise ValueError("truncated scene")
+        pos += 1
+        return toks[pos - 1][1]
+
     window, viewpoint = take(2), take(3)
     lights, objects = [], []
     while pos < len(toks):
-        line, word = toks[pos]
+        line, token = toks[pos]
         pos += 1
-        kind = kind_of_keyword(word)
-        item = _make(kind, [take(n) for _, n in LAYOUT[kind]], line, len(objects))
-        (lights if kind == "pointlight" else objects).append(item)
+        form = form_of_keyword(token)
+        values, extras = _read_item(form, take, word)
+        item = _make(form, values, line, len(objects), extras)
+        (lights if form.kind in LIGHTS else objects).append(item)
     return File(window, viewpoint, tuple(lights), tuple(objects), "keyword")
 
 
@@ -153,15 +183,30 @@ def _numeric(lines) -> File:
             raise ValueError(f"line {no}: expected {n} numbers")
         return tuple(_exact(t) for t in lead[:n])
 
+    def word():
+        nonlocal idx
+        if idx >= len(lines):
+            raise ValueError("truncated scene")
+        idx += 1
+        return lines[idx - 1][1][0]
+
     window, viewpoint = group(2), group(3)
-    lights, objects = [], []
+    lights, objects, flags = [], [], []
     while idx < len(lines):
         line, toks = lines[idx]
         idx += 1
-        kind = kind_of_code(int(toks[0]))
-        item = _make(kind, [group(n) for _, n in LAYOUT[kind]], line, len(objects))
-        (lights if kind == "pointlight" else objects).append(item)
-    return File(window, viewpoint, tuple(lights), tuple(objects), "numeric")
+        code = int(toks[0])
+        if code in HEADER_FLAGS:
+            flags.append(code)
+            continue
+        form = form_of_code(code)
+        extras = []
+        if len(toks) > 1 and _NUM.match(toks[1]):        # nw's refraction index
+            extras.append(("refraction index", _exact(toks[1])))
+        values, extras = _read_item(form, group, word, flags, extras)
+        item = _make(form, values, line, len(objects), extras)
+        (lights if form.kind in LIGHTS else objects).append(item)
+    return File(window, viewpoint, tuple(lights), tuple(objects), "numeric", tuple(flags))
 
 
-assert set(LAYOUT) == set(KINDS) | {"pointlight"}, "scenefile.LAYOUT must cover every kind"
+assert set(LAYOUT) == set(KINDS) | set(LIGHTS), "scenefile.LAYOUT must cover every kind"

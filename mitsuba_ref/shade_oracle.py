@@ -132,6 +132,15 @@ def ray_trace(scene, base, d, total_dist, skip, rules: Rules, max_dist: float, p
         c = dot3(L, N)
         if c.v <= 0:
             continue                                    # light behind the surface
+        if light.kind == "spotlight":
+            # inside the cone iff unit(H − centre)·unit(aim − centre) > cos θ: a decision
+            # (its margin joins the shadow tests': whether the light reaches H)
+            axis = unit3(diff3(vec(light.aim), vec(light.center)))
+            cos_t = math.cos(math.radians(light.theta))       # within a few ulps
+            s = dot3(scale3(EF(-1.0, 0.0), L), axis) - EF(cos_t, 4.0 * abs(cos_t))
+            px.shadow = min(px.shadow, _margin(s.v, s.e))
+            if s.v <= 0:
+                continue                                # outside the spotlight's cone
         s = trace(scene, H, L, rules, h.id)
         px.shadow = min(px.shadow, _hit_margin(scene, s, H, L, h.id, False, dist.v))
         if s.hit:

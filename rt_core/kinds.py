@@ -1,4 +1,4 @@
-"""The one table of shape kinds.  Every per-kind dispatch (rt_core's kernels, the references'
+"""The one table of shape kinds, and the forms the course files write them in.  Every per-kind dispatch (rt_core's kernels, the references'
 oracles, the Mitsuba converter, the readers) is keyed by these names, and a kind missing from a
 dispatch raises instead of falling through to another kind (tests/test_kinds.py checks that
 every table covers every kind).
@@ -24,9 +24,55 @@ KINDS = {
     "fplane": Kind("fplane", 15, True, True),
     "tplane": Kind("tplane", 16, False, True),
 }
-LIGHTS = {"pointlight": 10}
-KEYWORDS = tuple(KINDS) + tuple(LIGHTS)
-CODES = {**{k.code: n for n, k in KINDS.items()}, **{c: n for n, c in LIGHTS.items()}}
+LIGHTS = {"pointlight": 10, "spotlight": 11}
+
+
+@dataclass(frozen=True)
+class Form:
+    """One way the course files write an object or light: its type token (keyword and/or
+    numeric code), the geometric kind (a KINDS name) or light it is, and the field groups that
+    follow the kind's own, recorded with the object.  ``count`` 0 is one word (a file name).
+    ``stand_in`` says how rtval shades it where the course programs' own shading (procedural
+    shaders, textures) is not implemented: the geometry is traced and checked regardless."""
+    name: str
+    kind: str
+    code: int | None = None
+    keyword: str | None = None
+    extra: tuple = ()
+    stand_in: str = ""
+
+
+_MAT_ONLY = "shaded with the object's own MAT"
+FORMS = {f.name: f for f in (
+    Form("pointlight", "pointlight", 10, "pointlight"),
+    Form("spotlight", "spotlight", 11, "spotlight"),
+    Form("sphere", "sphere", 13, "sphere"),
+    Form("plane", "plane", 14, "plane"),
+    Form("fplane", "fplane", 15, "fplane"),
+    Form("tplane", "tplane", 16, "tplane"),
+    # procedural shaders (cbl, cd, m4, nw, sgw): the shader index after the geometry
+    Form("psphere", "sphere", 19, None, (("shader", 1),),
+         f"procedural sphere: its shader is not implemented, {_MAT_ONLY}"),
+    Form("pplane", "plane", 20, None, (("shader", 1),),
+         f"procedural plane: its shader is not implemented, {_MAT_ONLY}"),
+    # textures (nw's 17 and 26 as numeric codes, rm768's keywords)
+    Form("texplane", "fplane", 17, None, (("texture", 0), ("tile mode", 1)),
+         f"textured plane: its texture is not applied, {_MAT_ONLY}"),
+    Form("texsphere", "sphere", 26, None, (("texture", 0),),
+         f"textured sphere: its texture is not applied, {_MAT_ONLY}"),
+    Form("fplanetex", "fplane", None, "fplanetex",
+         (("brightness", 1), ("texture size", 2), ("texture", 0)),
+         f"textured finite plane: its texture is not applied, {_MAT_ONLY}"),
+    Form("sphere_pixmap", "sphere", None, "sphere_pixmap",
+         (("brightness", 1), ("forward", 3), ("texture", 0)),
+         f"texture-mapped sphere: its texture is not applied, {_MAT_ONLY}"),
+)}
+# cd's header flags (numeric dialect, after the viewpoint): each adds one number after every
+# MAT (ambient, diffuse, specular), in the order the flags are given
+HEADER_FLAGS = {9000: "transparency", 9001: "refraction index"}
+FLAG_STAND_IN = "{}: recorded, not used in shading (the course's refraction is not implemented)"
+KEYWORDS = tuple(f.keyword for f in FORMS.values() if f.keyword)
+CODES = {f.code: f.name for f in FORMS.values() if f.code is not None}
 PLANE_KINDS = tuple(n for n, k in KINDS.items() if k.planar)
 KIND_CODE = {n: i for i, n in enumerate(KINDS)}      # kernels' kind number
 
@@ -47,14 +93,23 @@ def dispatch(table: dict, name: str):
                          f"{', '.join(sorted(table))})") from None
 
 
-def kind_of_keyword(word: str) -> str:
+def form_of_keyword(word: str) -> Form:
     w = word.lower()
     if w not in KEYWORDS:
         raise ValueError(f"unknown object keyword {word!r}")
-    return w
+    return next(f for f in FORMS.values() if f.keyword == w)
+
+
+def form_of_code(code: int) -> Form:
+    if code not in CODES:
+        raise ValueError(f"unknown object code {code}")
+    return FORMS[CODES[code]]
+
+
+def kind_of_keyword(word: str) -> str:
+    """The geometric kind (or light) a keyword writes."""
+    return form_of_keyword(word).kind
 
 
 def kind_of_code(code: int) -> str:
-    if code not in CODES:
-        raise ValueError(f"unknown object code {code}")
-    return CODES[code]
+    return form_of_code(code).kind

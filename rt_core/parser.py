@@ -52,8 +52,9 @@ import math
 import re
 from dataclasses import dataclass
 from .inputfile import read_input
-from .scene import (GeometryError, Material, Num, PointLight, Scene, SceneError, make_fplane,
-                    make_plane, make_sphere, make_tplane)
+from .kinds import CODES, FORMS, HEADER_FLAGS, KEYWORDS, LIGHTS, Form
+from .scene import (GeometryError, Material, Num, PointLight, Scene, SceneError, SpotLight,
+                    make_fplane, make_plane, make_sphere, make_tplane)
 
 __all__ = ["parse_scene", "parse_text", "SUPPORTED_KEYWORDS", "SUPPORTED_CODES"]
 
@@ -68,6 +69,8 @@ _MAT = (("ambient", 3, "r g b"), ("diffuse", 3, "r g b"), ("specular", 3, "r g b
 _XYZ = "x y z"
 _GROUPS = {
     "pointlight": (("emissivity", 3, "r g b"), ("center", 3, _XYZ)),
+    "spotlight": (("emissivity", 3, "r g b"), ("center", 3, _XYZ), ("aim", 3, _XYZ),
+                  ("theta", 1, "half-angle in degrees")),
     "sphere": _MAT + (("center", 3, _XYZ), ("radius", 1, "r")),
     "plane": _MAT + (("normal", 3, _XYZ), ("point", 3, _XYZ)),
     "fplane": _MAT + (("normal", 3, _XYZ), ("point", 3, _XYZ), ("orient", 3, _XYZ),
@@ -79,21 +82,17 @@ _GROUPS = {
 }
 _HEADER = (("world window", 2, "w h"), ("viewpoint", 3, _XYZ))
 
-SUPPORTED_KEYWORDS = ("pointlight", "sphere", "plane", "fplane", "tplane")
-SUPPORTED_CODES = {10: "pointlight", 13: "sphere", 14: "plane", 15: "fplane", 16: "tplane"}
+SUPPORTED_KEYWORDS = KEYWORDS
+SUPPORTED_CODES = dict(CODES)
+_CODE_WORDS = {10: "point light", 11: "spotlight", 13: "sphere", 14: "plane",
+               15: "finite plane", 16: "tiled plane", 17: "textured plane",
+               19: "procedural sphere", 20: "procedural plane", 26: "textured sphere"}
+_CODE_LIST = ", ".join(f"{c} {_CODE_WORDS[c]}" for c in sorted(CODES))
 
 # kinds the course used that this project does not implement
 _UNSUPPORTED_KEYWORDS = {
-    "fplanetex": "textured finite plane",
-    "sphere_pixmap": "texture-mapped sphere",
     "ellipsoid": "ellipsoid",
-    "spotlight": "spotlight",
     "projector": "projector",
-    "texplane": "textured plane",
-    "tex_plane": "textured plane",
-    "texsphere": "textured sphere",
-    "psphere": "procedural sphere",
-    "pplane": "procedural plane",
     "paraboloid": "paraboloid",
     "cylinder": "cylinder",
     "cone": "cone",
@@ -104,23 +103,16 @@ _UNSUPPORTED_KEYWORDS = {
     "lens": "lens",
 }
 _UNSUPPORTED_CODES = {
-    11: "spotlight",
     12: "projector",
-    17: "textured plane",
     18: "reflective sphere",
-    19: "procedural sphere",
-    20: "procedural plane",
     21: "paraboloid",
     22: "cylinder",
     23: "cone",
     24: "hyperboloid",
     25: "torus in nw, lens in cd",
-    26: "textured sphere",
     27: "triangle; disk in an older nw file",
     28: "displacement sphere",
     29: "disk",
-    9000: "cd header flag: transparency field in every material",
-    9001: "cd header flag: refraction index field in every material",
 }
 
 
@@ -151,6 +143,7 @@ class _Ctx:
     def __init__(self, text: str, path: str):
         self.path = path
         self.header_at: tuple = ()
+        self.flags: tuple = ()
         text = text.lstrip("\ufeff").replace("\r\n", "\n").replace("\r", "\n")
         self.lines: list[list[_Tok]] = []   # tokens per line, comments removed
         for lineno, raw in enumerate(text.split("\n"), 1):
@@ -216,9 +209,8 @@ def _unsupported_keyword(ctx: _Ctx, tok: _Tok) -> SceneError:
 
 
 def _unsupported_code(ctx: _Ctx, code: int, tok: _Tok) -> SceneError:
-    supported = ", ".join(f"{c} {k}" for c, k in SUPPORTED_CODES.items())
     return ctx.error(f"{code} ({_UNSUPPORTED_CODES[code]}) is not supported "
-                     f"(supported codes: {supported})", tok)
+                     f"(supported codes: {_CODE_LIST})", tok)
 
 
 # --- building objects -------------------------------------------------------------------
@@ -228,6 +220,16 @@ def _build(ctx: _Ctx, kind: str, start: _Tok, values: list, where: list):
     offending group."""
     if kind == "pointlight":
         return PointLight(tuple(values[0]), tuple(values[1]), start.line)
+    if kind == "spotlight":
+        theta = values[3][0]
+        if not 0 < theta <= 180:
+            raise ctx.error(f"spotlight: half-angle {theta:g} must be in (0, 180] degrees",
+                            where[3][0])
+        if tuple(values[2]) == tuple(values[1]):
+            raise ctx.error("spotlight: the point it aims at is its centre (no direction)",
+                            where[2][0])
+        return SpotLight(tuple(values[0]), tuple(values[1]), tuple(values[2]), theta,
+                         start.line)
     mat = Material(tuple(values[0]), tuple(values[1]), tuple(values[2]))
     g = values[3:]
     try:
@@ -280,20 +282,37 @@ def _read_header(ctx: _Ctx, group):
     return window, viewpoint
 
 
-def _read_object(ctx: _Ctx, kind: str, start: _Tok, group, lights: list, objects: list):
-    """Read the number groups of one object with the dialect's ``group`` reader, build it and
-    append it to ``lights`` or ``objects``."""
-    values, where = [], []
+def _read_object(ctx: _Ctx, form: Form, start: _Tok, group, word, lights: list,
+                 objects: list, flags=(), extras=()):
+    """Read the groups of one object or light written in ``form`` with the dialect's
+    ``group`` (numbers) and ``word`` (a file name) readers, build it and append it to
+    ``lights`` or ``objects``.  ``flags``: cd's header flags, one number after every MAT
+    each; ``extras``: fields already read (nw's refraction index on the code line)."""
+    kind = form.kind
+    values, where, extras = [], [], list(extras)
     for name, n, desc in _GROUPS[kind]:
-        v, locs = group(kind, name, n, desc)
+        v, locs = group(form.name, name, n, desc)
         values.append(v)
         where.append(locs)
+        if name.endswith("specular"):                  # the end of a MAT: the flags' fields
+            prefix = name[:-len("specular")]
+            for f in flags:
+                field = prefix + HEADER_FLAGS[f]
+                fv, _ = group(form.name, f"{field} (header flag {f})", 1, "a number")
+                extras.append((field, fv[0]))
+    for name, n in form.extra:                         # the form's own fields, recorded
+        if n == 0:
+            extras.append((name, word(form.name, name)))
+        else:
+            fv, _ = group(form.name, name, n, "numbers" if n > 1 else "a number")
+            extras.append((name, fv[0] if n == 1 else tuple(fv)))
     obj = _build(ctx, kind, start, values, where)
-    if kind != "pointlight":          # where each number is, for errors found later
+    if kind not in LIGHTS:            # where each number is, for errors found later
         obj = dataclasses.replace(obj, at=tuple(
             (name, tuple((t.line, t.col) for t in locs))
-            for (name, _, _), locs in zip(_GROUPS[kind], where)))
-    (lights if kind == "pointlight" else objects).append(obj)
+            for (name, _, _), locs in zip(_GROUPS[kind], where)),
+            form="" if form.name == kind else form.name, extras=tuple(extras))
+    (lights if kind in LIGHTS else objects).append(obj)
 
 
 # --- keyword dialect ----------------------------------------------------------------------
@@ -318,6 +337,14 @@ def _parse_keyword(ctx: _Ctx):
             pos += 1
         return vals, locs
 
+    def word(what: str, name: str) -> str:
+        nonlocal pos
+        if pos >= len(toks):
+            raise ctx.error(f"{what}: expected the {name} (a file name), found end of file",
+                            ctx.eof)
+        pos += 1
+        return toks[pos - 1].text
+
     window, viewpoint = _read_header(ctx, group)
     lights, objects = [], []
     while pos < len(toks):
@@ -331,7 +358,8 @@ def _parse_keyword(ctx: _Ctx):
             raise ctx.error(f"expected an object keyword ({', '.join(SUPPORTED_KEYWORDS)}), "
                             f"found {found}", start)
         pos += 1
-        _read_object(ctx, kind, start, group, lights, objects)
+        form = next(f for f in FORMS.values() if f.keyword == kind)
+        _read_object(ctx, form, start, group, word, lights, objects)
     return window, viewpoint, lights, objects
 
 
@@ -365,8 +393,16 @@ def _parse_numeric(ctx: _Ctx):
                             f"{_numbers(k)}", (toks[-1].line, toks[-1].end))
         return [ctx.number(t, what) for t in toks[:n]], toks[:n]
 
+    def word(what: str, name: str) -> str:
+        nonlocal idx
+        if idx >= len(content):
+            raise ctx.error(f"{what}: expected the {name} (a file name), found end of file",
+                            ctx.eof)
+        idx += 1
+        return content[idx - 1][0].text
+
     window, viewpoint = _read_header(ctx, group)
-    lights, objects = [], []
+    lights, objects, flags = [], [], []
     while idx < len(content):
         toks = content[idx]
         start = toks[0]
@@ -377,21 +413,32 @@ def _parse_numeric(ctx: _Ctx):
                 found = f"keyword {_show(start.text)} (keyword and numeric dialects mixed?)"
             else:
                 found = _show(start.text)
-            raise ctx.error("expected an integer object code (10 point light, 13 sphere, "
-                            f"14 plane, 15 finite plane, 16 tiled plane), found {found}", start)
+            raise ctx.error(f"expected an integer object code ({_CODE_LIST}), found {found}",
+                            start)
         code = int(start.text)
+        if code in HEADER_FLAGS:
+            if lights or objects:
+                raise ctx.error(f"header flag {code} ({HEADER_FLAGS[code]}) after the first "
+                                "object; cd's flags follow the viewpoint", start)
+            if code in flags:
+                raise ctx.error(f"header flag {code} given twice", start)
+            flags.append(code)
+            idx += 1
+            continue
         if code not in SUPPORTED_CODES:
             if code in _UNSUPPORTED_CODES:
                 raise _unsupported_code(ctx, code, start)
-            raise ctx.error(f"unknown object code {code}; expected 10 point light, 13 sphere, "
-                            "14 plane, 15 finite plane or 16 tiled plane", start)
-        kind = SUPPORTED_CODES[code]
-        if lead_count(toks) > 1:
-            extra = toks[1]
-            raise ctx.error(f"{code} ({kind}) with a refraction index ({_show(extra.text)}) "
-                            "after the code is not supported (nw's refractive objects)", extra)
+            raise ctx.error(f"unknown object code {code}; expected {_CODE_LIST}", start)
+        form = FORMS[SUPPORTED_CODES[code]]
+        extras = []
+        if lead_count(toks) > 1:          # nw: a refraction index after the code, recorded
+            if form.kind in LIGHTS:
+                raise ctx.error(f"{code} ({form.kind}): expected the code alone on its line, "
+                                f"found {_show(toks[1].text)}", toks[1])
+            extras.append(("refraction index", ctx.number(toks[1], form.name)))
         idx += 1
-        _read_object(ctx, kind, start, group, lights, objects)
+        _read_object(ctx, form, start, group, word, lights, objects, flags, extras)
+    ctx.flags = tuple(flags)
     return window, viewpoint, lights, objects
 
 
@@ -407,7 +454,7 @@ def _parse(text: str, path: str, sha: str) -> Scene:
     window, viewpoint, lights, objects = parse(ctx)
     return Scene(window=tuple(window), viewpoint=tuple(viewpoint), lights=tuple(lights),
                  objects=tuple(objects), path=path, dialect=dialect, sha256=sha,
-                 header_at=ctx.header_at)
+                 header_at=ctx.header_at, flags=ctx.flags)
 
 
 def parse_text(text: str | bytes, path: str = "<string>") -> Scene:

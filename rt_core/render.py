@@ -141,8 +141,27 @@ def provenance(scene: Scene, cam: Camera, precision: str, backend_name: str, rul
         "rtval.miss": MISS_CONVENTION,
         "rtval.versions": " ".join(f"{k}={v}" for k, v in versions().items()),
     }
+    if scene.stand_ins():
+        attrs["rtval.stand_ins"] = "; ".join(scene.stand_ins())
+    if extras_text(scene):
+        attrs["rtval.extras"] = extras_text(scene)
     attrs.update({f"rtval.{k}": str(v) for k, v in extra.items()})
     return attrs
+
+
+def extras_text(scene: Scene) -> str:
+    """The fields the scene's forms and header flags add (shader indices, texture names,
+    refraction indices, ...), recorded as read: ``line 4 pplane: shader=2; ...``."""
+    def show(v):
+        if isinstance(v, tuple):
+            return " ".join(show(c) for c in v)
+        return getattr(v, "text", None) or (v if isinstance(v, str) else f"{v:g}")
+    parts = [f"line {o.line} {o.form or o.kind}: "
+             + ", ".join(f"{k}={show(v)}" for k, v in o.extras)
+             for o in scene.objects if o.extras]
+    if scene.flags:
+        parts.insert(0, "header flags " + " ".join(map(str, scene.flags)))
+    return "; ".join(parts)
 
 
 def write_images(path: str, images: dict, attrs: dict) -> None:

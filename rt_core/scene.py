@@ -27,6 +27,12 @@ class SceneError(Exception):
         where = ":".join(str(p) for p in (path, line, col) if p is not None)
         super().__init__(f"{where}: {message}" if where else message)
 
+    @property
+    def category(self) -> str:
+        """'unsupported' (an object kind the course used that rtval does not implement) or
+        'malformed' (the file itself is wrong)."""
+        return "unsupported" if " is not supported" in self.message else "malformed"
+
 
 class GeometryError(ValueError):
     """Invalid geometry (zero normal, orient parallel to the normal, ...); the parser adds
@@ -108,6 +114,19 @@ class PointLight:
     emissivity: Vec3
     center: Vec3
     line: int = 0
+    kind = "pointlight"
+
+
+@dataclass(frozen=True)
+class SpotLight:
+    """A point light that lights H only inside its cone: unit(H − centre)·unit(aim − centre)
+    > cos(theta), theta the half-angle in degrees (cd's and nw's code 11)."""
+    emissivity: Vec3
+    center: Vec3
+    aim: Vec3
+    theta: float
+    line: int = 0
+    kind = "spotlight"
 
 
 @dataclass(frozen=True)
@@ -117,6 +136,8 @@ class Sphere:
     radius: float
     line: int = 0
     at: tuple = field(default=(), compare=False, repr=False)
+    form: str = field(default="", compare=False)      # kinds.FORMS name when not the plain kind
+    extras: tuple = field(default=(), compare=False)  # (field, value) the form adds, recorded
     kind = "sphere"
 
 
@@ -128,6 +149,8 @@ class Plane:
     line: int = 0
     given_normal: Vec3 = ()  # as written in the file
     at: tuple = field(default=(), compare=False, repr=False)   # see locate()
+    form: str = field(default="", compare=False)      # kinds.FORMS name when not the plain kind
+    extras: tuple = field(default=(), compare=False)  # (field, value) the form adds, recorded
     kind = "plane"
 
 
@@ -144,6 +167,8 @@ class FPlane:
     line: int = 0
     given_normal: Vec3 = ()  # as written in the file
     at: tuple = field(default=(), compare=False, repr=False)   # see locate()
+    form: str = field(default="", compare=False)      # kinds.FORMS name when not the plain kind
+    extras: tuple = field(default=(), compare=False)  # (field, value) the form adds, recorded
     kind = "fplane"
 
     @property
@@ -173,6 +198,8 @@ class TPlane:
     line: int = 0
     given_normal: Vec3 = ()  # as written in the file
     at: tuple = field(default=(), compare=False, repr=False)   # see locate()
+    form: str = field(default="", compare=False)      # kinds.FORMS name when not the plain kind
+    extras: tuple = field(default=(), compare=False)  # (field, value) the form adds, recorded
     kind = "tplane"
 
     @property
@@ -203,6 +230,20 @@ class Scene:
     dialect: str = "keyword"
     sha256: str = ""
     header_at: tuple = field(default=(), compare=False, repr=False)  # (line, col) of w h x y z
+    flags: tuple = ()                    # cd's header flags (9000, 9001) as given
+
+    def stand_ins(self) -> list[str]:
+        """What this scene has that rtval traces but shades with a stand-in (kinds.FORMS),
+        one line each: recorded in every output's provenance."""
+        from .kinds import FLAG_STAND_IN, FORMS, HEADER_FLAGS
+        out = [f"line {o.line}: {FORMS[o.form].stand_in}" for o in self.objects
+               if o.form and FORMS[o.form].stand_in]
+        out += [FLAG_STAND_IN.format(f"header flag {f} ({HEADER_FLAGS[f]} after every MAT)")
+                for f in self.flags]
+        out += [f"line {o.line}: " + FLAG_STAND_IN.format(f"{o.kind}'s refraction index")
+                for o in self.objects if any(k == "refraction index" for k, _ in o.extras)
+                and not self.flags]
+        return out
 
     def kinds(self) -> tuple[str, ...]:
         """Object kinds present, in the fixed order of KINDS."""

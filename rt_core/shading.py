@@ -64,6 +64,17 @@ class ShadeResult:
     records: list = field(default_factory=list)    # per recorded bounce: numpy arrays
 
 
+def _spot(T, light):
+    """(unit axis, cos θ) of a spotlight as kernel constants (the axis from the numbers as
+    written, in float64 on the host, rounded once); None for a point light."""
+    if light.kind != "spotlight":
+        return None
+    a = [float(x) - float(c) for x, c in zip(light.aim, light.center)]
+    n = math.sqrt(sum(x * x for x in a))
+    return (opaque3(T.Array3, tuple(x / n for x in a)),
+            dr.opaque(T.Float, math.cos(math.radians(float(light.theta)))))
+
+
 def any_specular(scene) -> bool:
     """Does any MAT of the scene (tiled-plane backgrounds included) reflect?"""
     mats = [o.material for o in scene.objects] + \
@@ -150,8 +161,8 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
         return ShadeResult(image)
     tables = _material_tables(ks, rules)
     # light centres relative to the viewpoint (host float64, then one rounding) and emissivity
-    lights = [(opaque3(T.Array3, sub(L.center, scene.viewpoint)), opaque3(T.Array3, L.emissivity))
-              for L in scene.lights]
+    lights = [(opaque3(T.Array3, sub(L.center, scene.viewpoint)), opaque3(T.Array3, L.emissivity),
+               _spot(T, L)) for L in scene.lights]
     reflect = any_specular(scene) and max_dist > 0
     max_d = dr.opaque(F, max_dist)
     out = ShadeResult(image)
@@ -181,12 +192,15 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
         out.extra.update(ex)
         # one shadow pass per light: diffuse where the light is in front and unblocked
         I = amb
-        for j, (Lp, E) in enumerate(lights):
+        for j, (Lp, E, spot) in enumerate(lights):
             D = Lp - H
             ld = dr.norm(D)
             L = D / ld
             c = dr.dot(L, normal)
             cast = hit & (c > 0)
+            if spot is not None:            # a spotlight lights H only inside its cone:
+                axis, cos_theta = spot      # unit(H − centre)·axis = −L·axis > cos θ
+                cast &= -dr.dot(L, axis) > cos_theta
             blocked = occluded(ks, L, H, ld, rules, oid)
             I = I + dr.select(cast & ~blocked, dif * E * (c / ld), 0)
             dr.eval(I, *((L, ld, cast, blocked) if rec is not None else ()))

@@ -130,7 +130,8 @@ def test03_each_deviation_is_named(ctracer, build, scene, rule, value, tmp_path)
 
 BUGS = [("course_alias_xform", REPO / "scenes" / "fplane_tilted.txt"),
         ("course_inv_square", REPO / "scenes" / "shade_shadows.txt"),
-        ("course_no_shadows", REPO / "scenes" / "shade_shadows.txt")]
+        ("course_no_shadows", REPO / "scenes" / "shade_shadows.txt"),
+        ("course_spot_full_angle", REPO / "scenes" / "shade_spot.txt")]
 
 
 @pytest.mark.parametrize("build,scene", BUGS, ids=[b[0] for b in BUGS])

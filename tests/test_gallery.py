@@ -25,9 +25,13 @@ def test01_every_scene(tmp_path):
     assert r.returncode == 0, r.stderr
     assert r.stdout.split() == [str(out / "index.html"), str(out / "contact.png")]
     skipped = [ln for ln in r.stderr.splitlines() if ln.startswith("rtval gallery: skipped")]
-    # each with the parser's one line: file:line:col: message
-    assert skipped and all(":" in ln.split("skipped ", 1)[1] for ln in skipped)
-    assert sum("is not supported" in ln for ln in skipped) > 0.9 * len(skipped)
+    # each with its category and the parser's one line: file:line:col: message
+    assert skipped and all(":" in ln.split(") ", 1)[1] for ln in skipped)
+    unsupported = [ln for ln in skipped if ln.startswith("rtval gallery: skipped (unsupported)")]
+    malformed = [ln for ln in skipped if ln.startswith("rtval gallery: skipped (malformed)")]
+    assert len(unsupported) + len(malformed) == len(skipped)
+    assert all("is not supported" in ln for ln in unsupported)
+    assert not any("is not supported" in ln for ln in malformed)
     pngs = sorted(p.name for p in out.glob("*.png") if p.name != "contact.png")
     files = scene_files([])
     assert len(pngs) + len(skipped) == len(files)
@@ -45,13 +49,15 @@ def test02_given_files(tmp_path):
     """A scene named on the command line must render (as in validate): an unsupported one is
     an error, not a skip; two named files with one stem get distinct images."""
     bad = tmp_path / "spot.txt"
-    bad.write_text("8 6\n0 0 5\n11\n1 1 1\n")
+    bad.write_text("8 6\n0 0 5\n22\n1 1 1\n")
     r = rtval("gallery", "-o", tmp_path / "g", "--columns", 16, REPO / "scenes" / "sphere.txt",
               bad)
     assert r.returncode == 2 and "Traceback" not in r.stderr
-    assert r.stderr.strip().endswith(f"{bad}:3:1: 11 (spotlight) is not supported "
-                                     "(supported codes: 10 pointlight, 13 sphere, 14 plane, "
-                                     "15 fplane, 16 tplane)")
+    assert r.stderr.strip().endswith(f"{bad}:3:1: 22 (cylinder) is not supported "
+                                     "(supported codes: 10 point light, 11 spotlight, 13 sphere, "
+                                     "14 plane, 15 finite plane, 16 tiled plane, 17 textured "
+                                     "plane, 19 procedural sphere, 20 procedural plane, "
+                                     "26 textured sphere)")
     for sub, src in (("a", "sphere.txt"), ("b", "plane.txt")):
         (tmp_path / sub).mkdir()
         (tmp_path / sub / "s.txt").write_text((REPO / "scenes" / src).read_text())

@@ -79,8 +79,23 @@ def test02_shape_ids_carry_course_index():
     # validation needs no BSDFs or emitters; --shading adds them
     assert not any("bsdf" in v for v in d.values() if isinstance(v, dict))
     shaded = scene_dict(scene, 32, shading=True)
-    assert sum(1 for v in shaded.values() if isinstance(v, dict) and v.get("type") == "point") \
-        == len(scene.lights)
+    assert sum(1 for v in shaded.values() if isinstance(v, dict)
+               and v.get("type") in ("point", "spot")) == len(scene.lights)
+
+
+def test_spotlight_is_mitsubas_spot_aimed_at_its_point():
+    """A spotlight becomes Mitsuba's ``spot``: cutoff = beam width = the half-angle, at the
+    centre, looking at the aim point; Mitsuba loads it and lights the cone only."""
+    import mitsuba as mi
+    scene = parse_scene(REPO / "scenes" / "shade_spot.txt")
+    d = scene_dict(scene, 32, shading=True)
+    (spot,) = [v for v in d.values() if isinstance(v, dict) and v.get("type") == "spot"]
+    (L,) = [L for L in scene.lights if L.kind == "spotlight"]
+    assert spot["cutoff_angle"] == spot["beam_width"] == L.theta
+    m = np.array(spot["to_world"].matrix)
+    axis = np.subtract(L.aim, L.center) / np.linalg.norm(np.subtract(L.aim, L.center))
+    assert np.allclose(m[:3, 3], L.center) and np.allclose(m[:3, 2], axis, atol=1e-6)
+    assert len(mi.load_dict(d, optimize=False).emitters()) == len(scene.lights)
 
 
 def _fplane_scenes():

@@ -82,8 +82,9 @@ def run(args) -> int:
             if args.scenes:
                 raise              # a scene named on the command line must render
             why = str(e) if isinstance(e, SceneError) else f"{path}: {e}"
-            skipped.append((name, why))
-            print(f"rtval gallery: skipped {why}", file=sys.stderr)
+            category = e.category if isinstance(e, SceneError) else "too large"
+            skipped.append((name, f"{category}: {why}"))
+            print(f"rtval gallery: skipped ({category}) {why}", file=sys.stderr)
             continue
         pixels = quantize(np.stack([images[c] for c in "RGB"], -1))
         file = name.replace("/", "__") + ".png"

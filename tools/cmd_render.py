@@ -116,6 +116,9 @@ def run(args) -> int:
         images, res = render_tiled(scene, cam, T, rules, tile_pixels=band,
                                    geometry=bool(args.output), shade=shade, max_dist=max_dist,
                                    log=log)
+    if shade:
+        for note in scene.stand_ins():
+            print(f"rtval render: note: {note}", file=sys.stderr)
     if args.explain:
         for line in explain_lines(scene, log, res, max_dist):
             print(f"rtval render: explain: {line}", file=sys.stderr)

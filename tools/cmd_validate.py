@@ -24,15 +24,15 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     from tqdm import tqdm
     from rt_core.render import versions
-    from tools.harness.validate import (default_scene_paths, load_supported, stem_of, validate,
-                                      write_report)
+    from tools.harness.validate import (default_scene_paths, load_supported, skip_counts,
+                                        stem_of, validate, write_report)
 
     paths = args.scenes or default_scene_paths()
     scenes, skipped = load_supported(paths, explicit=bool(args.scenes))
     precisions = ("f32", "f64") if args.precision == "both" else (args.precision,)
     modes = ("rays", "camera") if args.mode == "both" else (args.mode,)
     for s in skipped:
-        print(f"skipped: {s.reason}", file=sys.stderr)
+        print(f"skipped ({s.category}): {s.reason}", file=sys.stderr)
     bar = tqdm(total=len(scenes) * len(precisions) * len(modes), file=sys.stderr,
                unit="cmp", disable=None)
     results = validate(scenes, args.columns, precisions, modes, args.output,
@@ -50,6 +50,6 @@ def run(args) -> int:
               f"{r['depth']['max_rel']:13.2e} {r['rt_core_ms']:10.2f} {r['mitsuba_ms']:10.2f}"
               + ("" if r["ok"] else "  FAIL"))
     bad = [r for r in results if not r["ok"]]
-    print(f"{len(results)} comparisons on {len(scenes)} scenes ({len(skipped)} course files "
-          f"skipped: they do not parse): {len(bad)} failed. Report: {md}, {js}", file=sys.stderr)
+    print(f"{len(results)} comparisons on {len(scenes)} scenes (skipped: "
+          f"{skip_counts(skipped)}): {len(bad)} failed. Report: {md}, {js}", file=sys.stderr)
     return 1 if bad else 0

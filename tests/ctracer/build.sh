@@ -39,5 +39,6 @@ build course_tile_noproject  -DTILE_NOPROJECT
 build course_alias_xform     -DALIAS_XFORM
 build course_inv_square      -DINV_SQUARE
 build course_no_shadows      -DNO_SHADOWS
+build course_spot_full_angle -DSPOT_FULL_ANGLE
 build course_tile_add_first  -DTILE_ADD_FIRST
-echo "built 14 binaries in $out"
+echo "built 15 binaries in $out"

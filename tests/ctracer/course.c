@@ -40,6 +40,8 @@
  *                     test (where the notes show it); tiled-plane coordinates stay correct
  *   -DINV_SQUARE      diffuse falls off as 1/d^2 instead of 1/d (a bug)
  *   -DNO_SHADOWS      no shadow rays at all (a bug)
+ *   -DSPOT_FULL_ANGLE a spotlight's theta taken as the cone's full angle, not the half-angle
+ *                     (a bug: the lit cone is half as wide)
  * One more variant from the notes, beyond the list above:
  *   -DTILE_ADD_FIRST  tile parity floor((OFF + u)/w) instead of floor(OFF + u/w): OFF is
  *                     added before dividing, which shifts the pattern unless w divides OFF
@@ -151,6 +153,8 @@ typedef struct {
 
 typedef struct {
     double emis[3], center[3];
+    int spot;                           /* spotlight (code 11): lights H only inside its cone */
+    double axis[3], cos_theta;          /* unit(aim - center), cos(half-angle) */
 } light_t;
 
 static double g_window[2], g_view[3];
@@ -364,18 +368,24 @@ static double tok_value(const tok_t *t, const char *what)
     return v;
 }
 
-static const char *KEYWORDS[] = {"pointlight", "sphere", "plane", "fplane", "tplane"};
-static const int CODES[] = {10, 13, 14, 15, 16};
+/* forms: 0 pointlight 1 sphere 2 plane 3 fplane 4 tplane 5 spotlight 6 fplanetex
+ * 7 sphere_pixmap (keywords); 8 procedural sphere (19) 9 procedural plane (20) 10 textured
+ * plane (17) 11 textured sphere (26): the geometry of their kind, the extra fields read and
+ * not used (procedural shaders and textures are not implemented: the MAT shades them) */
+static const char *KEYWORDS[] = {"pointlight", "sphere", "plane", "fplane", "tplane",
+                                 "spotlight", "fplanetex", "sphere_pixmap"};
+static const int CODES[] = {10, 13, 14, 15, 16, 11, -1, -1, 19, 20, 17, 26};
+#define NFORMS 12
+static const int FORM_KIND[] = {0, 1, 2, 3, 4, 5, 3, 1, 1, 2, 3, 1};
 /* kinds the course used that this tracer does not implement */
-static const char *UNSUP_WORDS[] = {"fplanetex", "sphere_pixmap", "ellipsoid", "spotlight",
-                                    "projector", "texplane", "tex_plane", "texsphere",
-                                    "psphere", "pplane", "paraboloid", "cylinder", "cone",
+static const char *UNSUP_WORDS[] = {"ellipsoid", "projector", "paraboloid", "cylinder", "cone",
                                     "hyperboloid", "torus", "triangle", "disk", "lens"};
+static int g_nflags;            /* cd's header flags 9000/9001: a number after every MAT each */
 
 static int keyword_index(const tok_t *t)
 {
     int i;
-    for (i = 0; i < 5; i++)
+    for (i = 0; i < 8; i++)
         if (tok_ieq(t, KEYWORDS[i]))
             return i;
     return -1;
@@ -470,9 +480,36 @@ static void group(const char *what, const char *name, int n, const char *desc, d
 
 static void read_mat(const char *what, mat_t *m, int background)
 {
+    int f;
+    double skip;
     group(what, background ? "background ambient" : "ambient", 3, "r g b", m->amb);
     group(what, background ? "background diffuse" : "diffuse", 3, "r g b", m->dif);
     group(what, background ? "background specular" : "specular", 3, "r g b", m->spec);
+    for (f = 0; f < g_nflags; f++)
+        group(what, "header flag field", 1, "a number", &skip);
+}
+
+/* a file name (a texture): the next token, or the next line's first token */
+static void skip_word(const char *what)
+{
+    if (g_numeric ? g_pos >= g_ncontent : g_pos >= g_ntok)
+        fail_at(g_eof_line, g_eof_col, "%s: expected a file name, found end of file", what);
+    g_pos++;
+}
+
+/* the fields a form adds after its kind's (read, not used) */
+static void read_extras(int form, const char *what)
+{
+    double v[3];
+    switch (form) {
+    case 6: group(what, "brightness", 1, "", v); group(what, "texture size", 2, "", v);
+            skip_word(what); break;
+    case 7: group(what, "brightness", 1, "", v); group(what, "forward", 3, "", v);
+            skip_word(what); break;
+    case 8: case 9: group(what, "shader", 1, "", v); break;
+    case 10: skip_word(what); group(what, "tile mode", 1, "", v); break;
+    case 11: skip_word(what); break;
+    }
 }
 
 /* the seed's frame: x^ = unit(orient - (orient.n^) n^), y^ = unit(n^ x x^), rows x^ y^ n^ */
@@ -513,13 +550,27 @@ static const tok_t *cur_tok(void)
     return &g_tok[g_ntok - 1];
 }
 
-static void read_object(int kw)
+static void read_object(int form)
 {
-    const char *what = KEYWORDS[kw];
-    if (kw == 0) {
+    const char *what = form < 8 ? KEYWORDS[form] : "object";
+    int kw = FORM_KIND[form];
+    if (kw == 0 || kw == 5) {
         light_t L;
+        memset(&L, 0, sizeof L);
         group(what, "emissivity", 3, "r g b", L.emis);
         group(what, "center", 3, "x y z", L.center);
+        if (kw == 5) {
+            double aim[3], D[3], theta;
+            group(what, "aim", 3, "x y z", aim);
+            group(what, "theta", 1, "degrees", &theta);
+            diff3(D, aim, L.center);
+            unit3(L.axis, D);
+#ifdef SPOT_FULL_ANGLE
+            theta /= 2.0;                   /* the bug: theta taken as the cone's full angle */
+#endif
+            L.cos_theta = cos(theta * 3.14159265358979323846 / 180.0);
+            L.spot = 1;
+        }
         if (g_nlight == g_caplight) {
             g_caplight = g_caplight ? 2 * g_caplight : 8;
             g_light = xrealloc(g_light, g_caplight * sizeof(light_t));
@@ -564,6 +615,7 @@ static void read_object(int kw)
                     read_mat(what, &o.bg, 1);
             }
         }
+        read_extras(form, what);
         if (g_nobj == g_capobj) {
             g_capobj = g_capobj ? 2 * g_capobj : 16;
             g_obj = xrealloc(g_obj, g_capobj * sizeof(obj_t));
@@ -626,11 +678,15 @@ static void parse_scene(void)
             memcpy(b, t->s, t->len);
             b[t->len] = '\0';
             code = atoi(b);
-            for (k = 0; k < 5 && CODES[k] != code; k++)
+            if (code == 9000 || code == 9001) {
+                g_nflags++;
+                g_pos++;
+                continue;
+            }
+            for (k = 0; k < NFORMS && CODES[k] != code; k++)
                 ;
-            if (k == 5) {
-                if ((code >= 11 && code <= 12) || (code >= 17 && code <= 29) || code == 9000 ||
-                    code == 9001)
+            if (k == NFORMS) {
+                if (code == 12 || (code >= 17 && code <= 29))
                     fail_at(t->line, t->col, "object code %d is not supported (supported: 10, "
                             "13, 14, 15, 16)", code);
                 fail_at(t->line, t->col, "unknown object code %d; expected 10 point light, 13 "
@@ -638,9 +694,7 @@ static void parse_scene(void)
             }
             while (lead < cnt && num_syntax(&tk[lead]))
                 lead++;
-            if (lead > 1)
-                fail_at(tk[1].line, tk[1].col, "%d with a refraction index ('%s') after the "
-                        "code is not supported", code, show(&tk[1]));
+            /* a second number (nw's refraction index) is read and not used */
             g_pos++;
             read_object(k);
         }
@@ -860,6 +914,13 @@ static int trace(const double base0[3], const double dir0[3], double out[3], dou
             c = dot3(U, N);
             if (c <= 0.0)
                 continue;                   /* light behind the surface */
+            if (L->spot) {                  /* outside the spotlight's cone */
+                double S[3], US[3];
+                diff3(S, h.hitloc, L->center);
+                unit3(US, S);
+                if (!(dot3(US, L->axis) > L->cos_theta))
+                    continue;
+            }
 #ifndef NO_SHADOWS
             if (shadowed(h.hitloc, U, d, id))
                 continue;

@@ -407,6 +407,11 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
     return res
 
 
+def extras_text(scene) -> str:
+    from rt_core.render import extras_text as text
+    return text(scene)
+
+
 def provenance(scene, img: np.ndarray) -> dict:
     """The scene's and the image's sha256, the reference (rt_core float64, exact decisions,
     corner sampling) and the versions that made the verdict."""
@@ -416,6 +421,7 @@ def provenance(scene, img: np.ndarray) -> dict:
             "image_sha256": hashlib.sha256(np.ascontiguousarray(img).tobytes()).hexdigest(),
             "reference": "rt_core float64, exact decisions, corner sampling",
             "boundary": "mitsuba_ref.shade_oracle float64 margins < 64 u",
+            "stand_ins": scene.stand_ins(), "extras": extras_text(scene),
             "versions": versions()}
 
 

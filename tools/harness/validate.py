@@ -31,12 +31,21 @@ def is_course_scene(path) -> bool:
 class Skipped:
     path: str
     reason: str
+    category: str = "malformed"       # or "unsupported" (SceneError.category)
+
+
+def skip_counts(skipped) -> str:
+    """'12 course files unsupported (object kinds rtval does not implement), 5 malformed'."""
+    n = {c: sum(s.category == c for s in skipped) for c in ("unsupported", "malformed")}
+    return (f"{n['unsupported']} course files unsupported (object kinds rtval does not "
+            f"implement), {n['malformed']} malformed (errors in the file itself)")
 
 
 def load_supported(paths, explicit: bool):
-    """(scenes, skipped): in the default list, course files that do not parse (unsupported
-    kinds, or errors in the file itself) are skipped and listed; a bundled scene or a scene
-    named explicitly must parse (its error is raised)."""
+    """(scenes, skipped): in the default list, course files rtval cannot read (an object kind
+    it does not implement: "unsupported"; an error in the file itself: "malformed") are
+    skipped and listed; a bundled scene or a scene named explicitly must parse (its error is
+    raised)."""
     scenes, skipped = [], []
     for p in paths:
         try:
@@ -44,7 +53,7 @@ def load_supported(paths, explicit: bool):
         except SceneError as e:
             if explicit or not is_course_scene(p):
                 raise
-            skipped.append(Skipped(str(p), str(e)))
+            skipped.append(Skipped(str(p), str(e), e.category))
     return scenes, skipped
 
 
@@ -82,7 +91,8 @@ def validate(scenes, columns: int, precisions, modes, outdir: str, progress=None
 
 def write_report(results, skipped, outdir: str, meta: dict) -> tuple[str, str]:
     data = {"meta": meta, "results": results,
-            "skipped": [{"path": s.path, "reason": s.reason} for s in skipped]}
+            "skipped": [{"path": s.path, "category": s.category, "reason": s.reason}
+                        for s in skipped]}
     jpath = os.path.join(outdir, "report.json")
     mpath = os.path.join(outdir, "report.md")
     from rt_core.exrio import atomic_write
@@ -104,8 +114,8 @@ def write_report(results, skipped, outdir: str, meta: dict) -> tuple[str, str]:
     bad = [r for r in results if not r["ok"]]
     lines += ["", f"{len(results)} comparisons, {len(bad)} failed."]
     if skipped:
-        lines += ["", f"## Skipped ({len(skipped)} course files that do not parse: object kinds "
-                  "out of scope, or errors in the file)", ""]
-        lines += [f"- {s.reason}" for s in skipped]
+        lines += ["", f"## Skipped: {skip_counts(skipped)}", ""]
+        lines += [f"- {s.category}: {s.reason}" for s in sorted(skipped,
+                                                                key=lambda s: s.category)]
     atomic_write(mpath, lambda tmp: Path(tmp).write_text("\n".join(lines) + "\n"))
     return mpath, jpath
