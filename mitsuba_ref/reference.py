@@ -170,9 +170,16 @@ def _render_group(g: Group, V, cos):
         img = img[:, ::-1]
     dd = img[..., 0]
     hit = dd > 0
-    lookup = np.vectorize(lambda r: g.registry_to_course.get(int(r), -2), otypes=[np.int64])
+    # Mitsuba's shape registry ids -> course object ids, by one table lookup (unknown: -2)
+    reg = np.rint(img[..., 9]).astype(np.int64)
+    keys = np.fromiter(g.registry_to_course, np.int64, len(g.registry_to_course))
+    vals = np.fromiter(g.registry_to_course.values(), np.int64, len(g.registry_to_course))
+    size = int(max(keys.max(initial=0), reg.max(initial=0))) + 2
+    table = np.full(size, -2, np.int64)
+    table[keys[keys >= 0]] = vals[keys >= 0]
+    ids = np.where(reg >= 0, table[np.clip(reg, 0, size - 1)], -2)
     out = {"hit.mask": hit, "depth.Z": np.where(hit, dd + g.setup.near_clip / cos, np.inf),
-           "object.id": np.where(hit, lookup(np.rint(img[..., 9])), -1)}
+           "object.id": np.where(hit, ids, -1)}
     for i, c in enumerate("XYZ"):
         out[f"position.{c}"] = img[..., 1 + i]
         out[f"normal.{c}"] = img[..., 4 + i]

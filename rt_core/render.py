@@ -164,10 +164,10 @@ def extras_text(scene: Scene) -> str:
     return "; ".join(parts)
 
 
-def write_images(path: str, images: dict, attrs: dict) -> None:
+def write_images(path: str, images: dict, attrs: dict, compression: str | None = None) -> None:
     """Write AOVs as float32 EXR (atomically), recording the count of non-finite values."""
     attrs = dict(attrs, **{"rtval.nonfinite": str(nonfinite_count(images))})
-    write_exr(path, images, attrs)
+    write_exr(path, images, attrs, **({"compression": compression} if compression else {}))
 
 
 # a tile's rays: bounded working memory (the kernels' arrays) whatever the image size

@@ -89,7 +89,7 @@ def test01_info_lists_size_channels_types_compression_and_attributes(tmp_path, c
     assert code == 0 and len(data) == 2
     r = data[0]
     assert (r["width"], r["height"]) == (W, H)
-    assert r["compression"] == "ZIP_COMPRESSION"
+    assert r["compression"] == "PIZ_COMPRESSION"
     assert r["data_window"] == [[0, 0], [W - 1, H - 1]]
     types = {c["name"]: c["type"] for c in r["channels"]}
     assert types == {**{n: "FLOAT" for n in aovs()}, "object.id": "UINT"}
@@ -101,7 +101,7 @@ def test01_info_lists_size_channels_types_compression_and_attributes(tmp_path, c
 
     code, out, err = run(capsys, "info", p)
     assert code == 0 and err == ""
-    assert f"{W} x {H}" in out and "ZIP_COMPRESSION" in out
+    assert f"{W} x {H}" in out and "PIZ_COMPRESSION" in out
     assert "object.id   UINT" in out and "depth.Z     FLOAT" in out
     assert 'rtval.scene         "scenes/box.txt"' in out
 

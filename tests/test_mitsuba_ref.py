@@ -312,3 +312,10 @@ def test42_validate_writes_report(tmp_path):
     assert "drjit" in rep["meta"] and "mitsuba" in rep["meta"]
     assert "sphere" in r.stdout and "unexpl" in r.stdout
     assert not stale.exists()
+    # every comparison passed: no evidence EXR unless asked for
+    assert not list(tmp_path.rglob("*.exr"))
+    r = _cli("validate", "scenes/sphere.txt", "--columns", "32", "--precision", "f32",
+             "--evidence", "all", "-o", str(tmp_path))
+    assert r.returncode == 0, r.stderr
+    assert sorted(p.name for p in (tmp_path / "exr").glob("*.exr")) == [
+        f"sphere.{m}.f32.{w}.exr" for m in ("camera", "rays") for w in ("mitsuba", "ours")]

@@ -256,3 +256,21 @@ def test16_one_unwritable_output_leaves_no_other(tmp_path):
     r = rtval("render", "scenes/sphere.txt", "--columns", 8, "-o", good, "--png", "/proc/x.png")
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
     assert not good.exists() and not glob.glob(str(tmp_path / ".tmp-*"))
+
+
+@pytest.mark.parametrize("compression", ["zip", "zstd", "htj2k", "none"])
+def test30_every_compression_is_lossless(tmp_path, compression):
+    """--compression changes the file, never a pixel (the default is PIZ)."""
+    a, b = tmp_path / "a.exr", tmp_path / "b.exr"
+    assert rtval("render", "scenes/mixed.txt", "--columns", 48, "--ppm", tmp_path / "a.ppm",
+                 "-o", a).returncode == 0
+    assert rtval("render", "scenes/mixed.txt", "--columns", 48, "--ppm", tmp_path / "b.ppm",
+                 "-o", b, "--compression", compression).returncode == 0
+    (ca, ha), (cb, hb) = read_exr(a), read_exr(b)
+    assert str(ha["compression"]).endswith("PIZ_COMPRESSION")
+    assert str(hb["compression"]).endswith(
+        {"htj2k": "HTJ2K256", "none": "NO"}.get(compression, compression.upper())
+        + "_COMPRESSION")
+    assert sorted(ca) == sorted(cb)
+    for k in ca:
+        assert np.array_equal(ca[k].view(np.uint32), cb[k].view(np.uint32)), k

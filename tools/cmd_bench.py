@@ -38,6 +38,13 @@ def add_parser(sub) -> None:
     p.add_argument("--keep-cache", action="store_true",
                    help="use Dr.Jit's on-disk kernel cache (default: an empty one, so that "
                         "first calls show compilation)")
+    p.add_argument("--command", action="store_true",
+                   help="time whole `rtval render` runs instead (a new process each), split "
+                        "into start-up, import, parse, kernel and write")
+    p.add_argument("--command-columns", type=positive_int, nargs="+", default=[1920, 7680],
+                   metavar="N", help="--command: image widths (default: 1920 7680)")
+    p.add_argument("--runs", type=positive_int, default=3,
+                   help="--command: runs per case, interleaved (default 3)")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
     p.add_argument("-o", "--output", metavar="FILE.json", help="also write the JSON here")
     p.set_defaults(func=run, before_import=lambda args: fresh_kernel_cache(args.keep_cache))
@@ -55,6 +62,8 @@ def fresh_kernel_cache(keep: bool) -> None:
 
 
 def run(args) -> int:
+    if args.command:
+        return run_command(args)
     from tools.harness.bench import run_bench, table
     if args.threads:
         import drjit as dr
@@ -68,6 +77,21 @@ def run(args) -> int:
     objects = list(dict.fromkeys(args.objects))          # each count once
     result = run_bench(objects, args.scenes, args.columns, args.reps, args.brute,
                        progress=progress)
+    return _emit(args, result, table)
+
+
+def run_command(args) -> int:
+    from tools.harness.bench import command_bench, command_table
+
+    def progress(c, out, rep, p):
+        print(f"bench: render {c} columns {out} run {rep + 1}: {p['wall']:.2f} s (kernel "
+              f"{p['kernel']:.2f}, write {p['write']:.2f})", file=sys.stderr)
+    result = command_bench(list(dict.fromkeys(args.command_columns)), args.runs,
+                           progress=progress)
+    return _emit(args, result, command_table)
+
+
+def _emit(args, result, table) -> int:
     text = json.dumps(result, indent=1)
     if args.output:
         from pathlib import Path

@@ -34,6 +34,10 @@ def add_parser(sub) -> None:
     p.add_argument("--max-dist", type=nonneg_float, default=None, metavar="D",
                    help="reflections stop once a path is this long (the notes' MAX_DIST; "
                         "default 1000)")
+    p.add_argument("--compression", choices=("piz", "zip", "zstd", "htj2k", "none"),
+                   default="piz", help="EXR compression, all lossless (default piz: read by "
+                                       "every OpenEXR; zstd and htj2k are faster and smaller "
+                                       "but need OpenEXR 3.4 or later to read)")
     p.add_argument("--tile", type=positive_int, default=None, metavar="ROWS",
                    help="trace the image in bands of ROWS rows, so that memory grows with the "
                         "outputs only (default: bands of about 2 million pixels); the image "
@@ -83,6 +87,14 @@ def _check_writable(path: str) -> None:
 
 def run(args) -> int:
     import contextlib
+    import time
+    clock = [time.perf_counter()]
+    phases = {}
+
+    def phase(name):            # wall time since the previous mark (rtval bench --command)
+        now = time.perf_counter()
+        phases[name] = phases.get(name, 0.0) + now - clock[0]
+        clock[0] = now
 
     import numpy as np
     from rt_core import backend
@@ -99,6 +111,7 @@ def run(args) -> int:
     from rt_core import shading
     from rt_core.shading import DEFAULT_MAX_DIST, quantize
 
+    phase("import")             # (the imports above: rt_core, Dr.Jit, numpy, OpenEXR)
     outs = _outputs(args)
     rules = args.rules or Rules()
     max_dist = DEFAULT_MAX_DIST if args.max_dist is None else args.max_dist
@@ -106,6 +119,7 @@ def run(args) -> int:
     for _, path in outs:
         _check_writable(path)
     scene = parse_scene(args.scene)
+    phase("parse")
     T = backend.types(args.precision, args.backend)
     cam = make_camera(scene, args.columns, args.rows, args.sampling, rules)
     need = lambda px, band: render_bytes(px, args.precision, shade, bool(args.output), band)
@@ -116,6 +130,7 @@ def run(args) -> int:
         images, res = render_tiled(scene, cam, T, rules, tile_pixels=band,
                                    geometry=bool(args.output), shade=shade, max_dist=max_dist,
                                    log=log)
+    phase("kernel")
     if shade:
         for note in scene.stand_ins():
             print(f"rtval render: note: {note}", file=sys.stderr)
@@ -137,7 +152,7 @@ def run(args) -> int:
     for opt, path in outs:
         try:
             if opt == "-o":
-                write_images(path, images, attrs)
+                write_images(path, images, attrs, args.compression)
             elif opt == "--ppm":
                 write_ppm(path, pixels)
             else:
@@ -146,6 +161,11 @@ def run(args) -> int:
             raise                       # one line naming the target already
         except OSError as e:
             raise InputError(f"{path}: cannot write ({e.strerror or e})") from None
+    phase("write")
+    if os.environ.get("RTVAL_PHASES"):      # where rtval bench --command wants the split
+        import json
+        with open(os.environ["RTVAL_PHASES"], "w") as f:
+            json.dump(phases, f)
     size = f"{cam.columns}x{cam.rows} {args.precision}"
     for opt, path in outs:
         if opt == "-o":

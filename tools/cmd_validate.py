@@ -11,13 +11,17 @@ def add_parser(sub) -> None:
                        description="Compare rt_core with Mitsuba (same rays and Mitsuba's "
                                    "camera, f32 and f64) on the given scenes, by default every "
                                    "scene in scenes/ and every supported course scene in "
-                                   "../shared/course-scenes. Writes EXRs, report.md and "
-                                   "report.json. Exit 0 iff every comparison passes.")
+                                   "../shared/course-scenes. Writes report.md, report.json and "
+                                   "the evidence EXRs of failing comparisons. Exit 0 iff every "
+                                   "comparison passes.")
     p.add_argument("scenes", nargs="*")
     p.add_argument("--columns", type=positive_int, default=160)
     p.add_argument("--precision", choices=("f32", "f64", "both"), default="both")
     p.add_argument("--mode", choices=("rays", "camera", "both"), default="both")
     p.add_argument("-o", "--output", default="out/validate", metavar="DIR")
+    p.add_argument("--evidence", choices=("failures", "all"), default="failures",
+                   help="EXRs of the failing comparisons only (default), or also ours and "
+                        "Mitsuba's of every passing one (under DIR/exr)")
     p.set_defaults(func=run)
 
 
@@ -36,7 +40,7 @@ def run(args) -> int:
     bar = tqdm(total=len(scenes) * len(precisions) * len(modes), file=sys.stderr,
                unit="cmp", disable=None)
     results = validate(scenes, args.columns, precisions, modes, args.output,
-                       progress=lambda row: bar.update(1))
+                       progress=lambda row: bar.update(1), evidence=args.evidence)
     bar.close()
     meta = dict(columns=args.columns, backend="llvm", reference="mitsuba llvm_ad_rgb",
                 **versions())

@@ -29,6 +29,7 @@ constants and screen-space bins, Mitsuba's ``load_dict`` (its BVH build).
 from __future__ import annotations
 
 import math
+import os
 import random
 import statistics
 import time
@@ -400,4 +401,74 @@ def table(result: dict) -> str:
             f"{k} {n}: {r:.2f}" for k, n, r in ratios))
     for kind, g in result["growth"].items():
         lines.append(f"{kind}: " + ", ".join(f"{k}={v}" for k, v in g.items()))
+    return "\n".join(lines)
+
+
+# --- the whole command: rtval bench --command ----------------------------------------------
+
+COMMAND_COLUMNS = (1920, 7680)
+COMMAND_PHASES = ("import", "parse", "kernel", "write")
+
+
+def command_bench(columns=COMMAND_COLUMNS, repeats: int = 3, scene: str | None = None,
+                  outputs=("geometry", "shaded"), progress=None) -> dict:
+    """Wall time of whole ``rtval render`` runs (a new process each), split into phases:
+    import (the interpreter's start, the CLI, rt_core, Dr.Jit, numpy, OpenEXR: the wall time
+    before the scene is read), parse, kernel (camera, tracing, shading; Dr.Jit's kernel cache
+    warm), write (quantizing, provenance, the outputs).  ``outputs``: geometry (-o EXR) and/or shaded
+    (--ppm and -o EXR with R G B).  Medians and ranges of ``repeats`` runs, interleaved."""
+    import json
+    import subprocess
+    import sys
+    import tempfile
+    repo = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    scene = scene or os.path.join(repo, "scenes", "mixed.txt")
+    runs: dict = {}
+    with tempfile.TemporaryDirectory(prefix="rtval-bench-") as d:
+        for rep in range(-1, repeats):          # run -1: warm-up (kernels compiled, cached)
+            for c in columns:
+                for out in outputs:
+                    phases = os.path.join(d, "phases.json")
+                    args = ["--columns", str(c), "-o", os.path.join(d, "o.exr")]
+                    if out == "shaded":
+                        args += ["--ppm", os.path.join(d, "o.ppm")]
+                    t0 = time.perf_counter()
+                    r = subprocess.run([sys.executable, "-m", "tools.cli", "render", scene, *args],
+                                       cwd=repo, capture_output=True, text=True,
+                                       env={**os.environ, "RTVAL_PHASES": phases})
+                    wall = time.perf_counter() - t0
+                    if r.returncode != 0:
+                        raise RuntimeError(f"rtval render failed: {r.stderr.strip()[-300:]}")
+                    with open(phases) as f:
+                        p = json.load(f)
+                    p["import"] = wall - p["parse"] - p["kernel"] - p["write"]
+                    p["wall"] = wall
+                    p["size_mb"] = os.path.getsize(os.path.join(d, "o.exr")) / 1e6
+                    if rep < 0:
+                        continue
+                    runs.setdefault((c, out), []).append(p)
+                    if progress:
+                        progress(c, out, rep, p)
+    cases = []
+    for (c, out), ps in runs.items():
+        stat = {k: {"median": float(np.median([p[k] for p in ps])),
+                    "min": float(min(p[k] for p in ps)), "max": float(max(p[k] for p in ps))}
+                for k in (*COMMAND_PHASES, "wall", "size_mb")}
+        largest = max(COMMAND_PHASES, key=lambda k: stat[k]["median"])
+        cases.append({"columns": c, "outputs": out, "runs": len(ps), "phases": stat,
+                      "largest": largest})
+    return {"mode": "command", "scene": os.path.relpath(scene, repo), "machine": machine(),
+            "cases": cases}
+
+
+def command_table(result: dict) -> str:
+    head = f"{'columns':>7} {'outputs':8} " + " ".join(f"{k:>16}" for k in
+                                                       (*COMMAND_PHASES, "wall")) + "  largest"
+    lines = [f"rtval render {result['scene']}: seconds, median [min-max] of "
+             f"{result['cases'][0]['runs'] if result['cases'] else 0} runs", head]
+    for c in result["cases"]:
+        cell = lambda k: (f"{c['phases'][k]['median']:.2f} [{c['phases'][k]['min']:.2f}-"
+                          f"{c['phases'][k]['max']:.2f}]")
+        lines.append(f"{c['columns']:>7} {c['outputs']:8} " + " ".join(
+            f"{cell(k):>16}" for k in (*COMMAND_PHASES, "wall")) + f"  {c['largest']}")
     return "\n".join(lines)

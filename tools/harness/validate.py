@@ -62,8 +62,11 @@ def stem_of(path: str) -> str:
     return f"{p.parent.name}__{p.stem}" if p.parent.name in ("keyword", "numeric") else p.stem
 
 
-def validate(scenes, columns: int, precisions, modes, outdir: str, progress=None):
-    """Run every comparison; write EXRs, report.md and report.json under ``outdir``.
+def validate(scenes, columns: int, precisions, modes, outdir: str, progress=None,
+             evidence: str = "failures"):
+    """Run every comparison; write the evidence EXRs under ``outdir``: of every failing
+    comparison (ours, Mitsuba, difference, classes, in ``failures/``) and, with
+    ``evidence="all"``, ours and Mitsuba's of the passing ones too (in ``exr/``).
 
     Evidence of an earlier run in ``outdir/failures`` and ``outdir/exr`` is removed first,
     so what is there belongs to this run."""
@@ -80,7 +83,7 @@ def validate(scenes, columns: int, precisions, modes, outdir: str, progress=None
                 # ours and the reference for every comparison; full evidence when it fails
                 if not cmp.ok:
                     row["evidence"] = write_evidence(cmp, os.path.join(outdir, "failures"), stem)
-                elif precision == precisions[0]:
+                elif evidence == "all" and precision == precisions[0]:
                     row["evidence"] = write_evidence(cmp, os.path.join(outdir, "exr"), stem,
                                                      ("ours", "mitsuba"))
                 results.append(row)
