@@ -429,9 +429,9 @@ def command_bench(columns=COMMAND_COLUMNS, repeats: int = 3, scene: str | None =
             for c in columns:
                 for out in outputs:
                     phases = os.path.join(d, "phases.json")
-                    args = ["--columns", str(c), "-o", os.path.join(d, "o.exr")]
-                    if out == "shaded":
-                        args += ["--ppm", os.path.join(d, "o.ppm")]
+                    exr, ppm = os.path.join(d, f"{c}.{out}.exr"), os.path.join(d, f"{c}.ppm")
+                    args = ["--columns", str(c), "-o", exr] + (["--ppm", ppm]
+                                                               if out == "shaded" else [])
                     t0 = time.perf_counter()
                     r = subprocess.run([sys.executable, "-m", "tools.cli", "render", scene, *args],
                                        cwd=repo, capture_output=True, text=True,
@@ -443,7 +443,10 @@ def command_bench(columns=COMMAND_COLUMNS, repeats: int = 3, scene: str | None =
                         p = json.load(f)
                     p["import"] = wall - p["parse"] - p["kernel"] - p["write"]
                     p["wall"] = wall
-                    p["size_mb"] = os.path.getsize(os.path.join(d, "o.exr")) / 1e6
+                    p["size_mb"] = os.path.getsize(exr) / 1e6
+                    for f in (exr, ppm):        # (not replaced by the next run: an unlink of
+                        if os.path.exists(f):   # a large file is no part of a render)
+                            os.unlink(f)
                     if rep < 0:
                         continue
                     runs.setdefault((c, out), []).append(p)
