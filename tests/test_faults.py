@@ -320,7 +320,8 @@ def test15_a_killed_runs_temporary_is_removed_by_the_next_run(tmp_path):
 def test15b_sigterm_during_validate_leaves_no_temporary(tmp_path):
     out = tmp_path / "v"
     p = subprocess.Popen([sys.executable, "-m", "tools.cli", "validate", str(SEED),
-                          str(REPO / "scenes" / "mixed.txt"), "--columns", "300", "-o", str(out)],
+                          str(REPO / "scenes" / "mixed.txt"), "--columns", "300", "-o", str(out),
+                          "--evidence", "all"],
                          cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     t0 = time.monotonic()
     while not (out / "exr").exists():                      # it has begun writing

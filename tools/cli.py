@@ -34,12 +34,69 @@ def _terminate(signum, frame):
 class Parser(argparse.ArgumentParser):
     def error(self, message):
         # one line, like every other error (the usage is one --help away)
-        print(f"{self.prog}: error: {message} (see {self.prog} --help)", file=sys.stderr)
+        print(f"{self.prog}: error: {message}{_suggestion(self, message)} "
+              f"(see {self.prog} --help)", file=sys.stderr)
         sys.exit(USAGE_EXIT)
+
+    def parse_known_args(self, args=None, namespace=None):
+        # an unknown option is the error to report, not the required option it misspells
+        # ("--colums 10": "unrecognized --colums (did you mean --columns?)", not "required:
+        # --columns")
+        args = sys.argv[1:] if args is None else list(args)
+        known = {o for a in self._actions for o in a.option_strings}
+        sub = next((a for a in self._actions if isinstance(a, argparse._SubParsersAction)),
+                   None)
+        for tok in args:
+            if sub is not None and tok in sub.choices:
+                break                           # the subcommand's parser checks the rest
+            if tok == "--":
+                break
+            name = tok.split("=", 1)[0]
+            if name.startswith("--") and name not in known and not any(
+                    k.startswith(name) for k in known):
+                self.error(f"unrecognized option {name}")
+        return super().parse_known_args(args, namespace)
+
+
+def _suggestion(parser, message: str) -> str:
+    """' (did you mean X?)' for a misspelt subcommand, choice or option."""
+    import difflib
+    import re
+    m = re.search(r"invalid choice: '([^']*)' \(choose from (.*)\)", message)
+    if m:
+        choices = re.findall(r"'([^']*)'", m.group(2)) or [c.strip() for c in
+                                                          m.group(2).split(",")]
+        close = difflib.get_close_matches(m.group(1), choices, n=1)
+    else:
+        m = re.search(r"unrecognized (?:option|arguments:) (--?[\w-]+)", message)
+        if not m:
+            return ""
+        known = [o for a in parser._actions for o in a.option_strings if o.startswith("--")]
+        close = difflib.get_close_matches(m.group(1), known, n=1)
+    return f" (did you mean {close[0]}?)" if close else ""
+
+
+def _version() -> str:
+    """The package version, and the git commit when run from a checkout."""
+    import os
+    import subprocess
+    from importlib import metadata
+    try:
+        v = metadata.version("rtval")
+    except metadata.PackageNotFoundError:
+        v = "unknown"
+    try:
+        repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+        commit = subprocess.run(["git", "-C", repo, "rev-parse", "--short=12", "HEAD"],
+                                capture_output=True, text=True, timeout=5).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        commit = ""
+    return v + (f" (commit {commit})" if commit else "")
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = Parser(prog="rtval", description="Reference harness for the course ray tracer.")
+    parser.add_argument("--version", action="version", version=f"rtval {_version()}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=Parser)
     for name in COMMANDS:
         importlib.import_module(f"tools.cmd_{name}").add_parser(sub)

@@ -56,4 +56,9 @@ def run(args) -> int:
     if args.json:
         json.dump(rows, sys.stdout, indent=1)
         print()
+    else:
+        print(f"{'PASS' if ok else 'FAIL'} {args.scene}: {len(rows)} comparison"
+              f"{'s' if len(rows) != 1 else ''}, "
+              + ("no unexplained pixel, depth within its bound" if ok else
+                 f"{sum(not r.get('ok', True) for r in rows)} failed"))
     return 0 if ok else 1

@@ -12,14 +12,18 @@ def add_parser(sub) -> None:
                        description="Write the Mitsuba 3 scene equivalent to a course scene: "
                                    "finite planes as rectangles, planes as large rectangles, "
                                    "spheres, and a perspective sensor with the course's rays.")
-    p.add_argument("scene")
-    p.add_argument("--columns", type=positive_int, required=True)
-    p.add_argument("--rows", type=positive_int, default=None)
-    p.add_argument("--sampling", choices=("corners", "centers"), default="corners")
-    p.add_argument("--shading", action="store_true",
+    p.add_argument("scene", help="course scene file (keyword or numeric dialect)")
+    p.add_argument("--columns", type=positive_int, required=True,
+                   help="image width in pixels (the sensor's film)")
+    p.add_argument("--rows", type=positive_int, default=None,
+                   help="image height (default: int(world_h / world_w * columns))")
+    p.add_argument("--sampling", choices=("corners", "centers"), default="corners",
+                   help="course corner grid (default) or pixel centres")
+    p.add_argument("--shading", "--shade", action="store_true", dest="shading",
                    help="add point emitters and diffuse BSDFs (an approximation of the course "
                         "shading, for looking at, not for validation)")
-    p.add_argument("-o", "--output", required=True, metavar="OUT.xml")
+    p.add_argument("-o", "--output", required=True, metavar="OUT.xml",
+                   help="the Mitsuba 3 XML scene to write")
     p.set_defaults(func=run)
 
 

@@ -157,6 +157,16 @@ def _print_json(data) -> None:
     print(json_text(data, indent=2), end="")
 
 
+def _distinct(a, b) -> str:
+    """'a vs b' with as many digits as it takes to tell them apart (up to round-trip)."""
+    if isinstance(a, float) and isinstance(b, float):
+        for digits in (6, 9, 12, 17):
+            sa, sb = f"{a:.{digits}g}", f"{b:.{digits}g}"
+            if sa != sb or a == b:
+                return f"{sa} vs {sb}"
+    return f"{_g(a)} vs {_g(b)}"
+
+
 def _g(v, width: int = 0) -> str:
     s = "-" if v is None else (f"{v:.6g}" if isinstance(v, float) else str(v))
     return s.rjust(width) if width else s
@@ -265,7 +275,7 @@ def run_diff(args) -> int:
     wst = r["worst"]
     if wst:
         print(f"  Max error  = {_g(r['max_error'])} @ ({wst['x']}, {wst['y']}, "
-              f"{wst['channel']})  values are {_g(wst['a'])} vs {_g(wst['b'])}")
+              f"{wst['channel']})  values are {_distinct(wst['a'], wst['b'])}")
     else:
         print("  Max error  = 0")
     if r["nonfinite_mismatches"]:

@@ -54,6 +54,14 @@ def _outputs(args) -> list[tuple[str, str]]:
                                           ("--png", args.png)) if path]
     if not outs:
         args.usage_error("nothing to write: give -o OUT.exr, --ppm OUT.ppm and/or --png OUT.png")
+    # an output's name must say what it holds (x.png holding EXR bytes helps nobody)
+    want = {"-o": (".exr",), "--ppm": (".ppm", ".pnm"), "--png": (".png",)}
+    for opt, path in outs:
+        ext = os.path.splitext(path)[1].lower()
+        if ext and ext not in want[opt]:
+            other = next((o for o, e in want.items() if ext in e), None)
+            args.usage_error(f"{opt} {path}: {opt} writes {want[opt][0][1:].upper()}; name "
+                             f"it {want[opt][0]}" + (f" or use {other}" if other else ""))
     seen = {}
     for opt, path in outs:
         key = os.path.abspath(path)

@@ -18,8 +18,8 @@ def add_parser(sub) -> None:
                                    "report.md, report.json and error_vs_time.png.")
     p.add_argument("scenes", nargs="*", help="course scene files (default: scenes/*.txt)")
     p.add_argument("--quick", action="store_true",
-                   help="3 resolutions (160, 640, 1920), 400 oracle pixels, 2 timed calls: "
-                        "the whole run in under a minute")
+                   help="3 resolutions (160, 640, 1920), 400 oracle pixels, 2 timed calls "
+                        "(about 2 minutes and 2 GB of memory on the bundled scenes, 2 cores)")
     p.add_argument("--columns", type=positive_int, nargs="+", metavar="W",
                    help="resolutions (default 160 320 640 1280 1920)")
     p.add_argument("--sample", type=positive_int,

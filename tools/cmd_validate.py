@@ -25,6 +25,22 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
+def _log_progress(total: int):
+    import time
+    t0, state = time.monotonic(), {"n": 0, "failed": 0, "shown": 0}
+
+    def progress(row):
+        state["n"] += 1
+        state["failed"] += not row["ok"]
+        tenth = state["n"] * 10 // max(total, 1)
+        if tenth > state["shown"] or state["n"] == total:
+            state["shown"] = tenth
+            print(f"rtval validate: {state['n']}/{total} comparisons ({tenth * 10}%), "
+                  f"{state['failed']} failed, {time.monotonic() - t0:.0f} s",
+                  file=sys.stderr, flush=True)
+    return progress
+
+
 def run(args) -> int:
     from tqdm import tqdm
     from rt_core.render import versions
@@ -37,11 +53,15 @@ def run(args) -> int:
     modes = ("rays", "camera") if args.mode == "both" else (args.mode,)
     for s in skipped:
         print(f"skipped ({s.category}): {s.reason}", file=sys.stderr)
-    bar = tqdm(total=len(scenes) * len(precisions) * len(modes), file=sys.stderr,
-               unit="cmp", disable=None)
+    total = len(scenes) * len(precisions) * len(modes)
+    if sys.stderr.isatty():
+        bar = tqdm(total=total, file=sys.stderr, unit="cmp")
+        progress, done = (lambda row: bar.update(1)), bar.close
+    else:                       # a log (CI): a plain line every tenth of the way
+        progress, done = _log_progress(total), (lambda: None)
     results = validate(scenes, args.columns, precisions, modes, args.output,
-                       progress=lambda row: bar.update(1), evidence=args.evidence)
-    bar.close()
+                       progress=progress, evidence=args.evidence)
+    done()
     meta = dict(columns=args.columns, backend="llvm", reference="mitsuba llvm_ad_rgb",
                 **versions())
     md, js = write_report(results, skipped, args.output, meta)

@@ -36,6 +36,8 @@ class Skipped:
 
 def skip_counts(skipped) -> str:
     """'12 course files unsupported (object kinds rtval does not implement), 5 malformed'."""
+    if not skipped:
+        return "none"
     n = {c: sum(s.category == c for s in skipped) for c in ("unsupported", "malformed")}
     return (f"{n['unsupported']} course files unsupported (object kinds rtval does not "
             f"implement), {n['malformed']} malformed (errors in the file itself)")

@@ -1,0 +1,85 @@
+"""The command line's manners: --version, "did you mean", outputs named for what they hold, a
+PASS/FAIL word, digits that tell values apart, progress in a log, a closed pipe."""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rt_core.exrio import write_exr
+
+REPO = Path(__file__).resolve().parents[1]
+SPHERE = REPO / "scenes" / "sphere.txt"
+
+
+def rtval(*args, **kw):
+    return subprocess.run([sys.executable, "-m", "tools.cli", *map(str, args)],
+                          capture_output=True, text=True, cwd=REPO, timeout=300, **kw)
+
+
+def test01_version():
+    r = rtval("--version")
+    assert r.returncode == 0 and r.stdout.startswith("rtval ")
+
+
+@pytest.mark.parametrize("args, said", [
+    (("rendr", SPHERE), "invalid choice: 'rendr'"),
+    (("render", SPHERE, "--colums", 10, "-o", "x.exr"), "unrecognized option --colums"),
+    (("render", SPHERE, "--columns", 10, "--precision", "f65"), "invalid choice: 'f65'"),
+    (("exr", "stat", "a.exr"), "invalid choice: 'stat'"),
+], ids=["command", "option-before-required", "choice", "subcommand"])
+def test02_did_you_mean(args, said):
+    r = rtval(*args)
+    err = r.stderr.strip()
+    assert r.returncode == 64 and len(err.splitlines()) == 1, err
+    want = {"rendr": "render", "--colums": "--columns", "f65": "f64", "stat": "stats"}
+    typo = next(t for t in want if t in map(str, args))
+    assert said in err and f"(did you mean {want[typo]}?)" in err, err
+
+
+@pytest.mark.parametrize("opt, name, other", [("-o", "x.png", "--png"), ("--png", "z.exr", "-o"),
+                                              ("--ppm", "y.png", "--png")])
+def test03_an_output_is_named_for_what_it_holds(tmp_path, opt, name, other):
+    r = rtval("render", SPHERE, "--columns", 10, opt, tmp_path / name)
+    assert r.returncode == 64 and f"or use {other}" in r.stderr and not (tmp_path / name).exists()
+
+
+def test04_compare_says_pass_and_survives_a_closed_pipe():
+    r = rtval("compare", SPHERE, "--columns", 32)
+    assert r.returncode == 0 and r.stdout.strip().splitlines()[-1].startswith(f"PASS {SPHERE}")
+    r = subprocess.run(f"{sys.executable} -m tools.cli compare {SPHERE} --columns 32 --json "
+                       "| head -1; exit ${PIPESTATUS[0]}", shell=True, executable="/bin/bash",
+                       capture_output=True, text=True, cwd=REPO, timeout=300)
+    assert r.returncode == 0 and "Broken pipe" not in r.stderr and r.stdout.strip() == "["
+
+
+def test05_worst_pixel_values_are_told_apart(tmp_path):
+    a, b = tmp_path / "a.exr", tmp_path / "b.exr"
+    base = np.full((4, 4), 10.2259, np.float32)
+    write_exr(str(a), {"depth.Z": base})
+    other = base.copy()
+    other[1, 2] = np.nextafter(other[1, 2], np.float32(20))    # one float32 ulp
+    write_exr(str(b), {"depth.Z": other})
+    r = rtval("exr", "diff", a, b)
+    line = next(ln for ln in r.stdout.splitlines() if "values are" in ln)
+    va, vb = line.split("values are ")[1].split(" vs ")
+    # (9 significant digits here: enough to tell two float32 values apart, and each reads
+    # back to its float32)
+    assert va != vb and np.float32(va) == base[1, 2] and np.float32(vb) == other[1, 2]
+
+
+def test06_validate_reports_progress_in_a_log(tmp_path):
+    r = rtval("validate", SPHERE, "--columns", 24, "--precision", "f32", "-o", tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert "rtval validate: 2/2 comparisons (100%), 0 failed" in r.stderr
+    assert "skipped: none" in r.stderr
+
+
+def test07_convert_takes_shade_like_render(tmp_path):
+    r = rtval("convert", REPO / "scenes" / "shade_spot.txt", "--columns", 41, "--rows", 31,
+              "--shade", "-o", tmp_path / "s.xml")
+    assert r.returncode == 0, r.stderr
+    assert 'type="spot"' in (tmp_path / "s.xml").read_text()
