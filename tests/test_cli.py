@@ -83,3 +83,12 @@ def test07_convert_takes_shade_like_render(tmp_path):
               "--shade", "-o", tmp_path / "s.xml")
     assert r.returncode == 0, r.stderr
     assert 'type="spot"' in (tmp_path / "s.xml").read_text()
+
+
+@pytest.mark.parametrize("cmd", [("render", SPHERE, "--columns", 8, "-o"),
+                                 ("convert", SPHERE, "--columns", 8, "-o")])
+def test08_a_missing_directory_is_not_created(tmp_path, cmd):
+    out = tmp_path / "no" / "such" / ("x.exr" if cmd[0] == "render" else "x.xml")
+    r = rtval(*cmd, out)
+    assert r.returncode == 2 and "no directory" in r.stderr and "create it first" in r.stderr
+    assert not (tmp_path / "no").exists()

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import sys
+import os
 from pathlib import Path
 
 from .options import positive_int
@@ -32,6 +33,10 @@ def run(args) -> int:
     from rt_core.parser import parse_scene
     from mitsuba_ref.convert import scene_xml, sensor_setup
 
+    from rt_core.usererror import InputError
+    parent = os.path.dirname(os.path.abspath(args.output))
+    if not os.path.isdir(parent):
+        raise InputError(f"{args.output}: no directory {parent}; create it first")
     scene = parse_scene(args.scene)
     setup = sensor_setup(scene, args.columns, args.rows, args.sampling)
     if setup.note:

@@ -77,8 +77,9 @@ def _check_writable(path: str) -> None:
     if os.path.isdir(path):
         raise InputError(f"{path}: is a directory; give a file name")
     parent = os.path.dirname(os.path.abspath(path))
-    while not os.path.exists(parent):
-        parent = os.path.dirname(parent)
+    if not os.path.exists(parent):
+        # a typo in a directory name should not become a new directory tree
+        raise InputError(f"{path}: no directory {parent}; create it first")
     if not os.path.isdir(parent):
         raise InputError(f"{path}: {parent} is not a directory")
     # can a file be created there? (permissions, read-only or pseudo file systems): checked
