@@ -92,3 +92,39 @@ def test08_a_missing_directory_is_not_created(tmp_path, cmd):
     r = rtval(*cmd, out)
     assert r.returncode == 2 and "no directory" in r.stderr and "create it first" in r.stderr
     assert not (tmp_path / "no").exists()
+
+
+def test09_junit_for_validate_and_compare(tmp_path):
+    import xml.etree.ElementTree as ET
+    j = tmp_path / "v.xml"
+    r = rtval("validate", SPHERE, "--columns", 24, "--precision", "f32", "-o", tmp_path / "v",
+              "--junit", j)
+    assert r.returncode == 0, r.stderr
+    suite = ET.parse(j).getroot()
+    assert suite.get("name") == "rtval validate" and suite.get("tests") == "2"
+    assert suite.get("failures") == "0" and suite.find("properties") is not None
+    assert sorted(c.get("name") for c in suite.iter("testcase")) == [
+        "sphere.camera.f32", "sphere.rays.f32"]
+    j = tmp_path / "c.xml"
+    assert rtval("compare", SPHERE, "--columns", 24, "--mode", "rays", "--junit", j
+                 ).returncode == 0
+    assert [c.get("name") for c in ET.parse(j).getroot().iter("testcase")] == \
+        ["sphere.rays.f32"]
+
+
+def test10_junit_marks_failures_and_skips():
+    import xml.etree.ElementTree as ET
+    from tools.cmd_validate import comparison_cases, skip_case
+    from tools.harness.junit import junit_xml
+    from tools.harness.validate import Skipped
+    row = {"scene": "scenes/x.txt", "mode": "rays", "precision": "f64", "rt_core_ms": 1.0,
+           "mitsuba_ms": 2.0, "classes": {"agree": 10, "unexplained": 3}, "columns": 4,
+           "rows": 3, "depth": {"max_rel": 1e-3, "over_bound": 2}, "ok": False,
+           "unexplained": 3, "evidence": ["out/x.rays.f64.classes.exr"]}
+    cases = comparison_cases([row, dict(row, ok=True, mode="camera")], "rtval.validate")
+    cases.append(skip_case(Skipped("c/bad.txt", "c/bad.txt:3:1: oops", "malformed")))
+    suite = ET.fromstring(junit_xml("rtval validate", cases))
+    assert (suite.get("tests"), suite.get("failures"), suite.get("errors")) == ("3", "1", "1")
+    failure = suite.find("testcase/failure")
+    assert "3 unexplained pixels" in failure.get("message") and "evidence" in failure.text
+    assert suite.find("testcase/error").get("message").startswith("malformed: ")

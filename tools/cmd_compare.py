@@ -21,6 +21,8 @@ def add_parser(sub) -> None:
     p.add_argument("--evidence", default="out/compare", metavar="DIR",
                    help="where evidence EXRs go on failure (default out/compare)")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    p.add_argument("--junit", metavar="FILE.xml",
+                   help="also write JUnit XML, one test case per mode")
     p.set_defaults(func=run)
 
 
@@ -53,6 +55,10 @@ def run(args) -> int:
                   f"{d['over_bound']}")
             for path in row.get("evidence", []):
                 print(f"       evidence: {path}")
+    if args.junit:
+        from tools.cmd_validate import comparison_cases
+        from tools.harness.junit import write_junit
+        write_junit(args.junit, "rtval compare", comparison_cases(rows, "rtval.compare"))
     if args.json:
         json.dump(rows, sys.stdout, indent=1)
         print()

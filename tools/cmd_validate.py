@@ -19,10 +19,38 @@ def add_parser(sub) -> None:
     p.add_argument("--precision", choices=("f32", "f64", "both"), default="both")
     p.add_argument("--mode", choices=("rays", "camera", "both"), default="both")
     p.add_argument("-o", "--output", default="out/validate", metavar="DIR")
+    p.add_argument("--junit", metavar="FILE.xml",
+                   help="also write JUnit XML: one test case per comparison (CI systems show "
+                        "them), a failure for each failing one, an error for each skipped file")
     p.add_argument("--evidence", choices=("failures", "all"), default="failures",
                    help="EXRs of the failing comparisons only (default), or also ours and "
                         "Mitsuba's of every passing one (under DIR/exr)")
     p.set_defaults(func=run)
+
+
+def comparison_cases(rows, classname: str) -> list:
+    """JUnit cases of compare/validate result rows."""
+    from tools.harness.junit import Case
+    from tools.harness.validate import stem_of
+    cases = []
+    for r in rows:
+        c = Case(f"{stem_of(r['scene'])}.{r['mode']}.{r['precision']}", classname,
+                 (r["rt_core_ms"] + r["mitsuba_ms"]) / 1e3)
+        counts = ", ".join(f"{k} {v}" for k, v in r["classes"].items() if v)
+        depth = r["depth"]
+        c.body = (f"{r['columns']}x{r['rows']}: {counts}; depth max rel {depth['max_rel']:.3g}, "
+                  f"over bound {depth['over_bound']}"
+                  + "".join(f"\nevidence: {p}" for p in r.get("evidence", [])))
+        if not r["ok"]:
+            c.failure = (f"{r['unexplained']} unexplained pixels, {depth['over_bound']} depths "
+                         "over their bound")
+        cases.append(c)
+    return cases
+
+
+def skip_case(s):
+    from tools.harness.junit import Case
+    return Case(s.path, "rtval.validate.skipped", error=f"{s.category}: {s.reason}")
 
 
 def _log_progress(total: int):
@@ -65,6 +93,10 @@ def run(args) -> int:
     meta = dict(columns=args.columns, backend="llvm", reference="mitsuba llvm_ad_rgb",
                 **versions())
     md, js = write_report(results, skipped, args.output, meta)
+    if args.junit:
+        from tools.harness.junit import write_junit
+        write_junit(args.junit, "rtval validate", comparison_cases(results, "rtval.validate")
+                    + [skip_case(s) for s in skipped])
     head = (f"{'scene':34s} {'mode':6s} {'prec':4s} {'pixels':>7s} {'explained':>9s} "
             f"{'unexpl':>6s} {'depth max rel':>13s} {'rt_core ms':>10s} {'Mitsuba ms':>10s}")
     print(head)

@@ -637,31 +637,20 @@ def class_image(cls: np.ndarray) -> np.ndarray:
 
 
 def junit_xml(results) -> str:
-    from xml.sax.saxutils import escape, quoteattr
-    fails = sum(r.status == "fail" for r in results)
-    errors = sum(r.status in ("error", "refused") for r in results)
-    from rt_core.render import versions
-    out = ['<?xml version="1.0" encoding="UTF-8"?>',
-           f'<testsuite name="rtval check" tests="{len(results)}" failures="{fails}" '
-           f'errors="{errors}" time="{sum(r.seconds for r in results):.3f}">',
-           "  <properties>"] + [
-           f'    <property name={quoteattr(k)} value={quoteattr(str(v))}/>'
-           for k, v in versions().items()] + ["  </properties>"]
+    from .junit import Case, junit_xml as xml
+    cases = []
     for r in results:
-        out.append(f'  <testcase classname="rtval.check" name={quoteattr(Path(r.scene).name)} '
-                   f'time="{r.seconds:.3f}">')
+        c = Case(Path(r.scene).name, "rtval.check", r.seconds)
         if r.status == "fail":
-            msg = f"{r.counts.get('wrong', 0)} wrong pixels"
-            body = "\n".join([f"rules: {r.rules}, max_dist={r.max_dist:g}"] + r.deviations +
-                             [f"worst region: {r.worst}"])
-            out.append(f'    <failure message={quoteattr(msg)}>{escape(body)}</failure>')
+            c.failure = f"{r.counts.get('wrong', 0)} wrong pixels"
+            c.body = "\n".join([f"rules: {r.rules}, max_dist={r.max_dist:g}"] + r.deviations +
+                               [f"worst region: {r.worst}"])
         elif r.status in ("error", "refused"):
-            out.append(f'    <error message={quoteattr(r.reason)}/>')
+            c.error = r.reason
         else:
-            out.append(f'    <system-out>{escape(_one_line(r))}</system-out>')
-        out.append("  </testcase>")
-    out.append("</testsuite>")
-    return "\n".join(out) + "\n"
+            c.body = _one_line(r)
+        cases.append(c)
+    return xml("rtval check", cases)
 
 
 def _one_line(r: SceneCheck) -> str:

@@ -1,0 +1,50 @@
+"""JUnit XML for CI systems: one test suite, one test case per scene or comparison."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from xml.sax.saxutils import escape, quoteattr
+
+
+@dataclass
+class Case:
+    name: str
+    classname: str
+    seconds: float = 0.0
+    failure: str | None = None     # message of a failed case
+    error: str | None = None       # message of a case that could not run (bad input, crash)
+    body: str = ""                 # failure details, or what a passing case printed
+
+
+def junit_xml(suite: str, cases: list[Case]) -> str:
+    """The XML text, with rtval's provenance (package versions, commit) as properties."""
+    from rt_core.render import versions
+    fails = sum(c.failure is not None for c in cases)
+    errors = sum(c.error is not None for c in cases)
+    out = ['<?xml version="1.0" encoding="UTF-8"?>',
+           f'<testsuite name={quoteattr(suite)} tests="{len(cases)}" failures="{fails}" '
+           f'errors="{errors}" time="{sum(c.seconds for c in cases):.3f}">',
+           "  <properties>"] + [
+           f'    <property name={quoteattr(k)} value={quoteattr(str(v))}/>'
+           for k, v in versions().items()] + ["  </properties>"]
+    for c in cases:
+        out.append(f'  <testcase classname={quoteattr(c.classname)} name={quoteattr(c.name)} '
+                   f'time="{c.seconds:.3f}">')
+        if c.failure is not None:
+            out.append(f'    <failure message={quoteattr(c.failure)}>{escape(c.body)}</failure>')
+        elif c.error is not None:
+            out.append(f'    <error message={quoteattr(c.error)}/>')
+        elif c.body:
+            out.append(f'    <system-out>{escape(c.body)}</system-out>')
+        out.append("  </testcase>")
+    out.append("</testsuite>")
+    return "\n".join(out) + "\n"
+
+
+def write_junit(path: str, suite: str, cases: list[Case]) -> None:
+    from rt_core.outputs import atomic_write
+    text = junit_xml(suite, cases)
+
+    def write(tmp):
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(text)
+    atomic_write(path, write)
