@@ -98,8 +98,11 @@ def incomplete(path: str) -> str | None:
         for off in np.sort(table):
             if off != end:
                 return "the file is incomplete (a chunk is missing)"
-            f.seek(int(off) + 4)
-            (n,) = struct.unpack("<i", f.read(4) or b"\xff\xff\xff\xff")
+            f.seek(int(off))
+            head = f.read(8)                         # y, then the chunk's byte count
+            if len(head) < 8:
+                return "the file is truncated (its last chunk is short)"
+            (n,) = struct.unpack_from("<i", head, 4)
             end = int(off) + 8 + n
         if end != size:
             return "the file is truncated (its last chunk is short)"

@@ -38,16 +38,24 @@ def available() -> tuple[float, str]:
                     found.append((int(line.split()[1]) * 1024, "available memory"))
     except OSError:
         pass
-    for limit, usage in (("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
-                         ("/sys/fs/cgroup/memory/memory.limit_in_bytes",
-                          "/sys/fs/cgroup/memory/memory.usage_in_bytes")):
+    for limit, usage, stat, cache in (
+            ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current",
+             "/sys/fs/cgroup/memory.stat", "inactive_file"),
+            ("/sys/fs/cgroup/memory/memory.limit_in_bytes",
+             "/sys/fs/cgroup/memory/memory.usage_in_bytes",
+             "/sys/fs/cgroup/memory/memory.stat", "total_inactive_file")):
         try:
             with open(limit) as f:
                 text = f.read().strip()
             if text != "max" and int(text) < 1 << 60:
                 with open(usage) as f:
-                    found.append((int(text) - int(f.read()), "the memory cgroup's limit"))
-        except (OSError, ValueError):
+                    used = int(f.read())
+                # the usage counts the page cache; its inactive part is reclaimed on demand
+                with open(stat) as f:
+                    reclaim = next((int(ln.split()[1]) for ln in f
+                                    if ln.split()[:1] == [cache]), 0)
+                found.append((int(text) - used + reclaim, "the memory cgroup's limit"))
+        except (OSError, ValueError, IndexError):
             pass
     soft, _ = resource.getrlimit(resource.RLIMIT_AS)
     if soft != resource.RLIM_INFINITY:

@@ -3,8 +3,9 @@
 Every file rtval writes goes through ``atomic_write``: the content goes to a temporary file
 beside the target, is checked (a lost write on a full disk is an error, not a short file),
 and is renamed into place.  A failed, interrupted or terminated run leaves neither a partial
-file nor its temporary; one killed outright (SIGKILL) leaves a ``.tmp-rtval-PID-*`` file that
-the next write into the same directory removes.
+file nor its temporary; one killed outright (SIGKILL) leaves a ``.tmp-rtval-TAG-PID-*`` file
+that the next write into the same directory from the same host and PID namespace (TAG)
+removes once process PID is gone.
 """
 from __future__ import annotations
 
@@ -13,11 +14,28 @@ import json
 import math
 import os
 import stat
+import struct
 import sys
 import tempfile
 from pathlib import Path
 
 TMP_PREFIX = ".tmp-rtval-"
+
+
+def _space() -> str:
+    """This host's and PID namespace's tag: a PID means a process only within one of them,
+    so a temporary is removed as stale only by a run in the same (another container or NFS
+    host writing into the same directory may be alive)."""
+    import hashlib
+    import socket
+    try:
+        ns = os.stat("/proc/self/ns/pid").st_ino
+    except OSError:
+        ns = 0
+    return hashlib.sha1(f"{socket.gethostname()}:{ns}".encode()).hexdigest()[:8]
+
+
+_SPACE = _space()
 _LIVE: set[str] = set()          # this process's temporaries (removed at exit, see cleanup())
 
 
@@ -73,10 +91,11 @@ def remove_stale(directory: str) -> list[str]:
         names = os.listdir(directory)
     except OSError:
         return removed
+    mine = f"{TMP_PREFIX}{_SPACE}-"
     for name in names:
-        if not name.startswith(TMP_PREFIX):
+        if not name.startswith(mine):
             continue
-        pid = name[len(TMP_PREFIX):].split("-", 1)[0]
+        pid = name[len(mine):].split("-", 1)[0]
         if not pid.isdigit() or int(pid) == os.getpid() or _pid_alive(int(pid)):
             continue
         try:
@@ -110,7 +129,9 @@ def _checked(write, tmp: str, path: str, verify) -> None:
         problem = "the file came out empty" if size == 0 else (verify(tmp) if verify else None)
     except WriteError:
         raise
-    except (OSError, RuntimeError) as exc:     # the EXR binding raises RuntimeError
+    except (OSError, RuntimeError, ValueError, struct.error) as exc:
+        # (the EXR binding raises RuntimeError; a verify that misreads a damaged file,
+        # struct.error or ValueError: either way the write did not succeed)
         reason, hint = _reason(exc, tmp, path)
         raise WriteError(path, reason, hint) from None
     if problem:
@@ -182,7 +203,7 @@ def atomic_write(path: str, write, verify=None) -> None:
         os.umask(umask)
         mode = 0o666 & ~umask
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f"{TMP_PREFIX}{os.getpid()}-", suffix=ext,
+        fd, tmp = tempfile.mkstemp(prefix=f"{TMP_PREFIX}{_SPACE}-{os.getpid()}-", suffix=ext,
                                    dir=directory)
     except OSError as exc:
         _remove_dirs(created)

@@ -128,3 +128,10 @@ def test10_junit_marks_failures_and_skips():
     failure = suite.find("testcase/failure")
     assert "3 unexplained pixels" in failure.get("message") and "evidence" in failure.text
     assert suite.find("testcase/error").get("message").startswith("malformed: ")
+
+
+def test11_an_option_value_may_start_with_dashes(tmp_path):
+    """The pre-scan for misspelt options must not take a value for an option: a tracer
+    command that starts with '--' is a value of --run."""
+    r = rtval("check", SPHERE, "--run", "--gpu {scene} {out}", "--columns", 16)
+    assert r.returncode != 64 and "unrecognized" not in r.stderr, r.stderr

@@ -125,6 +125,15 @@ def test04_full_file_system_other_commands(full_dir, tmp_path):
     assert sorted(p.name for p in full_dir.iterdir()) == ["fill"]
 
 
+def test05b_every_cut_of_an_exr_is_incomplete_never_an_exception(tmp_path):
+    p = tmp_path / "a.exr"
+    write_exr(str(p), {"R": np.random.default_rng(2).random((40, 24)), "G": np.ones((40, 24))})
+    data = p.read_bytes()
+    for n in range(len(data)):                 # (a chunk header cut short used to raise)
+        p.write_bytes(data[:n])
+        assert incomplete(str(p)) is not None, n
+
+
 @pytest.mark.parametrize("cut", [0, 9, 200, 0.5, -1])
 def test05_incomplete_exr_is_detected(tmp_path, cut):
     p = tmp_path / "a.exr"
@@ -247,6 +256,23 @@ def test11_tiled_render_equals_one_render(precision, name):
     assert (rw.bounces, rw.capped, rw.left_active) == (rb.bounces, rb.capped, rb.left_active)
 
 
+def test11b_cgroup_page_cache_counts_as_available(monkeypatch):
+    """Under a memory cgroup the usage includes the page cache; its inactive part is
+    reclaimed on demand and must not make a render look too large."""
+    import builtins
+    import io
+    import rt_core.memory as memory
+    files = {"/sys/fs/cgroup/memory.max": "8000000000\n",
+             "/sys/fs/cgroup/memory.current": "7800000000\n",
+             "/sys/fs/cgroup/memory.stat": "anon 500000000\ninactive_file 7000000000\n",
+             "/proc/meminfo": "MemAvailable:   100000000 kB\n"}
+    real = builtins.open
+    monkeypatch.setattr(builtins, "open", lambda p, *a, **k: io.StringIO(files[p])
+                        if p in files else real(p, *a, **k))
+    have, why = memory.available()
+    assert why == "the memory cgroup's limit" and have == 8e9 - 7.8e9 + 7e9
+
+
 def test12_render_under_a_memory_limit_refuses_or_fits(tmp_path):
     """Under an address-space limit, a render is refused in one line or it works: never a
     crash (it used to segfault or raise numpy's MemoryError)."""
@@ -333,8 +359,43 @@ def test15b_sigterm_during_validate_leaves_no_temporary(tmp_path):
     assert not [f for _, _, fs in os.walk(tmp_path) for f in fs if f.startswith(TMP_PREFIX)]
 
 
+def test15c_sigterm_stops_check_runs_queued_and_running(tmp_path):
+    """The signal reaches rtval's main thread only; the tracer runs in a worker thread: it
+    must be killed and the queued runs must not start."""
+    mark = f"rtval-test-{os.getpid()}"
+    p = subprocess.Popen([sys.executable, "-m", "tools.cli", "check", "--run",
+                          f"sleep 30 # {mark} {{scene}} {{out}}", "--columns", "16",
+                          *(str(REPO / "scenes" / n) for n in ("plane.txt", "sphere.txt",
+                                                               "mixed.txt"))],
+                         cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    def tracers():          # the shells running the tracer command (not rtval: its argv
+        out = subprocess.run(["ps", "-eo", "args"], capture_output=True, text=True).stdout
+        return [ln for ln in out.splitlines()          # holds the template too)
+                if mark in ln and ln.startswith(("/bin/sh -c sleep", "sh -c sleep"))]
+    t0 = time.monotonic()
+    while not tracers():
+        assert p.poll() is None and time.monotonic() - t0 < 60
+        time.sleep(0.05)
+    p.send_signal(signal.SIGTERM)
+    t1 = time.monotonic()
+    p.communicate(timeout=60)
+    assert p.returncode == 128 + signal.SIGTERM and time.monotonic() - t1 < 10
+    time.sleep(0.3)
+    assert not tracers()
+
+
+def test15d_another_namespaces_temporary_is_left_alone(tmp_path):
+    """A PID names a process only within one host and PID namespace: a temporary of a run
+    elsewhere (another container writing into a shared directory) is never removed."""
+    other = tmp_path / f"{TMP_PREFIX}0123abcd-999999-x.exr"      # another tag, a dead PID
+    other.write_bytes(b"x")
+    assert rtval("render", SEED, "--columns", 8, "-o", tmp_path / "s.exr").returncode == 0
+    assert other.exists()
+
+
 def test16_a_live_runs_temporary_is_left_alone(tmp_path):
-    live = tmp_path / f"{TMP_PREFIX}{os.getpid()}-abc.exr"     # this test process is alive
+    from rt_core.outputs import _SPACE
+    live = tmp_path / f"{TMP_PREFIX}{_SPACE}-{os.getpid()}-abc.exr"   # this process is alive
     live.write_bytes(b"x")
     assert rtval("render", SEED, "--columns", 8, "-o", tmp_path / "s.exr").returncode == 0
     assert live.exists()

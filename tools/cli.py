@@ -52,6 +52,8 @@ class Parser(argparse.ArgumentParser):
             if tok == "--":
                 break
             name = tok.split("=", 1)[0]
+            if any(c.isspace() for c in tok):
+                continue                        # a value ("--run '--gpu ./ray ...'")
             if name.startswith("--") and name not in known and not any(
                     k.startswith(name) for k in known):
                 self.error(f"unrecognized option {name}")

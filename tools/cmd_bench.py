@@ -38,11 +38,13 @@ def add_parser(sub) -> None:
     p.add_argument("--keep-cache", action="store_true",
                    help="use Dr.Jit's on-disk kernel cache (default: an empty one, so that "
                         "first calls show compilation)")
-    p.add_argument("--command", action="store_true",
+    p.add_argument("--command", action="store_true", dest="whole_command",
                    help="time whole `rtval render` runs instead (a new process each), split "
                         "into start-up, import, parse, kernel and write")
     p.add_argument("--command-columns", type=positive_int, nargs="+", default=[1920, 7680],
                    metavar="N", help="--command: image widths (default: 1920 7680)")
+    p.add_argument("--scene", metavar="SCENE",
+                   help="--command: the scene to render (default: scenes/mixed.txt)")
     p.add_argument("--runs", type=positive_int, default=3,
                    help="--command: runs per case, interleaved (default 3)")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
@@ -62,7 +64,7 @@ def fresh_kernel_cache(keep: bool) -> None:
 
 
 def run(args) -> int:
-    if args.command:
+    if args.whole_command:      # (not args.command: that is the subcommand's name)
         return run_command(args)
     from tools.harness.bench import run_bench, table
     if args.threads:
@@ -87,7 +89,7 @@ def run_command(args) -> int:
         print(f"bench: render {c} columns {out} run {rep + 1}: {p['wall']:.2f} s (kernel "
               f"{p['kernel']:.2f}, write {p['write']:.2f})", file=sys.stderr)
     result = command_bench(list(dict.fromkeys(args.command_columns)), args.runs,
-                           progress=progress)
+                           scene=args.scene, progress=progress)
     return _emit(args, result, command_table)
 
 

@@ -423,6 +423,9 @@ def command_bench(columns=COMMAND_COLUMNS, repeats: int = 3, scene: str | None =
     import tempfile
     repo = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     scene = scene or os.path.join(repo, "scenes", "mixed.txt")
+    if not os.path.isfile(scene):
+        from rt_core.usererror import InputError
+        raise InputError(f"{scene}: no such scene file; give one with --scene")
     runs: dict = {}
     with tempfile.TemporaryDirectory(prefix="rtval-bench-") as d:
         for rep in range(-1, repeats):          # run -1: warm-up (kernels compiled, cached)
@@ -438,7 +441,9 @@ def command_bench(columns=COMMAND_COLUMNS, repeats: int = 3, scene: str | None =
                                        env={**os.environ, "RTVAL_PHASES": phases})
                     wall = time.perf_counter() - t0
                     if r.returncode != 0:
-                        raise RuntimeError(f"rtval render failed: {r.stderr.strip()[-300:]}")
+                        from rt_core.usererror import InputError
+                        last = (r.stderr.strip().splitlines() or ["(no message)"])[-1]
+                        raise InputError(f"bench --command: rtval render failed: {last}")
                     with open(phases) as f:
                         p = json.load(f)
                     p["import"] = wall - p["parse"] - p["kernel"] - p["write"]
@@ -460,7 +465,8 @@ def command_bench(columns=COMMAND_COLUMNS, repeats: int = 3, scene: str | None =
         largest = max(COMMAND_PHASES, key=lambda k: stat[k]["median"])
         cases.append({"columns": c, "outputs": out, "runs": len(ps), "phases": stat,
                       "largest": largest})
-    return {"mode": "command", "scene": os.path.relpath(scene, repo), "machine": machine(),
+    return {"mode": "command", "scene": os.path.relpath(os.path.abspath(scene), repo),
+            "machine": machine(),
             "cases": cases}
 
 

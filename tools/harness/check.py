@@ -546,6 +546,17 @@ def check_hits(r: Renderer, rules, path: str) -> dict:
 
 # --- running the user's tracer --------------------------------------------------------------------
 
+_RUNNING: set = set()           # the tracer processes running now (check_run's worker thread)
+
+
+def _stop_running() -> None:
+    """Kill every running tracer's process group (rtval interrupted or terminated: the
+    signal reaches the main thread only, not the worker thread waiting on the tracer)."""
+    for p in list(_RUNNING):
+        with contextlib.suppress(OSError):
+            os.killpg(p.pid, signal.SIGKILL)
+
+
 def run_tracer(template: str, scene: str, columns: int, rows: int, workdir: str,
                timeout: float) -> tuple[str | None, str | None, str]:
     """Run ``template`` for one scene: (image path or None, hit-dump path or None, failure
@@ -563,6 +574,7 @@ def run_tracer(template: str, scene: str, columns: int, rows: int, workdir: str,
                              start_new_session=True)
     except OSError as exc:
         return None, None, f"cannot run {cmd!r}: {exc.strerror or exc}"
+    _RUNNING.add(p)
     try:
         _, err = p.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:
@@ -573,6 +585,8 @@ def run_tracer(template: str, scene: str, columns: int, rows: int, workdir: str,
         with contextlib.suppress(OSError):
             os.killpg(p.pid, signal.SIGKILL)
         raise
+    finally:
+        _RUNNING.discard(p)
     tail = err.decode("utf-8", "replace").strip().splitlines()[-1:] if err else []
     said = f" ({tail[0][:200]})" if tail else ""
     if p.returncode < 0 or p.returncode > 128:
@@ -595,38 +609,50 @@ def check_run(template: str, scenes, columns: int, rows: int | None, timeout: fl
     checks in a background thread (one run at a time), so the tracer's time and rtval's
     overlap."""
     from concurrent.futures import ThreadPoolExecutor
+    results = []
+    with tempfile.TemporaryDirectory(prefix="rtval-check-") as work:
+        pool = ThreadPoolExecutor(max_workers=1)
+        try:
+            _check_runs(pool, work, template, scenes, columns, rows, timeout, results, kw)
+        except BaseException:
+            pool.shutdown(wait=False, cancel_futures=True)      # no queued run starts
+            _stop_running()
+            pool.shutdown(wait=True)
+            raise
+        pool.shutdown(wait=True)
+    return results
+
+
+def _check_runs(pool, work, template, scenes, columns, rows, timeout, results, kw) -> None:
+    """check_run's body: the runs submitted to ``pool``, then each image checked in turn."""
     from rt_core.parser import parse_scene
     from rt_core.scene import SceneError
-    results = []
-    with tempfile.TemporaryDirectory(prefix="rtval-check-") as work, \
-            ThreadPoolExecutor(max_workers=1) as pool:
-        jobs = []
-        for k, s in enumerate(scenes):
-            try:
-                sc = parse_scene(s)
-            except SceneError as exc:
-                jobs.append((s, None, SceneCheck(str(s), None, "refused", str(exc))))
-                continue
-            except OSError as exc:
-                jobs.append((s, None, SceneCheck(str(s), None, "error",
-                                                 f"{s}: {(exc.strerror or str(exc)).lower()}")))
-                continue
-            h = rows if rows is not None else sc.default_rows(columns)
-            sub = os.path.join(work, str(k))
-            os.mkdir(sub)
-            jobs.append((s, h, pool.submit(run_tracer, template, s, columns, h, sub, timeout)))
-        for s, h, job in jobs:
-            if h is None:
-                results.append(job)
-                continue
-            img, hits, why = job.result()
-            if why:
-                results.append(SceneCheck(str(s), None, "error", why, columns, h))
-                continue
-            res = check_image(s, img, columns=columns, rows=h, hits_path=hits, **kw)
-            res.image = "(--run)"
-            results.append(res)
-    return results
+    jobs = []
+    for k, s in enumerate(scenes):
+        try:
+            sc = parse_scene(s)
+        except SceneError as exc:
+            jobs.append((s, None, SceneCheck(str(s), None, "refused", str(exc))))
+            continue
+        except OSError as exc:
+            jobs.append((s, None, SceneCheck(str(s), None, "error",
+                                             f"{s}: {(exc.strerror or str(exc)).lower()}")))
+            continue
+        h = rows if rows is not None else sc.default_rows(columns)
+        sub = os.path.join(work, str(k))
+        os.mkdir(sub)
+        jobs.append((s, h, pool.submit(run_tracer, template, s, columns, h, sub, timeout)))
+    for s, h, job in jobs:
+        if h is None:
+            results.append(job)
+            continue
+        img, hits, why = job.result()
+        if why:
+            results.append(SceneCheck(str(s), None, "error", why, columns, h))
+            continue
+        res = check_image(s, img, columns=columns, rows=h, hits_path=hits, **kw)
+        res.image = "(--run)"
+        results.append(res)
 
 
 # --- outputs --------------------------------------------------------------------------------------
