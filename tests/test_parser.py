@@ -145,11 +145,12 @@ def test06_dialects_mixed():
 @pytest.mark.parametrize("text, line, col, kind", [
     (KW + "ellipsoid\n", 3, 1, "ellipsoid (ellipsoid)"),
     (KW + "# ball\n  Cylinder\n", 4, 3, "cylinder (cylinder)"),
+    (KW + "psphere\n", 3, 1, "psphere (procedural sphere: only numeric code 19 is read)"),
     (NUM + "12\n", 3, 1, "12 (projector)"),
     (NUM + "18\n", 3, 1, "18 (reflective sphere)"),
     (NUM + "22\n", 3, 1, "22 (cylinder)"),
     (NUM + "27   triangle\n", 3, 1, "27 (triangle; disk in an older nw file)"),
-], ids=["ellipsoid", "cylinder-keyword", "12", "18", "22", "27"])
+], ids=["ellipsoid", "cylinder-keyword", "psphere-keyword", "12", "18", "22", "27"])
 def test07_unsupported_kind(text, line, col, kind):
     at(fails(text), line, col, kind, "is not supported")
 
