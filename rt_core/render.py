@@ -14,7 +14,7 @@ import numpy as np
 
 from . import backend as backends
 from .camera import Camera, make_camera, primary_directions
-from .exrio import write_exr
+from .exrio import DEFAULT_COMPRESSION, write_exr
 from .rules import Rules
 from .scene import Scene
 from . import shading
@@ -141,10 +141,11 @@ def provenance(scene: Scene, cam: Camera, precision: str, backend_name: str, rul
         "rtval.miss": MISS_CONVENTION,
         "rtval.versions": " ".join(f"{k}={v}" for k, v in versions().items()),
     }
-    if scene.stand_ins():
-        attrs["rtval.stand_ins"] = "; ".join(scene.stand_ins())
-    if extras_text(scene):
-        attrs["rtval.extras"] = extras_text(scene)
+    stand_ins, extras = scene.stand_ins(), extras_text(scene)
+    if stand_ins:
+        attrs["rtval.stand_ins"] = "; ".join(stand_ins)
+    if extras:
+        attrs["rtval.extras"] = extras
     attrs.update({f"rtval.{k}": str(v) for k, v in extra.items()})
     return attrs
 
@@ -164,10 +165,11 @@ def extras_text(scene: Scene) -> str:
     return "; ".join(parts)
 
 
-def write_images(path: str, images: dict, attrs: dict, compression: str | None = None) -> None:
+def write_images(path: str, images: dict, attrs: dict,
+                 compression: str = DEFAULT_COMPRESSION) -> None:
     """Write AOVs as float32 EXR (atomically), recording the count of non-finite values."""
     attrs = dict(attrs, **{"rtval.nonfinite": str(nonfinite_count(images))})
-    write_exr(path, images, attrs, **({"compression": compression} if compression else {}))
+    write_exr(path, images, attrs, compression)
 
 
 # a tile's rays: bounded working memory (the kernels' arrays) whatever the image size

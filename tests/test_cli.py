@@ -114,7 +114,7 @@ def test09_junit_for_validate_and_compare(tmp_path):
 
 def test10_junit_marks_failures_and_skips():
     import xml.etree.ElementTree as ET
-    from tools.cmd_validate import comparison_cases, skip_case
+    from tools.harness.validate import comparison_cases, skip_case
     from tools.harness.junit import junit_xml
     from tools.harness.validate import Skipped
     row = {"scene": "scenes/x.txt", "mode": "rays", "precision": "f64", "rt_core_ms": 1.0,

@@ -180,19 +180,11 @@ def test06b_write_exr_checks_what_the_binding_wrote(tmp_path, monkeypatch):
 
 @pytest.fixture(scope="module")
 def odd_exrs(tmp_path_factory):
-    import OpenEXR
+    from tests.exrgen import write_deep, write_parts
     d = tmp_path_factory.mktemp("exr")
-    deep = np.empty((3, 4), object)
-    for i in range(3):
-        for j in range(4):
-            deep[i, j] = np.arange(i + j, dtype=np.float32)
-    OpenEXR.File({"type": OpenEXR.deepscanline, "compression": OpenEXR.ZIPS_COMPRESSION},
-                 {"Z": deep}).write(str(d / "deep.exr"))
-    parts = [OpenEXR.Part({"type": OpenEXR.scanlineimage,
-                           "compression": OpenEXR.ZIP_COMPRESSION}, {c: np.full((4, 5), v,
-                                                                                 np.float32)},
-                          name=n) for n, c, v in (("a", "R", 1.0), ("b", "G", 2.0))]
-    OpenEXR.File(parts).write(str(d / "multi.exr"))
+    write_deep(d / "deep.exr")
+    write_parts(d / "multi.exr", [("a", "R", np.full((4, 5), 1.0)),
+                                  ("b", "G", np.full((4, 5), 2.0))])
     return d
 
 

@@ -141,6 +141,7 @@ def test02_mutated_scenes_long(data):
 
 def _exr_variants(d: Path) -> list[Path]:
     import OpenEXR
+    from tests.exrgen import write_deep, write_parts
     rng = np.random.default_rng(7)
     out = []
     write_exr(str(d / "plain.exr"), {"hit.mask": rng.random((12, 9)) > 0.5,
@@ -155,18 +156,10 @@ def _exr_variants(d: Path) -> list[Path]:
                   "id": np.arange(600, dtype=np.uint32).reshape(20, 30)}).write(
         str(d / "tiled.exr"))
     out.append(d / "tiled.exr")
-    deep = np.empty((3, 4), object)
-    for i in range(3):
-        for j in range(4):
-            deep[i, j] = np.arange(i + j, dtype=np.float32)
-    OpenEXR.File({"type": OpenEXR.deepscanline, "compression": OpenEXR.ZIPS_COMPRESSION},
-                 {"Z": deep}).write(str(d / "deep.exr"))
+    write_deep(d / "deep.exr")
     out.append(d / "deep.exr")
-    parts = [OpenEXR.Part({"type": OpenEXR.scanlineimage,
-                           "compression": OpenEXR.PIZ_COMPRESSION},
-                          {c: rng.random((5, 6)).astype(np.float32)}, name=c)
-             for c in ("a", "b")]
-    OpenEXR.File(parts).write(str(d / "multi.exr"))
+    write_parts(d / "multi.exr", [(c, c, rng.random((5, 6))) for c in ("a", "b")],
+                OpenEXR.PIZ_COMPRESSION)
     out.append(d / "multi.exr")
     return out
 
@@ -209,25 +202,23 @@ def damaged(draw, sources):
     return bytes(data)
 
 
-def test04_damaged_exrs_read_or_fail_in_one_line(exr_bytes, tmp_path):
-    @settings(max_examples=150, derandomize=True, **SETTINGS)
+def _damaged_exrs(exr_bytes, tmp_path, **how) -> None:
+    @settings(**how, **SETTINGS)
     @given(damaged(exr_bytes))
     def run(data):
         p = tmp_path / "d.exr"
         p.write_bytes(data)
         _check_exr(p)
     run()
+
+
+def test04_damaged_exrs_read_or_fail_in_one_line(exr_bytes, tmp_path):
+    _damaged_exrs(exr_bytes, tmp_path, max_examples=150, derandomize=True)
 
 
 @pytest.mark.slow
 def test05_damaged_exrs_long(exr_bytes, tmp_path):
-    @settings(max_examples=LONG, **SETTINGS)
-    @given(damaged(exr_bytes))
-    def run(data):
-        p = tmp_path / "d.exr"
-        p.write_bytes(data)
-        _check_exr(p)
-    run()
+    _damaged_exrs(exr_bytes, tmp_path, max_examples=LONG)
 
 
 # --- images a course tracer wrote (rtval check) ----------------------------------------------

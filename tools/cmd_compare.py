@@ -56,7 +56,7 @@ def run(args) -> int:
             for path in row.get("evidence", []):
                 print(f"       evidence: {path}")
     if args.junit:
-        from tools.cmd_validate import comparison_cases
+        from tools.harness.validate import comparison_cases
         from tools.harness.junit import write_junit
         write_junit(args.junit, "rtval compare", comparison_cases(rows, "rtval.compare"))
     if args.json:

@@ -28,31 +28,6 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-def comparison_cases(rows, classname: str) -> list:
-    """JUnit cases of compare/validate result rows."""
-    from tools.harness.junit import Case
-    from tools.harness.validate import stem_of
-    cases = []
-    for r in rows:
-        c = Case(f"{stem_of(r['scene'])}.{r['mode']}.{r['precision']}", classname,
-                 (r["rt_core_ms"] + r["mitsuba_ms"]) / 1e3)
-        counts = ", ".join(f"{k} {v}" for k, v in r["classes"].items() if v)
-        depth = r["depth"]
-        c.body = (f"{r['columns']}x{r['rows']}: {counts}; depth max rel {depth['max_rel']:.3g}, "
-                  f"over bound {depth['over_bound']}"
-                  + "".join(f"\nevidence: {p}" for p in r.get("evidence", [])))
-        if not r["ok"]:
-            c.failure = (f"{r['unexplained']} unexplained pixels, {depth['over_bound']} depths "
-                         "over their bound")
-        cases.append(c)
-    return cases
-
-
-def skip_case(s):
-    from tools.harness.junit import Case
-    return Case(s.path, "rtval.validate.skipped", error=f"{s.category}: {s.reason}")
-
-
 def _log_progress(total: int):
     import time
     t0, state = time.monotonic(), {"n": 0, "failed": 0, "shown": 0}
@@ -95,6 +70,7 @@ def run(args) -> int:
     md, js = write_report(results, skipped, args.output, meta)
     if args.junit:
         from tools.harness.junit import write_junit
+        from tools.harness.validate import comparison_cases, skip_case
         write_junit(args.junit, "rtval validate", comparison_cases(results, "rtval.validate")
                     + [skip_case(s) for s in skipped])
     head = (f"{'scene':34s} {'mode':6s} {'prec':4s} {'pixels':>7s} {'explained':>9s} "

@@ -407,16 +407,11 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
     return res
 
 
-def extras_text(scene) -> str:
-    from rt_core.render import extras_text as text
-    return text(scene)
-
-
 def provenance(scene, img: np.ndarray) -> dict:
     """The scene's and the image's sha256, the reference (rt_core float64, exact decisions,
     corner sampling) and the versions that made the verdict."""
     import hashlib
-    from rt_core.render import versions
+    from rt_core.render import extras_text, versions
     return {"scene_sha256": scene.sha256, "dialect": scene.dialect,
             "image_sha256": hashlib.sha256(np.ascontiguousarray(img).tobytes()).hexdigest(),
             "reference": "rt_core float64, exact decisions, corner sampling",

@@ -124,3 +124,27 @@ def write_report(results, skipped, outdir: str, meta: dict) -> tuple[str, str]:
                                                                 key=lambda s: s.category)]
     atomic_write(mpath, lambda tmp: Path(tmp).write_text("\n".join(lines) + "\n"))
     return mpath, jpath
+
+
+def comparison_cases(rows, classname: str) -> list:
+    """JUnit cases of compare/validate result rows."""
+    from tools.harness.junit import Case
+    cases = []
+    for r in rows:
+        c = Case(f"{stem_of(r['scene'])}.{r['mode']}.{r['precision']}", classname,
+                 (r["rt_core_ms"] + r["mitsuba_ms"]) / 1e3)
+        counts = ", ".join(f"{k} {v}" for k, v in r["classes"].items() if v)
+        depth = r["depth"]
+        c.body = (f"{r['columns']}x{r['rows']}: {counts}; depth max rel {depth['max_rel']:.3g}, "
+                  f"over bound {depth['over_bound']}"
+                  + "".join(f"\nevidence: {p}" for p in r.get("evidence", [])))
+        if not r["ok"]:
+            c.failure = (f"{r['unexplained']} unexplained pixels, {depth['over_bound']} depths "
+                         "over their bound")
+        cases.append(c)
+    return cases
+
+
+def skip_case(s):
+    from tools.harness.junit import Case
+    return Case(s.path, "rtval.validate.skipped", error=f"{s.category}: {s.reason}")
