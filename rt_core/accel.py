@@ -38,6 +38,7 @@ import drjit as dr
 import numpy as np
 
 from .rules import Rules
+from .kinds import PLANE_KINDS
 from .shapes import BOUND_FIELDS, object_t
 
 # More (bounded) objects than this: the symbolic loop instead of unrolled code.  Measured
@@ -102,22 +103,29 @@ class KindTable:
     count: int
     rows: object                 # Float[rows * len(LAYOUT[kind])]
     offsets: object = None       # UInt32[nbins + 2]: bin b is rows offsets[b]..offsets[b+1]
+    # bins (rays from the viewpoint): the largest of each certified bound over the rows, a
+    # bound of every row's (a larger bound is still a bound): host numbers, not gathered
+    wide: dict | None = None
+    folded: bool = False         # plane kinds: rows with sign(n·q) folded in (fold_signs)
 
     def view(self, T, k):
         """The constants of row k (per ray), in the form shapes.object_t reads."""
         names = LAYOUT[self.kind]
         base = k * len(names)
-        v = {name: dr.gather(T.Float, self.rows, base + j) for j, name in enumerate(names)}
+        wide = self.wide or {}
+        v = {name: dr.gather(T.Float, self.rows, base + j) for j, name in enumerate(names)
+             if name not in wide}
         A3 = T.Array3
         out = SimpleNamespace(kind=self.kind, id=T.Int32(v["id"]), grp=T.Int32(v["grp"]),
                               q=A3(v["qx"], v["qy"], v["qz"]))
         for k in names[names.index("grp") + 1:]:      # the certified decisions' bounds
-            setattr(out, k, v[k])
+            setattr(out, k, wide[k] if k in wide else v[k])
         if self.kind == "sphere":
             out.radius, out.c = v["radius"], v["c"]
         else:
             out.n, out.nq = A3(v["nx"], v["ny"], v["nz"]), v["nq"]
             out.g = v["g"]
+        out.folded = self.folded
         if self.kind == "fplane":
             out.xdir = A3(v["xx"], v["xy"], v["xz"])
             out.ydir = A3(v["yx"], v["yy"], v["yz"])
@@ -130,7 +138,27 @@ def pack(kind: str, consts) -> np.ndarray:
     return np.array([[r[n] for n in LAYOUT[kind]] for r in map(_row, consts)], np.float64)
 
 
-def _upload(ks, kind: str, rows: np.ndarray, offsets=None) -> KindTable:
+def fold_signs(kind: str, rows: np.ndarray) -> bool:
+    """Rows of a plane kind for rays from the viewpoint only: s = sign(n·q) folded into n,
+    n·q, g and the frame (exact negations), so that a hit has s·(n·d) > 0 and the kernel
+    needs no sign (shapes._plane_fast).  Every answer is unchanged: t = n·q/(n·d) and each
+    test's sign depend on the plane, not its orientation.  In place; False if not done
+    (a plane kind with a row whose n·q is 0, or too large for t's bound)."""
+    if kind not in PLANE_KINDS:
+        return False
+    names = LAYOUT[kind]
+    nq = rows[:, names.index("nq")]
+    if not len(rows) or (nq == 0).any() or np.abs(nq).max() > 1e280:
+        return False
+    sg = np.where(nq < 0, -1.0, 1.0)
+    for k in ("nq", "nx", "ny", "nz", "g", "xx", "xy", "xz", "yx", "yy", "yz"):
+        if k in names:
+            rows[:, names.index(k)] *= sg
+    return True
+
+
+def _upload(ks, kind: str, rows: np.ndarray, offsets=None, wide=None,
+            folded: bool = False) -> KindTable:
     T = ks.T
     flat = T.Float(rows.ravel())
     dr.make_opaque(flat)
@@ -138,7 +166,31 @@ def _upload(ks, kind: str, rows: np.ndarray, offsets=None) -> KindTable:
     if offsets is not None:
         off = T.UInt32(offsets)
         dr.make_opaque(off)
-    return KindTable(kind, len(ks.by_kind[kind]), flat, off)
+    return KindTable(kind, len(ks.by_kind[kind]), flat, off, wide, folded)
+
+
+# the bounds taken table-wide on bins ('t' bounds stay per row: they differ by orders of
+# magnitude between near and far objects, and a loose one flags near ties)
+WIDE = ("bz", "bm", "bo")
+
+
+def _wide(kind: str, rows: np.ndarray) -> dict | None:
+    names = LAYOUT[kind]
+    cols = [names.index(k) for k in WIDE if k in names]
+    if not len(rows) or not cols or not np.isfinite(rows[:, cols]).all():
+        return None
+    # a clip bound of exactly 0 (a plane in z = 0) makes its clip certain: kept per row
+    return {names[c]: float(rows[:, c].max()) for c in cols
+            if names[c] != "bz" or (rows[:, c] > 0).all()}
+
+
+def never_hit(kind: str, consts) -> np.ndarray:
+    """Objects no ray from the viewpoint hits, in exact arithmetic and in rt_core's: a
+    sphere around the viewpoint (c <= 0: the near root is <= 0) and a plane through it
+    (n·q = 0: t = 0).  Both signs are exact (host constants rounded once)."""
+    if kind == "sphere":
+        return np.array([not c.c > 0 for c in consts], bool)
+    return np.array([c.nq == 0 for c in consts], bool)
 
 
 def tables(ks) -> dict:
@@ -228,13 +280,14 @@ def project_boxes(scene, kind: str, consts):
     return status, box
 
 
-def bin_lists(grid: Grid, status, box, count: int):
+def bin_lists(grid: Grid, status, box, count: int, never=None):
     """(offsets, items) of one kind: bins 0..nbins-1 list the objects whose box overlaps them,
-    in ascending position; bin nbins lists all."""
+    in ascending position; bin nbins lists all (but those ``never`` hit)."""
     nbx, nby = grid.nbx, grid.nby
     bins, items = [], []
+    keep = np.ones(count, bool) if never is None else ~never
     for k in range(count):
-        if status[k] == 0:
+        if status[k] == 0 or not keep[k]:
             continue
         if status[k] == 2:
             bx0, bx1, by0, by1 = 0, nbx - 1, 0, nby - 1
@@ -250,8 +303,8 @@ def bin_lists(grid: Grid, status, box, count: int):
         bins.append(b)
         items.append(np.full(len(b), k))
     nb = grid.nbins
-    bins = np.concatenate(bins + [np.full(count, nb)]).astype(np.int64)
-    items = np.concatenate(items + [np.arange(count)]).astype(np.int64)
+    bins = np.concatenate(bins + [np.full(int(keep.sum()), nb)]).astype(np.int64)
+    items = np.concatenate(items + [np.flatnonzero(keep)]).astype(np.int64)
     order = np.lexsort((items, bins))
     offsets = np.zeros(nb + 2, np.int64)
     np.cumsum(np.bincount(bins, minlength=nb + 1), out=offsets[1:])
@@ -273,8 +326,11 @@ def binned(ks, rays: int = 1 << 21):
             for kind in kinds:
                 consts = ks.by_kind[kind]
                 status, box = project_boxes(ks.scene, kind, consts)
-                off, items = bin_lists(grid, status, box, len(consts))
-                tabs[kind] = _upload(ks, kind, pack(kind, consts)[items], off)
+                off, items = bin_lists(grid, status, box, len(consts),
+                                       never_hit(kind, consts))
+                rows = pack(kind, consts)[items]
+                folded = fold_signs(kind, rows)
+                tabs[kind] = _upload(ks, kind, rows, off, _wide(kind, rows), folded)
             cache["binned"] = (grid, tabs)
     return cache["binned"]
 

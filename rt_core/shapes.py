@@ -277,6 +277,94 @@ class _Cert:
         return self.certain, self.possible
 
 
+class _Least:
+    """The decisions of the certified fast path (rays from the viewpoint, t_min = 0, signs
+    folded so that every decision is 'value > 0' or 'value >= 0'), as one test: their least
+    value against the largest of their host bounds (a larger bound is still a bound).
+    Certain iff least > bound, possible iff least >= −bound: a strict decision's 'possible'
+    and a non-strict one's 'certain' are taken one rounding wider, which flags (never
+    misdecides) rays whose value is exactly ± the bound.  A bound that is per-ray data
+    (a table row's, possibly exactly 0) is tested on its own (``sep``), with its strictness."""
+
+    def __init__(self, v, b: float):
+        self.v, self.b = v, b
+        self.sep = _Cert(True, True)
+
+    def add(self, v, b, strict: bool = False):
+        if isinstance(b, (int, float)):
+            self.v, self.b = dr.minimum(self.v, v), max(self.b, b)
+        else:
+            self.sep.test(type(v), v, b, strict)
+
+    def split(self):
+        F = type(self.v)
+        c, p = self.sep.split()
+        certain, possible = self.v > dr.opaque(F, self.b), self.v >= dr.opaque(F, -self.b)
+        return (certain if c is True else certain & c, possible if p is True else possible & p)
+
+
+def _fast(obj, rules: Rules, o, cert) -> bool:
+    """Is the certified fast path open to this object?  Rays from the viewpoint, t > 0, and
+    sign(n·q) known: on the host (unrolled objects; not 0, a plane through the viewpoint:
+    t = 0), or folded into a table's rows (rt_core/accel.py ``fold_signs``)."""
+    if not (cert and o is None and rules.t_min == 0):
+        return False
+    if isinstance(obj.nq, (int, float)):
+        return obj.nq != 0
+    return getattr(obj, "folded", False)
+
+
+def _signed(obj):
+    """(s, n·q·s) with s = sign(n·q) still to fold (1 for rows folded already)."""
+    if isinstance(obj.nq, (int, float)):
+        sg = -1.0 if obj.nq < 0 else 1.0
+        return sg, abs(obj.nq)
+    return 1.0, obj.nq
+
+
+def _fold(sg, v):
+    return tuple(sg * c for c in v) if isinstance(v, tuple) else v
+
+
+def _plane_fast(d, obj, rules: Rules, vz: float, cert):
+    """_plane's certified work on the fast path: with s = sign(n·q) folded into n, a hit has
+    den = s·(n·d) > 0 and t = |n·q|/den; the clip's value is −z·den.  Returns (t, den, the
+    decisions as a ``_Least`` or None for a certain miss, t's bound)."""
+    F, B = _check(d)
+    sg, anq = _signed(obj)
+    n = opaque3(type(d), _fold(sg, obj.n))
+    # n·d as plain products and sums (no unpaired fma, see _plane), sign-folded (exactly)
+    nd_xy = n.x * d.x + n.y * d.y
+    den = nd_xy + n.z * d.z
+    inv_den = dr.rcp(den)
+    t = opaque(F, anq) * inv_den
+    bden = KB * U64 * KD * cert
+    tb = t * dr.fma(inv_den, bden, KB * U64)            # used on hits only (t, den > 0)
+    dec = _Least(den, bden)
+    if rules.screen_clip != "off":
+        bz = _scaled(obj.bz, cert)
+        if isinstance(bz, (int, float)) and bz == 0:
+            # n.x = n.y = g = 0 (or V.z = g = 0): z·den is exactly 0 on every ray
+            if rules.screen_clip == ">=":
+                return t, den, None, tb
+        else:
+            # −g·s: a host constant, or a folded row's −g
+            ng = dr.opaque(F, -sg * obj.g) if isinstance(obj.g, (int, float)) else -obj.g
+            nzs = dr.opaque(F, -vz) * nd_xy + ng * d.z
+            dec.add(nzs, bz, rules.screen_clip == ">=")
+    if isinstance(anq, (int, float)) and anq / dec.b > 1e300:
+        # t = |n·q|/den may overflow even where den > bound: keep t < inf in the hit
+        dec.add(dr.select(t < dr.inf, dr.inf, -dr.inf), 0.0)
+    return t, den, dec, tb
+
+
+def _fast_result(t, dec, tb):
+    if dec is None:                         # a certain miss on every ray
+        no = dr.mask_t(t)(False)
+        return t, no, no, tb
+    return (t, *dec.split(), tb)
+
+
 def _clip_test(cert: _Cert, F, zs, bz, rules: Rules):
     """The screen clip on z·|n·d| (z <= 0 passes with '>', z < 0 with '>='): certain where
     z <= −bound, possible where z <= bound."""
@@ -294,6 +382,9 @@ def _clip_test(cert: _Cert, F, zs, bz, rules: Rules):
 
 def plane_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = False):
     """Ray–plane distance: t = n·q'/(n·d). Miss if n·d = 0, t <= t_min, or screen-clipped."""
+    if _fast(obj, rules, o, cert):
+        t, _, dec, tb = _plane_fast(d, obj, rules, vz, cert)
+        return _fast_result(t, dec, tb)
     t, hit, _, _, c = _plane(d, o, obj, rules, vz, cert)
     if not cert:
         return t, hit
@@ -379,8 +470,22 @@ def _abs_cross(a, b):
 def fplane_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = False):
     """plane_t, then the bounds test 0 <= u <= w, 0 <= v <= h (strict with open edges)."""
     F, B = _check(d)
-    t, hit, den, q, ci = _plane(d, o, obj, rules, vz, cert)
     Array3 = type(d)
+    if _fast(obj, rules, o, cert):
+        # rays from the viewpoint, certified: den > 0 on hits, sign folded into X, Y
+        t, den, dec, tb = _plane_fast(d, obj, rules, vz, cert)
+        if dec is None:
+            return _fast_result(t, dec, tb)
+        sg = _signed(obj)[0]
+        c = dr.cross(opaque3(Array3, obj.q), d)
+        su = dr.dot(opaque3(Array3, _fold(sg, obj.ydir)), c)
+        sv = -dr.dot(opaque3(Array3, _fold(sg, obj.xdir)), c)
+        w, h = obj.size
+        wd, hd = opaque(F, w) * den, opaque(F, h) * den
+        dec.add(dr.minimum(dr.minimum(su, wd - su), dr.minimum(sv, hd - sv)),
+                _scaled(obj.bm, cert), rules.edges == "open")
+        return _fast_result(t, dec, tb)
+    t, hit, den, q, ci = _plane(d, o, obj, rules, vz, cert)
     c = dr.cross(q, d)
     # u·|den| in [0, w·|den|], v·|den| in [0, h·|den|] (see the module docstring): no
     # division, every comparison monotone in one rounded quantity

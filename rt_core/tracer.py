@@ -232,7 +232,7 @@ class Best:
             # bound, except hits on the same plane or sphere (equal t: the tie rule decides;
             # ``grp`` is None when no two objects share a plane or sphere)
             # an unsure object (possible, not certain) sets lo2 = −inf: the ray is flagged
-            unsure = dr.select(possible, -dr.inf, dr.inf)
+            unsure = dr.select(possible, type(t)(-dr.inf), type(t)(dr.inf))
             if self.fresh:
                 # the first object: no other hit yet
                 self.fresh = False
@@ -260,6 +260,9 @@ class Best:
         self.id = dr.select(upd, oid, self.id)
 
 
+FLAG_SLOTS = 4096
+
+
 def _decide_flagged(ks: KernelScene, cam, rules: Rules, st: Best, d):
     """Replace the flagged rays' answers by the exact ones (rt_core/decide.py)."""
     T = ks.T
@@ -270,11 +273,20 @@ def _decide_flagged(ks: KernelScene, cam, rules: Rules, st: Best, d):
     # flagged rays carry id −2: one int output instead of two masks (Dr.Jit's LLVM kernels
     # write several mask outputs slowly)
     oid = dr.select(flag, -2, st.id)
-    # count the flagged rays in the same kernel (an atomic add on flagged lanes only)
+    # count the flagged rays and list the first FLAG_SLOTS of them in the same kernel (an
+    # atomic increment on flagged lanes only); more than that: a compress pass lists them
     count = dr.zeros(T.UInt32, 1)
-    dr.scatter_reduce(dr.ReduceOp.Add, count, T.UInt32(1), T.UInt32(0), flag)
-    dr.eval(t, oid, count)
-    pix = dr.compress(oid == -2).numpy() if count.numpy()[0] else np.zeros(0, np.int64)
+    slot = dr.scatter_inc(count, T.UInt32(0), flag)
+    listed = dr.zeros(T.UInt32, FLAG_SLOTS)
+    dr.scatter(listed, dr.arange(T.UInt32, dr.width(flag)), slot, flag & (slot < FLAG_SLOTS))
+    dr.eval(t, oid, count, listed)
+    nflag = int(count.numpy()[0])
+    if nflag == 0:
+        pix = np.zeros(0, np.int64)
+    elif nflag <= FLAG_SLOTS:
+        pix = np.sort(listed.numpy()[:nflag].astype(np.int64))
+    else:
+        pix = dr.compress(oid == -2).numpy()
     ks.__dict__["decided"] = len(pix)
     if not len(pix):
         ids, ts = np.zeros(0, np.int32), np.zeros(0)
@@ -291,17 +303,35 @@ def _decide_flagged(ks: KernelScene, cam, rules: Rules, st: Best, d):
     # scattered into the arrays by one kernel that always runs, with two masked-off lanes
     # added (so that it never has one lane, a literal, and runs when nothing is flagged):
     # the kernels a render compiles do not depend on what was flagged
-    live = np.r_[np.ones(len(pix), bool), False, False]
-    pix, ids, ts = np.r_[pix, 0, 0], np.r_[ids, -1, -1], np.r_[ts, 0.0, 0.0]
-    # (from lists: Dr.Jit's own, aligned memory; numpy's alignment would change the kernel)
-    idx, mask = T.UInt32(pix.astype(np.uint32).tolist()), T.Bool(live.tolist())
-    tv = T.Float(np.where(ids >= 0, ts, 0.0).tolist())
-    iv = T.Int32(ids.astype(np.int32).tolist())
-    dr.eval(idx, mask, tv, iv)
-    for target, values in ((t, tv), (oid, iv)):      # one small kernel each, fixed inputs
-        dr.scatter(target, values, idx, mask)
-        dr.eval(target)
+    if len(pix):
+        live = np.r_[np.ones(len(pix), bool), False, False]
+        pix, ids, ts = np.r_[pix, 0, 0], np.r_[ids, -1, -1], np.r_[ts, 0.0, 0.0]
+        # (from lists: Dr.Jit's own, aligned memory; numpy's alignment would change the
+        # kernel)
+        idx, mask = T.UInt32(pix.astype(np.uint32).tolist()), T.Bool(live.tolist())
+        tv = T.Float(np.where(ids >= 0, ts, 0.0).tolist())
+        iv = T.Int32(ids.astype(np.int32).tolist())
+        dr.eval(idx, mask, tv, iv)
+    else:
+        idx, mask, tv, iv = _no_flags(T)
+    dr.scatter(t, tv, idx, mask)
+    dr.scatter(oid, iv, idx, mask)
+    dr.eval(t, oid)                                 # one small kernel, fixed inputs
     return t, oid, oid >= 0
+
+
+_NO_FLAGS: dict = {}
+
+
+def _no_flags(T):
+    """The scatter's inputs when nothing is flagged (two masked-off lanes), made once."""
+    key = (T.precision, dr.backend_v(T.Float))
+    if key not in _NO_FLAGS:
+        got = (T.UInt32([0, 0]), T.Bool([False, False]), T.Float([0.0, 0.0]),
+               T.Int32([-1, -1]))
+        dr.eval(got)
+        _NO_FLAGS[key] = got
+    return _NO_FLAGS[key]
 
 
 # exact answers of camera rays, kept across renders of one scene: renders that differ only in

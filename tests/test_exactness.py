@@ -27,6 +27,7 @@ from tools.harness.validate import default_scene_paths
 
 COURSE = Path(__file__).resolve().parents[2] / "shared" / "course-scenes"
 VARIANT = Rules(screen_clip=">=", t_min=1e-4)
+M0 = "1 1 1 0 0 0 0 0 0"           # a material
 
 
 def _render(path, W, H, rules):
@@ -211,3 +212,165 @@ def test06_flagged_rays_are_few_and_decided():
         ks = prepare(sc, T)
         closest_hit(ks, primary_directions(sc, cam, T), None, Rules(), cam=cam)
         assert lo <= ks.decided <= hi, (text, ks.decided)
+
+
+@pytest.mark.parametrize("layout", ["unrolled", "looped"])
+def test06b_a_plane_in_z0_is_certain(layout, monkeypatch):
+    """A plane lying in z = 0 has a clip value of exactly 0 on every ray, which its bound of
+    exactly 0 makes certain (unrolled: decided on the host); on the loop path that bound
+    stays per row (a table-wide one would flag every ray that sees the plane)."""
+    from rt_core import accel
+    from rt_core.camera import primary_directions
+    from rt_core.parser import parse_text
+    from rt_core.tracer import closest_hit, prepare
+    if layout == "looped":
+        monkeypatch.setattr(accel, "UNROLL_MAX", 0)
+    T = backend.types("f64")
+    sc = parse_text(f"8 6  0.1 0.2 3  plane {M0}  0 0 1  0 0 0  plane {M0}  0.1 1 0.2  0 -2 0"
+                    f"  sphere {M0}  0.3 -0.2 -4  1.7")
+    cam = make_camera(sc, 64, 48)
+    ks = prepare(sc, T)
+    _, oid, _ = closest_hit(ks, primary_directions(sc, cam, T), None, Rules(), cam=cam)
+    assert (np.asarray(oid.numpy()) == 0).sum() > 1000          # the plane is seen
+    assert ks.decided == 0
+
+
+# --- the loop path: objects as table rows, binned, signs folded, bounds table-wide ----------
+
+
+def _stress(through_viewpoint: bool) -> str:
+    """A scene whose decisions land exactly on the 33 × 25 sample rays of an 8 × 6 window
+    seen from z = 5 (samples 0.25 apart): a wall at z = −5 of unit tiles (edges on every
+    second sample ray, shared by neighbours, which tie) facing both ways, tilted panels,
+    spheres (one around the viewpoint, one through it), a plane in z = 0 (its clip is
+    exactly 0: certain) and, optionally, a plane through the viewpoint (n·q = 0)."""
+    objs = []
+    for i in range(-4, 4):
+        for j in range(-3, 3):
+            nz = 1 if (i + j) % 2 else -1
+            objs.append(f"fplane {M0}  0 0 {nz}  {i} {j} -5  1 0 0  1 1")
+    objs += [f"fplane {M0}  0.3 0.2 1  -3 -2 -2  1 0.5 0.4  2.5 1.5",
+             f"fplane {M0}  -0.5 0.1 -1  0.5 -1 -1  0 1 0  2 2",
+             f"fplane {M0}  1 0 0  1 -3 -9  0 1 0  6 12",
+             f"sphere {M0}  1 1 -3  0.75", f"sphere {M0}  -2 1.5 -4  1",
+             f"sphere {M0}  0 0 5  1", f"sphere {M0}  0 0 4  1",
+             f"plane {M0}  0 0 1  0 0 0", f"plane {M0}  0 -1 0  0 -2.5 0",
+             f"plane {M0}  0 1 0.5  0 -3 -1"]
+    if through_viewpoint:
+        objs.append(f"plane {M0}  1 0 0  0 0 5")
+    return "8 6  0 0 5\n" + "\n".join(objs) + "\n"
+
+
+@pytest.mark.parametrize("bins", [True, False], ids=["bins", "no-bins"])
+@pytest.mark.parametrize("through", [False, True], ids=["", "through-viewpoint"])
+@pytest.mark.parametrize("rules", [Rules(), VARIANT, Rules(edges="open", ties="last")],
+                         ids=["notes", "variant", "open-last"])
+def test07_the_loop_path_decides_exactly(rules, through, bins, monkeypatch, tmp_path):
+    """Every object looped (UNROLL_MAX = 0): on bins (rows of objects no primary ray hits
+    left out, signs folded, bounds table-wide where that is sound) and without: every pixel
+    as exact arithmetic decides it.  About a third of the rays are flagged here."""
+    from rt_core import accel
+    path = tmp_path / "stress.txt"
+    path.write_text(_stress(through))
+    W, H = 33, 25
+    monkeypatch.setattr(accel, "UNROLL_MAX", 0)
+    if not bins:
+        monkeypatch.setattr(accel, "binned", lambda ks, rays=0: None)
+    looped, _ = _render(path, W, H, rules)
+    ex = _exact(path, W, H, range(W * H), rules)
+    wrong = [(p % W, p // W, int(looped[p]), int(e)) for p, e in enumerate(ex.id)
+             if looped[p] != e]
+    assert not wrong, f"{len(wrong)} wrong decisions (column, row, rt_core, exact): {wrong[:8]}"
+
+
+NEAR = f"""8 6  0.3 -0.2 4.7
+fplane {M0}  0.3 0.2 1  -3.1 -2.3 -2.9  1 0.5 0.4  2.7 1.9
+fplane {M0}  -0.5 0.1 -1  0.7 -1.3 -1.1  0.1 1 0.3  2.3 2.1
+plane {M0}  0.2 0.9 0.7  0.1 -0.6 0.3
+sphere {M0}  1.3 1.1 -3.7  0.77
+"""
+
+
+def _near_rays(xs, n: int, seed: int = 7) -> np.ndarray:
+    """Directions from the viewpoint to points on NEAR's decisions (rectangle edges and
+    corners, the plane's line in z = 0, the sphere's outline, in float64, so a few ulps
+    off), each component then moved by up to 256 ulps: rays on both sides of every
+    decision, where rounding decides the sign of a margin unless the bound catches it, and
+    rays beyond the bounds."""
+    rng = np.random.default_rng(seed)
+    V = np.array([float(c) for c in xs.viewpoint])
+    pts = []
+    for o in xs.objects:
+        fl = lambda v: np.array([float(c) for c in v])
+        if o.kind == "fplane":
+            N, P, O = fl(o.normal), fl(o.point), fl(o.orient)
+            N /= np.linalg.norm(N)
+            X = O - (O @ N) * N
+            X /= np.linalg.norm(X)
+            Y = np.cross(N, X)
+            w, h = (float(c) for c in o.size)
+            s = rng.random((n // 8, 1))
+            pts += [P + s * w * X, P + w * X + s * h * Y, P + s * h * Y, P + h * Y + s * w * X]
+        elif o.kind == "plane":
+            N, P = fl(o.normal), fl(o.point)
+            # points of the plane with z = 0: x = a, y from n·(p − P) = 0
+            a = rng.uniform(-4, 4, n // 4)
+            y = P[1] + (-(a - P[0]) * N[0] - (0 - P[2]) * N[2]) / N[1]
+            pts.append(np.stack([a, y, np.zeros_like(a)], 1))
+        else:
+            C, r = fl(o.center), float(o.radius)
+            Q = C - V
+            q = Q / np.linalg.norm(Q)
+            u = np.cross(q, [0.0, 0.0, 1.0])
+            u /= np.linalg.norm(u)
+            v = np.cross(q, u)
+            ang = rng.uniform(0, 2 * np.pi, (n // 4, 1))
+            # the outline seen from V: the tangent circle of the cone
+            L = np.linalg.norm(Q)
+            rho = r * np.sqrt(L * L - r * r) / L
+            pts.append(C - q * (r * r / L) + rho * (np.cos(ang) * u + np.sin(ang) * v))
+    d = np.concatenate(pts) - V
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    ulps = rng.integers(-256, 257, d.shape)
+    return d + ulps * np.spacing(d)
+
+
+@pytest.mark.parametrize("layout", ["unrolled", "looped"])
+@pytest.mark.parametrize("rules", [Rules(), VARIANT, Rules(edges="open", ties="last")],
+                         ids=["notes", "variant", "open-last"])
+def test08_margins_rounding_cannot_decide(rules, layout, monkeypatch):
+    """Rays within a few ulps of every decision of a scene with generic decimals (the
+    certified bounds at work: there the rounded margin's sign is often wrong, test07's exact
+    grid does not show that): rt_core f64's answer is exact arithmetic's on the same rays."""
+    import drjit as dr
+    from rt_core import accel
+    from rt_core.parser import parse_text
+    from rt_core.tracer import closest_hit, prepare
+    xs = parse_exact(NEAR)
+    d = _near_rays(xs, 6400)
+    T = backend.types("f64")
+    if layout == "looped":
+        monkeypatch.setattr(accel, "UNROLL_MAX", 0)
+    ks = prepare(parse_text(NEAR), T)
+    _, oid, _ = closest_hit(ks, T.Array3(*(T.Float(c) for c in d.T)), None, rules,
+                            cam="rays", dmax=float(np.linalg.norm(d, axis=1).max()))
+    ids = np.asarray(oid.numpy())
+    ex = trace_exact(xs, d, rules)
+    wrong = np.flatnonzero(ids != ex.id)
+    assert not len(wrong), f"{len(wrong)} wrong of {len(d)}: {list(zip(ids[wrong], ex.id[wrong]))[:8]}"
+    assert 0 < ks.decided < len(d)
+
+
+def test09_more_flagged_rays_than_slots(monkeypatch, tmp_path):
+    """The kernel lists the first FLAG_SLOTS flagged rays itself; beyond that a compress
+    pass lists them all: the same answers either way."""
+    from rt_core import tracer
+    path = tmp_path / "stress.txt"
+    path.write_text(_stress(False))
+    W, H = 33, 25
+    listed, _ = _render(path, W, H, Rules())
+    monkeypatch.setattr(tracer, "FLAG_SLOTS", 8)
+    compressed, _ = _render(path, W, H, Rules())
+    assert (listed == compressed).all() and (listed >= -1).all()
+    ex = _exact(path, W, H, range(W * H), Rules())
+    assert (compressed == ex.id).all()
