@@ -54,7 +54,7 @@ MARGIN = 2.0 ** -12
 # the object id rides along as a float (exact below 2**24).  (Scalar gathers: Dr.Jit's
 # packet gathers of Array4f were no faster here, and chose between packet and scalar code
 # from call to call, which broke kernel reuse.)
-LAYOUT = {"sphere": ("qx", "qy", "qz", "radius", "c", "id", "grp", "bo", "bsic"),
+LAYOUT = {"sphere": ("qx", "qy", "qz", "radius", "c", "id", "grp", "bo", "bs"),
           "plane": ("qx", "qy", "qz", "nq", "nx", "ny", "nz", "g", "id", "grp", "bz"),
           "fplane": ("qx", "qy", "qz", "nq", "nx", "ny", "nz", "g", "w", "xx", "xy", "xz", "h",
                      "yx", "yy", "yz", "id", "grp", "bz", "bm")}
@@ -169,9 +169,10 @@ def _upload(ks, kind: str, rows: np.ndarray, offsets=None, wide=None,
     return KindTable(kind, len(ks.by_kind[kind]), flat, off, wide, folded)
 
 
-# the bounds taken table-wide on bins ('t' bounds stay per row: they differ by orders of
-# magnitude between near and far objects, and a loose one flags near ties)
-WIDE = ("bz", "bm", "bo")
+# the bounds taken table-wide on bins (a sphere's bs too: its t bound is bs/(b' + √disc)
+# relative, so a far sphere's larger bs loosens a near one's t bound, which only flags more
+# near ties)
+WIDE = ("bz", "bm", "bo", "bs")
 
 
 def _wide(kind: str, rows: np.ndarray) -> dict | None:

@@ -94,7 +94,7 @@ class _Exact:
             w, h = (exact(c) for c in obj.size)
             self.w2 = w * w * PP
             self.h2 = h * h * NN * PP
-        # float copies for a quick screen (``_surely_missed``)
+        # float copies for a quick screen (``surely_missed``)
         f = lambda v: tuple(float(c) for c in v)
         norm = lambda v: math.sqrt(sum(c * c for c in v))
         self.fQ = f(self.Q)
@@ -147,36 +147,63 @@ def _sphere(o: _Exact, E, EE, Vz, rules: Rules):
 
 
 SCREEN = 1e-6      # relative: float64 arithmetic errs by ~1e-15 here, so this never misjudges
+SCREEN_PAIRS = 1 << 18      # (ray, object) pairs screened at once (the screen's memory)
 
 
-def _surely_missed(o: _Exact, fE, fEE) -> bool:
-    """A float screen before the exact test: True only where a decision fails by far more
-    than float64 could err (then the exact test would fail too)."""
-    nE = math.sqrt(fEE)
-    if o.kind == "sphere":
-        b = o.fQ[0] * fE[0] + o.fQ[1] * fE[1] + o.fQ[2] * fE[2]
-        if b < -SCREEN * o.nQ * nE:
-            return True                       # centre behind the viewpoint
-        D = b * b - fEE * o.fcc
-        return D < -SCREEN * (b * b + fEE * abs(o.fcc) + 1e-300)
-    nd = o.fN[0] * fE[0] + o.fN[1] * fE[1] + o.fN[2] * fE[2]
-    scale = (abs(o.fN[0] * fE[0]) + abs(o.fN[1] * fE[1]) + abs(o.fN[2] * fE[2]))
-    if abs(nd) <= SCREEN * scale:
-        return False                          # nearly parallel: let the exact test decide
-    s = o.fNQ / nd
-    nq = abs(o.fNQ)
-    if s < 0 and nq > SCREEN * o.nN * o.nQ:
-        return True                           # behind the viewpoint
-    if o.kind != "fplane" or s <= 0:
-        return False
-    H = tuple(s * e - q for e, q in zip(fE, o.fQ))
-    a = o.fp[0] * H[0] + o.fp[1] * H[1] + o.fp[2] * H[2]
-    bb = o.fy[0] * H[0] + o.fy[1] * H[1] + o.fy[2] * H[2]
-    nH = math.sqrt(H[0] ** 2 + H[1] ** 2 + H[2] ** 2) + o.nQ
-    pa, ya = o.np * nH, o.ny * nH
-    return (a < -SCREEN * pa or bb < -SCREEN * ya or
-            a * a > o.fw2 * (1 + SCREEN) + SCREEN * pa * pa or
-            bb * bb > o.fh2 * (1 + SCREEN) + SCREEN * ya * ya)
+class _Screen:
+    """The float copies of every object as arrays (``surely_missed``)."""
+
+    def __init__(self, objs):
+        n = len(objs)
+        z3 = (0.0, 0.0, 0.0)
+        col = lambda name, dflt=0.0: np.array([getattr(o, name, dflt) for o in objs],
+                                              np.float64)
+        self.sphere = np.array([o.kind == "sphere" for o in objs], bool)
+        self.fplane = np.array([o.kind == "fplane" for o in objs], bool)
+        self.fQ = np.array([o.fQ for o in objs], np.float64).reshape(n, 3)
+        self.nQ, self.fcc = col("nQ"), col("fcc")
+        self.fN = np.array([getattr(o, "fN", z3) for o in objs], np.float64).reshape(n, 3)
+        self.fNQ, self.nN = col("fNQ"), col("nN")
+        self.fp = np.array([getattr(o, "fp", z3) for o in objs], np.float64).reshape(n, 3)
+        self.fy = np.array([getattr(o, "fy", z3) for o in objs], np.float64).reshape(n, 3)
+        self.np, self.ny = col("np"), col("ny")
+        self.fw2, self.fh2 = col("fw2"), col("fh2")
+
+
+def surely_missed(objs, fE: np.ndarray) -> np.ndarray:
+    """A float screen before the exact test, for rays fE (m, 3) against every object: (m, n)
+    True only where a decision fails by far more than float64 could err (then the exact test
+    would fail too)."""
+    S = getattr(objs, "screen", None)
+    if S is None:
+        S = _Screen(objs)
+        if isinstance(objs, Prepared):
+            objs.screen = S
+    fE = np.asarray(fE, np.float64).reshape(-1, 3)
+    nE = np.sqrt((fE * fE).sum(1))[:, None]
+    fEE = nE * nE
+    with np.errstate(all="ignore"):
+        # spheres: centre behind the viewpoint, or the discriminant far below 0
+        b = fE @ S.fQ.T
+        D = b * b - fEE * S.fcc
+        sph = (b < -SCREEN * S.nQ * nE) | (D < -SCREEN * (b * b + fEE * np.abs(S.fcc) + 1e-300))
+        # plane kinds: behind the viewpoint (nearly parallel: left to the exact test)
+        nd = fE @ S.fN.T
+        scale = np.abs(fE) @ np.abs(S.fN).T
+        open_ = np.abs(nd) > SCREEN * scale
+        s = S.fNQ / nd
+        behind = open_ & (s < 0) & (np.abs(S.fNQ) > SCREEN * S.nN * S.nQ)
+        # finite planes: the hit far outside an edge
+        H = s[..., None] * fE[:, None, :] - S.fQ[None]
+        a = (H * S.fp[None]).sum(-1)
+        bb = (H * S.fy[None]).sum(-1)
+        nH = np.sqrt((H * H).sum(-1)) + S.nQ
+        pa, ya = S.np * nH, S.ny * nH
+        out = ((a < -SCREEN * pa) | (bb < -SCREEN * ya) |
+               (a * a > S.fw2 * (1 + SCREEN) + SCREEN * pa * pa) |
+               (bb * bb > S.fh2 * (1 + SCREEN) + SCREEN * ya * ya))
+        fpl = open_ & (s > 0) & out & S.fplane
+    return np.where(S.sphere, sph, behind | fpl)
 
 
 def _less(a, b) -> int:
@@ -220,10 +247,15 @@ def decide(scene: Scene, columns: int, rows: int, sampling: str, rules: Rules, p
                                                 row_shift), distance=True, objs=objs)
 
 
-def prepare(scene: Scene) -> list:
+class Prepared(list):
+    """The scene's objects as exact numbers (and, once asked for, their float screen)."""
+    screen = None
+
+
+def prepare(scene: Scene) -> Prepared:
     """The scene's objects as exact numbers, for any number of ``decide`` calls."""
     V = tuple(exact(c) for c in scene.viewpoint)
-    return [_Exact(o, V) for o in scene.objects]
+    return Prepared(_Exact(o, V) for o in scene.objects)
 
 
 def decide_rays(scene: Scene, rules: Rules, rays, distance: bool = False, objs=None):
@@ -236,15 +268,17 @@ def decide_rays(scene: Scene, rules: Rules, rays, distance: bool = False, objs=N
     tmin2 = tmin * tmin
     ids = np.full(len(rays), -1, np.int32)
     ts = np.zeros(len(rays))
+    if not len(rays):
+        return ids, ts
+    chunk = max(1, SCREEN_PAIRS // max(1, len(objs)))
     for k, E in enumerate(rays):
+        if k % chunk == 0:                  # the screen, a chunk of rays at a time
+            missed = surely_missed(objs, [[float(c) for c in R] for R in rays[k:k + chunk]])
         E = tuple(Fraction(c) for c in E)
         EE = _dot(E, E)
-        fE = tuple(float(c) for c in E)
-        fEE = fE[0] ** 2 + fE[1] ** 2 + fE[2] ** 2
         best, best_s = -1, None
-        for j, o in enumerate(objs):
-            if _surely_missed(o, fE, fEE):
-                continue
+        for j in np.flatnonzero(~missed[k % chunk]).tolist():
+            o = objs[j]
             s = (_sphere(o, E, EE, V[2], rules) if o.kind == "sphere"
                  else _plane(o, E, EE, V[2], rules, tmin2))
             if s is None:

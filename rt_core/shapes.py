@@ -74,8 +74,8 @@ class ObjectConstants:
     bz: float = 0.0          # plane kinds: the clip's z·|n·d|
     bm: float = 0.0          # fplane: u·|n·d| >= 0, v·|n·d| >= 0, u <= w, v <= h (one bound)
     bo: float = 0.0          # sphere: outline r√a − |q×d| and front q·d; for t's bound
-    # (bo + √(the discriminant's error))/c (bsic)
-    bsic: float = 0.0
+    # bo + √(the discriminant's error): the error of b' + √disc (bs)
+    bs: float = 0.0
 
 
 _CTX = decimal.Context(prec=40, Emax=10 ** 6, Emin=-10 ** 6)
@@ -144,7 +144,7 @@ def object_constants(scene: Scene) -> list[ObjectConstants]:
     return out
 
 
-BOUND_FIELDS = ("bz", "bm", "bo", "bsic")
+BOUND_FIELDS = ("bz", "bm", "bo", "bs")
 
 
 # The certified decisions' bounds, for rays with |d| <= 1 (unit directions): each is the
@@ -180,7 +180,7 @@ def _sphere_bounds(q, r, c) -> dict:
         # a certain miss; a NaN bound fails both comparisons of the outline test
         bo = math.nan
     # t's bound is t·(bs·t/c + K u): one constant bs/c
-    return {"bo": bo, "bsic": bs / c if c > 0 else 0.0}
+    return {"bo": bo, "bs": bs if c > 0 else 0.0}
 
 
 def _first(N) -> int:
@@ -227,7 +227,9 @@ def _check(d):
 # Certified decisions (``cert``: the largest |d| of the rays, 1 for the camera's; rays from
 # the viewpoint): each function returns t, the masks ``certain`` (a hit in exact arithmetic
 # for sure: the hit mask) and ``possible`` (a hit in exact arithmetic is possible: the verdict
-# is unsure where possible & ~certain), and ``tb``, a bound on the error of t.
+# is unsure where possible & ~certain), and ``lf``, t's certified lower factor: on a hit
+# (t > 0) the exact t lies in [t·lf, t·(2 − lf)] (lf = 1 − t's relative bound, rounded
+# down within the slack of KB: one product per hit gives the lower bound).
 #
 # A value f computed from inputs with componentwise relative errors (host constants: one
 # rounding from the exact value, ``object_constants``; ray components: a few units, the
@@ -339,14 +341,14 @@ def _plane_fast(d, obj, rules: Rules, vz: float, cert):
     inv_den = dr.rcp(den)
     t = opaque(F, anq) * inv_den
     bden = KB * U64 * KD * cert
-    tb = t * dr.fma(inv_den, bden, KB * U64)            # used on hits only (t, den > 0)
+    lf = dr.fma(-inv_den, bden, 1 - KB * U64)           # used on hits only (t, den > 0)
     dec = _Least(den, bden)
     if rules.screen_clip != "off":
         bz = _scaled(obj.bz, cert)
         if isinstance(bz, (int, float)) and bz == 0:
             # n.x = n.y = g = 0 (or V.z = g = 0): z·den is exactly 0 on every ray
             if rules.screen_clip == ">=":
-                return t, den, None, tb
+                return t, den, None, lf
         else:
             # −g·s: a host constant, or a folded row's −g
             ng = dr.opaque(F, -sg * obj.g) if isinstance(obj.g, (int, float)) else -obj.g
@@ -355,14 +357,14 @@ def _plane_fast(d, obj, rules: Rules, vz: float, cert):
     if isinstance(anq, (int, float)) and anq / dec.b > 1e300:
         # t = |n·q|/den may overflow even where den > bound: keep t < inf in the hit
         dec.add(dr.select(t < dr.inf, dr.inf, -dr.inf), 0.0)
-    return t, den, dec, tb
+    return t, den, dec, lf
 
 
-def _fast_result(t, dec, tb):
+def _fast_result(t, dec, lf):
     if dec is None:                         # a certain miss on every ray
         no = dr.mask_t(t)(False)
-        return t, no, no, tb
-    return (t, *dec.split(), tb)
+        return t, no, no, lf
+    return (t, *dec.split(), lf)
 
 
 def _clip_test(cert: _Cert, F, zs, bz, rules: Rules):
@@ -383,8 +385,8 @@ def _clip_test(cert: _Cert, F, zs, bz, rules: Rules):
 def plane_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = False):
     """Ray–plane distance: t = n·q'/(n·d). Miss if n·d = 0, t <= t_min, or screen-clipped."""
     if _fast(obj, rules, o, cert):
-        t, _, dec, tb = _plane_fast(d, obj, rules, vz, cert)
-        return _fast_result(t, dec, tb)
+        t, _, dec, lf = _plane_fast(d, obj, rules, vz, cert)
+        return _fast_result(t, dec, lf)
     t, hit, _, _, c = _plane(d, o, obj, rules, vz, cert)
     if not cert:
         return t, hit
@@ -415,7 +417,9 @@ def _plane(d, o, obj, rules: Rules, vz: float, cert: bool = False):
     if cert:
         assert o is None, "certified decisions are for rays from the viewpoint"
         bden = KB * U64 * KD * cert          # Σ|n_i d_i| <= |n||d| <= KD·cert
-        tb = dr.abs(t) * dr.fma(dr.abs(inv_den), bden, KB * U64)
+        ainv = dr.abs(inv_den)
+        tb = dr.abs(t) * dr.fma(ainv, bden, KB * U64)
+        lf = dr.fma(-ainv, bden, 1 - KB * U64)
         if rules.t_min == 0:
             # t > 0 is sign(n·q)·sign(n·d) > 0: certain where n·d is beyond its bound (n·q
             # is exact), possible where t > 0 or n·d is within it (unless n·q = 0 exactly,
@@ -426,12 +430,12 @@ def _plane(d, o, obj, rules: Rules, vz: float, cert: bool = False):
             else:
                 maybe = ~den_ok & (nq != 0)
             cinfo = [_Cert(t_pos & den_ok, t_pos | maybe if maybe is not False else t_pos),
-                     tb]
+                     lf]
         else:
             # t = n·q/(n·d): with n·d within its bound of 0, t may be anything
             tmin = dr.opaque(F, rules.t_min)
             possible = ~(t + tb <= tmin) | ((dr.abs(den) <= bden) & (nq != 0))
-            cinfo = [_Cert(t - tb > tmin, possible), tb]
+            cinfo = [_Cert(t - tb > tmin, possible), lf]
     if rules.screen_clip != "off":
         # hit z = zn/den with zn = vz'·den + n·q'·d.z = vz'·(n.x d.x + n.y d.y) + g'·d.z,
         # g' = n·q' + n.z·vz' (host constant g; see the module docstring): nothing cancels
@@ -473,9 +477,9 @@ def fplane_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = F
     Array3 = type(d)
     if _fast(obj, rules, o, cert):
         # rays from the viewpoint, certified: den > 0 on hits, sign folded into X, Y
-        t, den, dec, tb = _plane_fast(d, obj, rules, vz, cert)
+        t, den, dec, lf = _plane_fast(d, obj, rules, vz, cert)
         if dec is None:
-            return _fast_result(t, dec, tb)
+            return _fast_result(t, dec, lf)
         sg = _signed(obj)[0]
         c = dr.cross(opaque3(Array3, obj.q), d)
         su = dr.dot(opaque3(Array3, _fold(sg, obj.ydir)), c)
@@ -484,7 +488,7 @@ def fplane_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = F
         wd, hd = opaque(F, w) * den, opaque(F, h) * den
         dec.add(dr.minimum(dr.minimum(su, wd - su), dr.minimum(sv, hd - sv)),
                 _scaled(obj.bm, cert), rules.edges == "open")
-        return _fast_result(t, dec, tb)
+        return _fast_result(t, dec, lf)
     t, hit, den, q, ci = _plane(d, o, obj, rules, vz, cert)
     c = dr.cross(q, d)
     # u·|den| in [0, w·|den|], v·|den| in [0, h·|den|] (see the module docstring): no
@@ -515,13 +519,13 @@ def fplane_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = F
     inside = tests[0] & tests[1] & tests[2] & tests[3]
     if not cert:
         return t, hit & inside
-    c, tb = ci
+    c, lf = ci
     # the four edges as one test: their least value against the largest of their bounds
     # (a larger bound is still a bound)
     m = dr.minimum(dr.minimum(su, wd - su), dr.minimum(sv, hd - sv))
     bm = _scaled(obj.bm, cert)
     c.test(F, m, bm, rules.edges == "open")
-    return (t, *c.split(), tb)
+    return (t, *c.split(), lf)
 
 
 def sphere_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = False):
@@ -547,7 +551,11 @@ def sphere_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = F
     s = dr.sqrt(dr.maximum(disc, 0))
     # near root c/(b' + √disc): with b' <= 0 both roots are <= 0 (origin outside, c > 0) or
     # the near one is (origin inside, c <= 0), a miss either way, so no second branch
-    t = c / (bh + s)
+    if cert:
+        inv = dr.rcp(bh + s)                # 1/(b' + s) serves t's bound too
+        t = c * inv
+    else:
+        t = c / (bh + s)
     outline, front = disc > 0, bh > 0
     hit = outline & front & (t > 0) & dr.isfinite(t)
     if rules.clip_spheres:
@@ -558,18 +566,20 @@ def sphere_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = F
     if not cert:
         return t, hit
     assert o is None, "certified decisions are for rays from the viewpoint"
-    # t = c/(b' + s): its error from b' and from s = √disc, |√x − √y| <= √|x−y| (a loose
-    # bound far from tangency, but t's bound only decides which near ties are re-decided)
+    # t = c/(b' + s): its relative error is that of b' + s (at most bs, from b' and from
+    # s = √disc, |√x − √y| <= √|x−y|: loose far from tangency, but t's bound only decides
+    # which near ties are re-decided) over b' + s, plus roundings
     # (t > 0 on every hit, and the bound matters on hits only)
-    tb = t * dr.fma(opaque(F, _scaled(obj.bsic, cert)), t, KB * U64)
+    bs = opaque(F, _scaled(obj.bs, cert))
+    lf = dr.fma(-bs, inv, 1 - KB * U64)
     c = _Cert(True, True)
     bo = _scaled(obj.bo, cert)              # NaN when c <= 0: never passes
     # outline r√a − |q×d| > 0 and front q·d > 0 share their bound: one test on the least
     c.test(F, dr.minimum(ra - cn, bh), bo, True)
     if rules.clip_spheres and rules.screen_clip != "off":
-        zb = dr.fma(dr.abs(t), dr.abs(d.z), dr.opaque(F, abs(vz))) * (KB * U64) + tb
+        zb = dr.fma(dr.abs(t), dr.abs(d.z), dr.opaque(F, abs(vz))) * (KB * U64) + t * dr.fma(bs, inv, KB * U64)
         _clip_test(c, F, z, zb, rules)
-    return (t, *c.split(), tb)
+    return (t, *c.split(), lf)
 
 
 OBJECT_T = {"sphere": sphere_t, "plane": plane_t, "fplane": fplane_t, "tplane": plane_t}
@@ -577,5 +587,5 @@ OBJECT_T = {"sphere": sphere_t, "plane": plane_t, "fplane": fplane_t, "tplane": 
 
 def object_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = False):
     """The kind's level-1 function: (t, hit), or with ``cert`` (t, certain hit, possible hit,
-    bound of t)."""
+    t's lower factor)."""
     return dispatch(OBJECT_T, obj.kind)(d, o, obj, rules, vz, cert)

@@ -195,7 +195,7 @@ class Best:
     def certify(self, T, n, shared: bool = True):
         self.cert = True
         self.shared = shared
-        self.tb = dr.zeros(T.Float, n)
+        self.lf = dr.full(T.Float, 1.0, n)        # the winner's lower factor (shapes.py)
         self.grp = dr.full(T.Int32, -1, n) if shared else None
         # the least lower bound of the other hits; −inf marks a ray to decide exactly
         self.lo2 = dr.full(T.Float, dr.inf, n)
@@ -203,7 +203,7 @@ class Best:
     def names(self):
         if not self.cert:
             return ("t", "id")
-        return ("t", "id", "tb", "lo2") + (("grp",) if self.shared else ())
+        return ("t", "id", "lf", "lo2") + (("grp",) if self.shared else ())
 
     def state(self):
         return tuple(getattr(self, k) for k in self.names())
@@ -213,7 +213,7 @@ class Best:
             setattr(self, k, v)
         return self
 
-    def fold(self, t, hit, oid, rules: Rules, single_kind=False, possible=None, tb=None,
+    def fold(self, t, hit, oid, rules: Rules, single_kind=False, possible=None, lf=None,
              grp=None):
         """Take object ``oid``'s hit at t into the running closest hit: smaller t wins; an
         exact tie goes to the smaller id ('first') or the larger ('last').  Certified:
@@ -236,26 +236,26 @@ class Best:
             if self.fresh:
                 # the first object: no other hit yet
                 self.fresh = False
-                if tb is not None:
-                    self.tb = dr.select(upd, tb, self.tb)
+                if lf is not None:
+                    self.lf = dr.select(upd, lf, self.lf)
                 self.lo2 = dr.select(hit, self.lo2, unsure)
                 if grp is not None:
                     self.grp = dr.select(upd, grp, self.grp)
             elif grp is None:
-                # the displaced winner, or this hit, joins the others (inf − 0 before a hit)
-                lo = dr.select(upd, self.t - self.tb, dr.select(hit, t - tb, unsure))
+                # the displaced winner, or this hit, joins the others (inf·1 before a hit)
+                lo = dr.select(upd, self.t * self.lf, dr.select(hit, t * lf, unsure))
                 self.lo2 = dr.minimum(self.lo2, lo)
-                self.tb = dr.select(upd, tb, self.tb)
+                self.lf = dr.select(upd, lf, self.lf)
             else:
                 uns = possible & ~hit
                 old = dr.select((self.id >= 0) & (self.grp != grp),
-                                dr.minimum(self.lo2, self.t - self.tb), self.lo2)
-                new = dr.select(hit & (grp != self.grp), dr.minimum(self.lo2, t - tb),
+                                dr.minimum(self.lo2, self.t * self.lf), self.lo2)
+                new = dr.select(hit & (grp != self.grp), dr.minimum(self.lo2, t * lf),
                                 self.lo2)
                 self.grp = dr.select(upd, grp, self.grp)
             if old is not None:
                 self.lo2 = dr.select(uns, -dr.inf, dr.select(upd, old, new))
-                self.tb = dr.select(upd, tb, self.tb)
+                self.lf = dr.select(upd, lf, self.lf)
         self.t = dr.select(upd, t, self.t)
         self.id = dr.select(upd, oid, self.id)
 
@@ -263,30 +263,39 @@ class Best:
 FLAG_SLOTS = 4096
 
 
+def _flagged(T, oid, nflag: int) -> np.ndarray:
+    """The indices of the rays with id −2, ``nflag`` of them: up to FLAG_SLOTS listed by one
+    pass (an atomic slot per flagged lane; a third of what dr.compress's passes cost, and
+    kept out of the trace kernel, where its scatter would cost every ray), else compress."""
+    if nflag == 0:
+        return np.zeros(0, np.int64)
+    if nflag > FLAG_SLOTS:
+        return dr.compress(oid == -2).numpy()
+    flag = oid == -2
+    count = dr.zeros(T.UInt32, 1)
+    slot = dr.scatter_inc(count, T.UInt32(0), flag)
+    listed = dr.zeros(T.UInt32, FLAG_SLOTS)
+    dr.scatter(listed, dr.arange(T.UInt32, dr.width(oid)), slot, flag)
+    dr.eval(listed)
+    return np.sort(listed.numpy()[:nflag].astype(np.int64))
+
+
 def _decide_flagged(ks: KernelScene, cam, rules: Rules, st: Best, d):
     """Replace the flagged rays' answers by the exact ones (rt_core/decide.py)."""
     T = ks.T
-    # t ± tb holds the exact t with room to spare (KB is twice the rounding count), so
-    # intervals that merely touch are apart; a miss has t + tb = inf, flagged only at −inf
-    flag = st.t + st.tb > st.lo2
+    # [t·lf, t·(2 − lf)] holds the exact t with room to spare (KB is twice the rounding
+    # count), so intervals that merely touch are apart; a miss has t·(2 − lf) = inf, flagged
+    # only at −inf
+    flag = st.t * (2 - st.lf) > st.lo2
     t = dr.select(st.id >= 0, st.t, 0)
     # flagged rays carry id −2: one int output instead of two masks (Dr.Jit's LLVM kernels
     # write several mask outputs slowly)
     oid = dr.select(flag, -2, st.id)
-    # count the flagged rays and list the first FLAG_SLOTS of them in the same kernel (an
-    # atomic increment on flagged lanes only); more than that: a compress pass lists them
+    # count the flagged rays in the same kernel (an atomic add on flagged lanes only)
     count = dr.zeros(T.UInt32, 1)
-    slot = dr.scatter_inc(count, T.UInt32(0), flag)
-    listed = dr.zeros(T.UInt32, FLAG_SLOTS)
-    dr.scatter(listed, dr.arange(T.UInt32, dr.width(flag)), slot, flag & (slot < FLAG_SLOTS))
-    dr.eval(t, oid, count, listed)
-    nflag = int(count.numpy()[0])
-    if nflag == 0:
-        pix = np.zeros(0, np.int64)
-    elif nflag <= FLAG_SLOTS:
-        pix = np.sort(listed.numpy()[:nflag].astype(np.int64))
-    else:
-        pix = dr.compress(oid == -2).numpy()
+    dr.scatter_reduce(dr.ReduceOp.Add, count, T.UInt32(1), T.UInt32(0), flag)
+    dr.eval(t, oid, count)
+    pix = _flagged(T, oid, int(count.numpy()[0]))
     ks.__dict__["decided"] = len(pix)
     if not len(pix):
         ids, ts = np.zeros(0, np.int32), np.zeros(0)

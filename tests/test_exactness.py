@@ -288,20 +288,41 @@ fplane {M0}  0.3 0.2 1  -3.1 -2.3 -2.9  1 0.5 0.4  2.7 1.9
 fplane {M0}  -0.5 0.1 -1  0.7 -1.3 -1.1  0.1 1 0.3  2.3 2.1
 plane {M0}  0.2 0.9 0.7  0.1 -0.6 0.3
 sphere {M0}  1.3 1.1 -3.7  0.77
+plane {M0}  0.1 0.3 1  1.3 1.1 -3.6
 """
 
 
 def _near_rays(xs, n: int, seed: int = 7) -> np.ndarray:
     """Directions from the viewpoint to points on NEAR's decisions (rectangle edges and
-    corners, the plane's line in z = 0, the sphere's outline, in float64, so a few ulps
-    off), each component then moved by up to 256 ulps: rays on both sides of every
-    decision, where rounding decides the sign of a margin unless the bound catches it, and
-    rays beyond the bounds."""
+    corners, the first plane's line in z = 0, the sphere's outline, and the near ties: the
+    two planes' common line and the second plane's circle on the sphere; in float64, so a
+    few ulps off), each component then moved by up to 256 ulps: rays on both sides of every
+    decision, where rounding decides the sign of a margin (or the order of two t) unless
+    the bound catches it, and rays beyond the bounds."""
     rng = np.random.default_rng(seed)
     V = np.array([float(c) for c in xs.viewpoint])
+    fl = lambda v: np.array([float(c) for c in v])
     pts = []
+    planes = [o for o in xs.objects if o.kind == "plane"]
+    (N1, P1), (N2, P2) = [(fl(o.normal), fl(o.point)) for o in planes]
+    # the planes' common line: points with z from −6 to −0.5
+    u = np.cross(N1, N2)
+    A = np.array([N1, N2, [0.0, 0.0, 1.0]])
+    z = rng.uniform(-6, -0.5, n // 4)
+    pts.append(np.array([np.linalg.solve(A, [N1 @ P1, N2 @ P2, zz]) for zz in z]))
+    sph = next(o for o in xs.objects if o.kind == "sphere")
+    C, r = fl(sph.center), float(sph.radius)
+    m = N2 / np.linalg.norm(N2)
+    delta = m @ (C - P2)
+    e1 = np.cross(m, u)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(m, e1)
+    ang = rng.uniform(0, 2 * np.pi, (n // 4, 1))
+    rho = np.sqrt(r * r - delta * delta)
+    pts.append(C - delta * m + rho * (np.cos(ang) * e1 + np.sin(ang) * e2))
     for o in xs.objects:
-        fl = lambda v: np.array([float(c) for c in v])
+        if o in planes[1:]:
+            continue
         if o.kind == "fplane":
             N, P, O = fl(o.normal), fl(o.point), fl(o.orient)
             N /= np.linalg.norm(N)
