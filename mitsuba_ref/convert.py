@@ -21,6 +21,9 @@ from xml.sax.saxutils import quoteattr
 
 from rt_core.usererror import InputError
 from rt_core.kinds import KINDS, dispatch
+from rt_core.rules import Rules
+
+DEFAULT_MAX_DIST = 1000.0       # the notes' MAX_DIST, as ``rtval render``'s default
 
 from .geometry import corners, cross, dot, frame, normal, sub, unit
 
@@ -32,9 +35,13 @@ EPS32 = 2.0 ** -24
 
 
 def mitsuba():
+    """Mitsuba in rtval's variant, with the course plugins registered
+    (mitsuba_ref/integrator.py)."""
     import mitsuba as mi
     if mi.variant() != VARIANT:
         mi.set_variant(VARIANT)
+    from .integrator import register
+    register(mi)
     return mi
 
 
@@ -225,14 +232,64 @@ def _up(center, aim) -> list:
 _LIGHTS = {"pointlight": _point_light, "spotlight": _spot_light}
 
 
+def _mat(m, prefix: str = "") -> dict:
+    return {prefix + k: _color(getattr(m, k)) for k in ("ambient", "diffuse", "specular")}
+
+
+def _color(v) -> list:
+    return [float(c) for c in v]
+
+
+def tile_size(o, rules: Rules) -> tuple:
+    """A tiled plane's tile size; with the variant that leaves xdir unprojected
+    (``tile_project`` off), u is unit(xdir)·(hit − point) = |p|·u, so the tiles are w/|p|
+    wide along the projected axis (|p|: the sine of xdir's angle with the normal)."""
+    w, h = o.size
+    if rules.tile_project:
+        return (float(w), float(h))
+    c = dot(unit(o.orient), normal(o))
+    return (w / math.sqrt(max(1.0 - c * c, 0.0)), float(h))
+
+
+def course_material(o, rules: Rules) -> dict:
+    """The ``course_material`` BSDF of one object (mitsuba_ref/integrator.py): its MAT, kind,
+    and the plane's normal as given (unit) and tiled-plane frame, computed here."""
+    b = {"type": "course_material", "kind": o.kind, **_mat(o.material)}
+    if o.kind != "sphere":
+        b["normal"] = list(normal(o))
+        b["point"] = [float(c) for c in o.point]
+    if o.kind == "tplane":
+        x, y, _ = frame(o)
+        b.update({"xdir": list(x), "ydir": list(y),
+                  "tile_size": [*tile_size(o, rules), 0.0], **_mat(o.background, "background_")})
+    return b
+
+
+def course_integrator(scene: Scene, columns: int, rows: int, sampling: str, rules: Rules,
+                      max_dist: float) -> dict:
+    """The ``course`` integrator: the camera and the rules it shades with."""
+    return {"type": "course", "viewpoint": [float(c) for c in scene.viewpoint],
+            "window_width": float(scene.window[0]), "window_height": float(scene.window[1]),
+            "columns": int(columns), "rows": int(rows),
+            "sampling": "centres" if sampling.startswith("cent") else "corners",
+            "row_shift": 1 if rules.rows == "shifted" else 0,
+            "screen_clip": rules.screen_clip, "t_min": float(rules.t_min),
+            "clip_spheres": bool(rules.clip_spheres), "reflect": rules.reflect,
+            "tile_add_first": bool(rules.tile_add_first), "max_dist": float(max_dist)}
+
+
 def scene_dict(scene: Scene, columns: int, rows: int | None = None, sampling: str = "corners",
                shading: bool = False, integrator: bool = True, only=None,
-               clip: bool = True) -> dict:
+               clip: bool = True, rules: Rules | None = None,
+               max_dist: float = DEFAULT_MAX_DIST) -> dict:
     """The Mitsuba 3 scene as a dict for ``mi.load_dict(d, optimize=False)``.
 
     ``only``: a set of object kinds to include (default all); ``clip``: whether the sensor
-    applies the course's screen clip (see ``sensor_setup``)."""
+    applies the course's screen clip (see ``sensor_setup``).  ``shading``: each shape gets
+    its ``course_material``, the lights become emitters, and the integrator is ``course``
+    (the course image, ``rules`` and ``max_dist`` as in ``rtval render``)."""
     mi = mitsuba()
+    rules = Rules() if rules is None else rules
     T = mi.ScalarTransform4f
     R = plane_extent(scene)
     d = {"type": "scene"}
@@ -243,9 +300,7 @@ def scene_dict(scene: Scene, columns: int, rows: int | None = None, sampling: st
         shape = dispatch(_SHAPES, o.kind)(o, scene.viewpoint, R, T)
         shape["id"] = sid
         if shading:
-            # closest Mitsuba equivalent (approximate): diffuse reflectance ~ course diffuse
-            kd = [min(1.0, c / 10.0) for c in o.material.diffuse]
-            shape["bsdf"] = {"type": "diffuse", "reflectance": {"type": "rgb", "value": kd}}
+            shape["bsdf"] = course_material(o, rules)
         d[sid] = shape
     if shading:
         for i, light in enumerate(scene.lights):
@@ -263,8 +318,8 @@ def scene_dict(scene: Scene, columns: int, rows: int | None = None, sampling: st
                  "rfilter": {"type": "box"}, "pixel_format": "rgb"},
     }
     if integrator:
-        d["integrator"] = ({"type": "path", "max_depth": 2} if shading else
-                           {"type": "aov", "aovs": AOVS})
+        d["integrator"] = (course_integrator(scene, columns, s.rows, sampling, rules, max_dist)
+                           if shading else {"type": "aov", "aovs": AOVS})
     _check_float32(scene, d)
     return d
 
@@ -321,7 +376,7 @@ def _xml_value(name: str, v, indent: str) -> list:
     if isinstance(v, str):
         return [f'{indent}<string name="{name}" value={quoteattr(v)}/>']
     if isinstance(v, list) and len(v) == 3:
-        tag = "point" if name in ("center", "position") else "rgb" if name == "value" else "vector"
+        tag = "point" if name in POINTS else "rgb" if name == "value" else "vector"
         return [f'{indent}<{tag} name="{name}" value="{", ".join(_num(c) for c in v)}"/>']
     if isinstance(v, mi.ScalarTransform4f):
         m = v.matrix
@@ -335,7 +390,9 @@ def _xml_value(name: str, v, indent: str) -> list:
 
 TAGS = {"rectangle": "shape", "sphere": "shape", "perspective": "sensor", "stratified":
         "sampler", "hdrfilm": "film", "box": "rfilter", "aov": "integrator", "path": "integrator",
-        "diffuse": "bsdf", "point": "emitter", "spot": "emitter", "rgb": "rgb"}
+        "course": "integrator", "course_material": "bsdf", "diffuse": "bsdf", "point": "emitter",
+        "spot": "emitter", "rgb": "rgb"}
+POINTS = ("center", "position", "viewpoint", "point")
 
 
 def _xml_object(d: dict, indent: str, name: str | None = None) -> list:
@@ -354,17 +411,21 @@ def _xml_object(d: dict, indent: str, name: str | None = None) -> list:
 
 
 def scene_xml(scene: Scene, columns: int, rows: int | None = None, sampling: str = "corners",
-              shading: bool = False) -> str:
-    """The same scene as ``scene_dict``, as Mitsuba 3 XML (``mi.load_file`` accepts it)."""
-    d = scene_dict(scene, columns, rows, sampling, shading)
+              shading: bool = False, rules: Rules | None = None,
+              max_dist: float = DEFAULT_MAX_DIST) -> str:
+    """The same scene as ``scene_dict``, as Mitsuba 3 XML (``mi.load_file`` accepts it once
+    mitsuba_ref has registered its plugins: ``rtval render --mitsuba``)."""
+    d = scene_dict(scene, columns, rows, sampling, shading, rules=rules, max_dist=max_dist)
     s = sensor_setup(scene, columns, rows, sampling)
     lines = ['<?xml version="1.0" encoding="utf-8"?>',
              f"<!-- rtval convert: {scene.path} ({columns}x{s.rows}, {sampling} sampling) -->",
              f"<!-- infinite and tiled planes: rectangles of half-size {plane_extent(scene):.6g}"
              " (64 x scene scale) around the viewpoint's foot point -->"]
     if shading:
-        lines.append("<!-- --shading: diffuse BSDFs (reflectance = course diffuse / 10, clamped)"
-                     " and point emitters: an approximation, not the course shading -->")
+        lines.append("<!-- --shading: the course image: the 'course' integrator and each shape's"
+                     " 'course_material' (plugins of rtval's mitsuba_ref: render with"
+                     " rtval render --mitsuba, or register them with"
+                     " mitsuba_ref.convert.mitsuba()) -->")
     if s.note:
         lines.append(f"<!-- WARNING: {s.note} -->")
     lines.append('<scene version="3.0.0">')

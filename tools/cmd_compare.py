@@ -4,7 +4,7 @@ from __future__ import annotations
 import json
 import sys
 
-from .options import add_image_options
+from .options import add_image_options, nonneg_float
 
 
 def add_parser(sub) -> None:
@@ -18,6 +18,13 @@ def add_parser(sub) -> None:
     p.add_argument("--mode", choices=("rays", "camera", "both"), default="both",
                    help="rays: Mitsuba traces rt_core's exact rays; camera: Mitsuba's own "
                         "perspective sensor (default: both)")
+    p.add_argument("--shaded", action="store_true",
+                   help="compare the shaded 8-bit course image instead: rt_core (float64) "
+                        "against Mitsuba's 'course' integrator, each pixel match, rounding "
+                        "(±1 at an 8-bit level), boundary (a decision within float32's bound, "
+                        "from the float64 shading oracle) or wrong; exit 1 on a wrong pixel")
+    p.add_argument("--max-dist", type=nonneg_float, default=None, metavar="D",
+                   help="--shaded: reflections stop at this path length (default 1000)")
     p.add_argument("--evidence", default="out/compare", metavar="DIR",
                    help="where evidence EXRs go on failure (default out/compare)")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
@@ -33,6 +40,8 @@ def run(args) -> int:
     from tools.harness.validate import stem_of
 
     scene = parse_scene(args.scene)
+    if args.shaded:
+        return _run_shaded(args, scene)
     modes = ("rays", "camera") if args.mode == "both" else (args.mode,)
     ok, rows = True, []
     for mode in modes:
@@ -68,3 +77,34 @@ def run(args) -> int:
               + ("no unexplained pixel, depth within its bound" if ok else
                  f"{sum(not r.get('ok', True) for r in rows)} failed"))
     return 0 if ok else 1
+
+
+def _run_shaded(args, scene) -> int:
+    from rt_core.rules import Rules
+    from rt_core.shading import DEFAULT_MAX_DIST
+    from tools.harness.shaded import compare_shaded, write_shaded_evidence
+    from tools.harness.validate import stem_of
+    max_dist = DEFAULT_MAX_DIST if args.max_dist is None else args.max_dist
+    cmp = compare_shaded(scene, args.columns, args.rows, args.sampling, args.rules or Rules(),
+                         max_dist)
+    row = cmp.summary()
+    if not cmp.ok:
+        row["evidence"] = write_shaded_evidence(cmp, args.evidence, stem_of(scene.path))
+    if args.junit:
+        from tools.harness.validate import comparison_cases
+        from tools.harness.junit import write_junit
+        write_junit(args.junit, "rtval compare", comparison_cases([row], "rtval.compare"))
+    if args.json:
+        json.dump([row], sys.stdout, indent=1)
+        print()
+        return 0 if cmp.ok else 1
+    classes = " ".join(f"{k}={v}" for k, v in row["classes"].items() if v)
+    print(f"shaded rt_core f64 / Mitsuba course integrator {row['columns']}x{row['rows']}: "
+          f"{classes}")
+    for x, y, ours, theirs in row["worst"]:
+        print(f"       wrong pixel (column {x}, row {y}): rt_core {ours}, Mitsuba {theirs}")
+    for path in row.get("evidence", []):
+        print(f"       evidence: {path}")
+    print(f"{'PASS' if cmp.ok else 'FAIL'} {args.scene}: shaded, "
+          + ("no wrong pixel" if cmp.ok else f"{row['wrong']} wrong pixels"))
+    return 0 if cmp.ok else 1

@@ -5,7 +5,7 @@ import sys
 import os
 from pathlib import Path
 
-from .options import positive_int
+from .options import nonneg_float, positive_int, rules_arg
 
 
 def add_parser(sub) -> None:
@@ -21,11 +21,17 @@ def add_parser(sub) -> None:
     p.add_argument("--sampling", choices=("corners", "centers"), default="corners",
                    help="course corner grid (default) or pixel centres")
     p.add_argument("--shading", "--shade", action="store_true", dest="shading",
-                   help="add point emitters and diffuse BSDFs (an approximation of the course "
-                        "shading, for looking at, not for validation)")
+                   help="the course image: each shape's course MAT as a 'course_material' BSDF, "
+                        "the lights as point/spot emitters and the 'course' integrator with the "
+                        "camera and rules (render it with rtval render --mitsuba)")
+    p.add_argument("--rules", type=rules_arg, default=None, metavar="NAME=VALUE,...",
+                   help="--shading: the hit-rule variants the integrator shades with (as in "
+                        "rtval render)")
+    p.add_argument("--max-dist", type=nonneg_float, default=None, metavar="D",
+                   help="--shading: reflections stop at this path length (default 1000)")
     p.add_argument("-o", "--output", required=True, metavar="OUT.xml",
                    help="the Mitsuba 3 XML scene to write")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, usage_error=p.error)
 
 
 def run(args) -> int:
@@ -39,9 +45,12 @@ def run(args) -> int:
         raise InputError(f"{args.output}: no directory {parent}; create it first")
     scene = parse_scene(args.scene)
     setup = sensor_setup(scene, args.columns, args.rows, args.sampling)
-    if setup.note:
+    if setup.note and not args.shading:     # the course integrator makes its own rays
         print(f"rtval convert: warning: {setup.note}", file=sys.stderr)
-    xml = scene_xml(scene, args.columns, args.rows, args.sampling, args.shading)
+    if not args.shading and (args.rules or args.max_dist is not None):
+        args.usage_error("--rules and --max-dist go with --shading")
+    xml = scene_xml(scene, args.columns, args.rows, args.sampling, args.shading,
+                    rules=args.rules, max_dist=1000.0 if args.max_dist is None else args.max_dist)
     atomic_write(args.output, lambda tmp: Path(tmp).write_text(xml))
     print(f"{args.output}: {len(scene.objects)} shapes, {setup.columns}x{setup.rows}",
           file=sys.stderr)

@@ -21,8 +21,16 @@ def add_parser(sub) -> None:
                                    "as float32 OpenEXR; --ppm/--png write the shaded 8-bit "
                                    "image (ambient, diffuse with shadows, reflections, tiled "
                                    "planes), and then the EXR also gets R, G, B (unclamped).")
-    p.add_argument("scene", help="course scene file (keyword or numeric dialect)")
-    add_image_options(p)
+    p.add_argument("scene", help="course scene file (keyword or numeric dialect); with "
+                                 "--mitsuba a Mitsuba XML scene from rtval convert --shading")
+    add_image_options(p, columns_required=False)
+    for a in p._actions:        # required, except with --mitsuba (checked in run)
+        if a.dest == "columns":
+            a.default, a.help = None, "image width in pixels (required unless --mitsuba)"
+    p.add_argument("--mitsuba", action="store_true",
+                   help="SCENE is a Mitsuba 3 XML scene with the 'course' integrator (rtval "
+                        "convert --shading): Mitsuba renders the course image (--ppm/--png, "
+                        "-o: R, G, B), with rtval's plugins registered")
     p.add_argument("-o", "--output", metavar="OUT.exr",
                    help="float32 OpenEXR: geometry channels (+ R, G, B when shaded)")
     p.add_argument("--ppm", metavar="OUT.ppm",
@@ -122,6 +130,10 @@ def run(args) -> int:
 
     phase("import")             # (the imports above: rt_core, Dr.Jit, numpy, OpenEXR)
     outs = _outputs(args)
+    if args.mitsuba:
+        return _run_mitsuba(args, outs)
+    if args.columns is None:
+        args.usage_error("the following arguments are required: --columns")
     rules = args.rules or Rules()
     max_dist = DEFAULT_MAX_DIST if args.max_dist is None else args.max_dist
     shade = bool(args.ppm or args.png or args.shade)
@@ -189,6 +201,57 @@ def run(args) -> int:
         print(f"rtval render: warning: reflections stopped at the safety cap of "
               f"{shading.MAX_BOUNCES} bounces with {res.left_active} rays still short of "
               f"max-dist {max_dist:g}", file=sys.stderr)
+    return 1 if bad else 0
+
+
+def _run_mitsuba(args, outs) -> int:
+    """Mitsuba renders a converted XML scene with its integrator (the course image with
+    'course'); the outputs are written as rtval render writes them."""
+    import json
+    import numpy as np
+    from rt_core.errors import InputError
+    from rt_core.imageio import write_png, write_ppm
+    from rt_core.inputfile import check_input
+    from rt_core.render import write_images, versions
+    from mitsuba_ref.convert import mitsuba
+    from tools.harness.shaded import quantize32
+
+    for flag in ("columns", "rows", "rules", "max_dist"):
+        if getattr(args, flag, None) is not None:
+            args.usage_error(f"--{flag.replace('_', '-')} does not apply with --mitsuba: the "
+                             "XML scene holds the camera, the rules and max_dist (give them "
+                             "to rtval convert)")
+    for _, path in outs:
+        _check_writable(path)
+    check_input(args.scene, "scene")
+    mi = mitsuba()
+    try:
+        ms = mi.load_file(args.scene)
+    except Exception as e:          # Mitsuba's parser: one line of its message
+        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise InputError(f"{args.scene}: Mitsuba cannot load it: {msg}") from None
+    integ = ms.integrator()
+    name = type(integ).__name__
+    if name != "CourseIntegrator":
+        raise InputError(f"{args.scene}: its integrator is not 'course' ({name}); convert the "
+                         "course scene with rtval convert --shading")
+    I = np.asarray(integ.render(ms, 0), np.float32)
+    pixels = quantize32(I)
+    bad = int(np.count_nonzero(~np.isfinite(I)))
+    attrs = {"rtval.source": "mitsuba course integrator", "rtval.scene": args.scene,
+             "rtval.integrator": str(integ.to_string()),
+             "rtval.versions": json.dumps(versions())}
+    for opt, path in outs:
+        if opt == "-o":
+            write_images(path, {c: I[..., k] for k, c in enumerate("RGB")}, attrs,
+                         args.compression)
+        elif opt == "--ppm":
+            write_ppm(path, pixels)
+        else:
+            write_png(path, pixels, attrs)
+        print(f"{path}: {I.shape[1]}x{I.shape[0]} shaded by Mitsuba's course integrator, "
+              f"{_n(integ.stats.get('bounces', 0), 'reflection bounce')}"
+              + (f", {bad} NON-FINITE values" if bad else ""), file=sys.stderr)
     return 1 if bad else 0
 
 

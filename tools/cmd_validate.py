@@ -22,6 +22,9 @@ def add_parser(sub) -> None:
     p.add_argument("--junit", metavar="FILE.xml",
                    help="also write JUnit XML: one test case per comparison (CI systems show "
                         "them), a failure for each failing one, an error for each skipped file")
+    p.add_argument("--shaded-columns", type=int, default=48, metavar="N",
+                   help="also compare each scene's shaded course image with Mitsuba's 'course' "
+                        "integrator at N columns (rtval compare --shaded; default 48; 0: off)")
     p.add_argument("--evidence", choices=("failures", "all"), default="failures",
                    help="EXRs of the failing comparisons only (default), or also ours and "
                         "Mitsuba's of every passing one (under DIR/exr)")
@@ -56,14 +59,18 @@ def run(args) -> int:
     modes = ("rays", "camera") if args.mode == "both" else (args.mode,)
     for s in skipped:
         print(f"skipped ({s.category}): {s.reason}", file=sys.stderr)
-    total = len(scenes) * len(precisions) * len(modes)
+    total = len(scenes) * (len(precisions) * len(modes) + (args.shaded_columns > 0))
     if sys.stderr.isatty():
         bar = tqdm(total=total, file=sys.stderr, unit="cmp")
         progress, done = (lambda row: bar.update(1)), bar.close
     else:                       # a log (CI): a plain line every tenth of the way
         progress, done = _log_progress(total), (lambda: None)
+    if args.shaded_columns < 0:
+        from rt_core.errors import InputError
+        raise InputError(f"--shaded-columns {args.shaded_columns}: give 0 (off) or a width")
     results = validate(scenes, args.columns, precisions, modes, args.output,
-                       progress=progress, evidence=args.evidence)
+                       progress=progress, evidence=args.evidence,
+                       shaded_columns=args.shaded_columns)
     done()
     meta = dict(columns=args.columns, backend="llvm", reference="mitsuba llvm_ad_rgb",
                 **versions())
@@ -77,6 +84,13 @@ def run(args) -> int:
             f"{'unexpl':>6s} {'depth max rel':>13s} {'rt_core ms':>10s} {'Mitsuba ms':>10s}")
     print(head)
     for r in results:
+        if r["mode"] == "shaded":           # explained: rounding and boundary; unexpl: wrong
+            c = r["classes"]
+            print(f"{stem_of(r['scene'])[:34]:34s} {'shaded':6s} {'f64':4s} {r['pixels']:7d} "
+                  f"{c['rounding'] + c['boundary']:9d} {c['wrong']:6d} {'(8-bit)':>13s} "
+                  f"{r['rt_core_ms']:10.2f} {r['mitsuba_ms']:10.2f}"
+                  + ("" if r["ok"] else "  FAIL"))
+            continue
         print(f"{stem_of(r['scene'])[:34]:34s} {r['mode']:6s} {r['precision']:4s} "
               f"{r['pixels']:7d} {r['explained']:9d} {r['unexplained']:6d} "
               f"{r['depth']['max_rel']:13.2e} {r['rt_core_ms']:10.2f} {r['mitsuba_ms']:10.2f}"

@@ -65,15 +65,19 @@ def stem_of(path: str) -> str:
 
 
 def validate(scenes, columns: int, precisions, modes, outdir: str, progress=None,
-             evidence: str = "failures"):
+             evidence: str = "failures", shaded_columns: int = 0):
     """Run every comparison; write the evidence EXRs under ``outdir``: of every failing
     comparison (ours, Mitsuba, difference, classes, in ``failures/``) and, with
     ``evidence="all"``, ours and Mitsuba's of the passing ones too (in ``exr/``).
 
+    ``shaded_columns`` > 0: each scene's course image is also compared with Mitsuba's
+    (``rtval compare --shaded``, tools/harness/shaded.py) at that width; the evidence PNGs of
+    a failing one go to ``failures/`` too.
+
     Evidence of an earlier run in ``outdir/failures`` and ``outdir/exr`` is removed first,
     so what is there belongs to this run."""
     for sub in ("failures", "exr"):
-        for old in Path(outdir, sub).glob("*.exr"):
+        for old in [*Path(outdir, sub).glob("*.exr"), *Path(outdir, sub).glob("*.png")]:
             old.unlink()
     results = []
     for scene in scenes:
@@ -91,6 +95,16 @@ def validate(scenes, columns: int, precisions, modes, outdir: str, progress=None
                 results.append(row)
                 if progress:
                     progress(row)
+        if shaded_columns:
+            from tools.harness.shaded import compare_shaded, write_shaded_evidence
+            cmp = compare_shaded(scene, shaded_columns)
+            row = cmp.summary()
+            if not cmp.ok:
+                row["evidence"] = write_shaded_evidence(cmp, os.path.join(outdir, "failures"),
+                                                        stem_of(scene.path))
+            results.append(row)
+            if progress:
+                progress(row)
     return results
 
 
@@ -112,10 +126,25 @@ def write_report(results, skipped, outdir: str, meta: dict) -> tuple[str, str]:
              "| scene | mode | prec | pixels | explained | unexplained | depth max rel | "
              "over bound | rt_core ms | Mitsuba ms |",
              "|---|---|---|---|---|---|---|---|---|---|"]
+    shaded = [r for r in results if r["mode"] == "shaded"]
     for r in results:
+        if r["mode"] == "shaded":
+            continue
         lines.append(f"| {stem_of(r['scene'])} | {r['mode']} | {r['precision']} | {r['pixels']} |"
                      f" {r['explained']} | {r['unexplained']} | {r['depth']['max_rel']:.2e} | "
                      f"{r['depth']['over_bound']} | {r['rt_core_ms']:.2f} | {r['mitsuba_ms']:.2f} |")
+    if shaded:
+        lines += ["", "## The course image (rt_core f64 against Mitsuba's `course` integrator)",
+                  "", "8-bit pixels: match, rounding (±1 at an 8-bit level), boundary (a decision "
+                  "within float32's bound: the float64 shading oracle or the geometry "
+                  "classifier), wrong (tools/harness/shaded.py).", "",
+                  "| scene | pixels | match | rounding | boundary | wrong | rt_core ms | "
+                  "Mitsuba ms |", "|---|---|---|---|---|---|---|---|"]
+        for r in shaded:
+            c = r["classes"]
+            lines.append(f"| {stem_of(r['scene'])} | {r['pixels']} | {c['match']} | "
+                         f"{c['rounding']} | {c['boundary']} | {c['wrong']} | "
+                         f"{r['rt_core_ms']:.2f} | {r['mitsuba_ms']:.2f} |")
     bad = [r for r in results if not r["ok"]]
     lines += ["", f"{len(results)} comparisons, {len(bad)} failed."]
     if skipped:
@@ -131,9 +160,17 @@ def comparison_cases(rows, classname: str) -> list:
     from tools.harness.junit import Case
     cases = []
     for r in rows:
-        c = Case(f"{stem_of(r['scene'])}.{r['mode']}.{r['precision']}", classname,
+        prec = r["precision"].split()[0]
+        c = Case(f"{stem_of(r['scene'])}.{r['mode']}.{prec}", classname,
                  (r["rt_core_ms"] + r["mitsuba_ms"]) / 1e3)
         counts = ", ".join(f"{k} {v}" for k, v in r["classes"].items() if v)
+        if r["mode"] == "shaded":
+            c.body = (f"{r['columns']}x{r['rows']} 8-bit: {counts}"
+                      + "".join(f"\nevidence: {p}" for p in r.get("evidence", [])))
+            if not r["ok"]:
+                c.failure = f"{r['wrong']} wrong pixels"
+            cases.append(c)
+            continue
         depth = r["depth"]
         c.body = (f"{r['columns']}x{r['rows']}: {counts}; depth max rel {depth['max_rel']:.3g}, "
                   f"over bound {depth['over_bound']}"

@@ -1,0 +1,359 @@
+"""The course's shading as a Mitsuba 3 integrator plugin (``course``), and the material plugin
+(``course_material``) that carries each shape's course MAT into it.
+
+Registered by ``mitsuba_ref.convert.mitsuba()`` (every use of Mitsuba in mitsuba_ref goes
+through it), so a converted XML loads with ``mi.load_file`` once mitsuba_ref has loaded
+Mitsuba.  The shading is the notes' recursion (shared/notes/course-format.md, "Shading"),
+written here with Mitsuba's own queries and nothing from rt_core:
+
+    I  = ambient(O) + Σ_lights [c > 0, unshadowed] diffuse(O) ⊙ E · c / d     (1/d)
+    I /= total_dist                                   (or this segment's t: reflect="segment")
+    I += specular(O) ⊙ trace(H, reflect(dir, N))      while total_dist < max_dist
+
+* **Closest hit** (``_closest``): ``scene.ray_intersect``; a hit the course does not count is
+  stepped over and the ray goes on from it (``si.spawn_ray``): plane kinds with the hit in
+  front of the window (z > 0, or z >= 0 with screen_clip=">=") or t <= t_min, and spheres
+  only with clip_spheres.  One scene: spheres and planes clip differently inside it.
+* **Shadows**: one ray per light toward it (``si.spawn_ray_to``, which leaves the surface
+  itself, as the course skips the object a ray leaves), blocked by the first counted hit.
+* **Normals**: a plane kind's as given in the file (never flipped), carried by its material;
+  a sphere's outward one (Mitsuba's ``si.n``).  A tiled plane picks its MAT by the parity of
+  floor(u/w) + floor(v/h), with u, v from its point and frame (also carried by the material).
+* **Camera**: one ray per pixel from the viewpoint through the course's sample (corner grid
+  or centres), built here from the integrator's parameters: the course image itself, also
+  for sample grids Mitsuba's square pixels cannot make.  ``sample`` serves Mitsuba's own
+  render loop (square grids): it takes the sensor's ray direction from the viewpoint.
+
+What Mitsuba decides its own way (the harness classifies these pixels ``boundary``): the
+finite-plane edges (closed), exact ties, float32 arithmetic, and infinite planes as
+rectangles of half-size 64 × the scene's scale (``convert.plane_extent``).
+"""
+from __future__ import annotations
+
+import math
+
+MATERIAL_FIELDS = ("ambient", "diffuse", "specular")
+# a tiled plane's second MAT (the course's background: even parity)
+BACKGROUND_FIELDS = tuple("background_" + k for k in MATERIAL_FIELDS)
+MAX_BOUNCES = 10_000
+# hits stepped over per query at most (clipped planes in front of the window, t <= t_min)
+MAX_SKIPS = 64
+
+_REGISTERED = set()
+
+
+_CLASSES: dict = {}
+
+
+def register(mi) -> None:
+    """Register ``course`` and ``course_material`` with Mitsuba (once per variant)."""
+    if mi.variant() in _REGISTERED:
+        return
+    _REGISTERED.add(mi.variant())
+    material, integrator = classes(mi)
+    mi.register_bsdf("course_material", lambda props: material(props))
+    mi.register_integrator("course", lambda props: integrator(props))
+
+
+def classes(mi) -> tuple:
+    """(CourseMaterial, CourseIntegrator) of Mitsuba's current variant (made once)."""
+    if mi.variant() not in _CLASSES:
+        _CLASSES[mi.variant()] = _classes(mi)
+    return _CLASSES[mi.variant()]
+
+
+def _classes(mi):
+    import drjit as dr
+
+    class CourseMaterial(mi.BSDF):
+        """A course MAT (ambient, diffuse, specular: RGB, unbounded) and what the integrator
+        needs of the shape: ``kind`` ("sphere", "plane", "fplane", "tplane"), for plane
+        kinds the normal as given (unit), for tiled planes its point, frame, tile size and
+        background MAT.  Read with ``eval_attribute_3``/``_1``; it scatters nothing (the
+        course integrator is the only one that uses it)."""
+
+        def __init__(self, props):
+            mi.BSDF.__init__(self, props)
+            vec = lambda k: mi.Color3f(props.get(k, mi.ScalarColor3f(0.0)))
+            self.vals = {k: vec(k) for k in MATERIAL_FIELDS + BACKGROUND_FIELDS +
+                         ("normal", "point", "xdir", "ydir", "tile_size")}
+            kind = props.get("kind", "sphere")
+            self.kind = kind
+            self.ones = {"clipped": float(kind != "sphere"), "sphere": float(kind == "sphere"),
+                         "tiled": float(kind == "tplane")}
+            self.m_flags = mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide
+            self.m_components = [self.m_flags]
+
+        def sample(self, ctx, si, s1, s2, active=True):
+            return mi.BSDFSample3f(), mi.Color3f(0.0)
+
+        def eval(self, ctx, si, wo, active=True):
+            return mi.Color3f(0.0)
+
+        def pdf(self, ctx, si, wo, active=True):
+            return mi.Float(0.0)
+
+        def eval_pdf(self, ctx, si, wo, active=True):
+            return mi.Color3f(0.0), mi.Float(0.0)
+
+        def has_attribute(self, name, active=True):
+            return name in self.vals or name in self.ones
+
+        def eval_attribute_3(self, name, si, active=True):
+            return self.vals[name]
+
+        def eval_attribute_1(self, name, si, active=True):
+            return mi.Float(self.ones[name])
+
+        def eval_diffuse_reflectance(self, si, active=True):
+            return self.vals["diffuse"]
+
+        def traverse(self, cb):
+            pass
+
+        def to_string(self):
+            return f"CourseMaterial[kind={self.kind}]"
+
+    class CourseIntegrator(mi.SamplingIntegrator):
+        """The course's shading (module docstring).  Parameters: the camera (``viewpoint``,
+        ``window_width``, ``window_height``, ``columns``, ``rows``, ``sampling``
+        "corners"/"centres", ``row_shift``), the rules (``screen_clip`` ">"/">="/"off",
+        ``t_min``, ``clip_spheres``, ``reflect`` "total"/"segment", ``tile_add_first``) and
+        ``max_dist`` (the notes' MAX_DIST), ``max_bounces``."""
+
+        def __init__(self, props):
+            mi.SamplingIntegrator.__init__(self, props)
+            v = props.get("viewpoint", mi.ScalarPoint3f(0.0, 0.0, 1.0))
+            self.viewpoint = (float(v[0]), float(v[1]), float(v[2]))
+            self.window = (float(props.get("window_width", 1.0)),
+                           float(props.get("window_height", 1.0)))
+            self.columns = int(props.get("columns", 0))
+            self.rows = int(props.get("rows", 0))
+            self.sampling = props.get("sampling", "corners")
+            self.row_shift = int(props.get("row_shift", 0))
+            self.screen_clip = props.get("screen_clip", ">")
+            self.t_min = float(props.get("t_min", 0.0))
+            self.clip_spheres = bool(props.get("clip_spheres", False))
+            self.reflect = props.get("reflect", "total")
+            self.tile_add_first = bool(props.get("tile_add_first", False))
+            self.max_dist = float(props.get("max_dist", 1000.0))
+            self.max_bounces = int(props.get("max_bounces", MAX_BOUNCES))
+            if self.screen_clip not in (">", ">=", "off"):
+                raise ValueError(f"course integrator: screen_clip must be '>', '>=' or 'off', "
+                                 f"not {self.screen_clip!r}")
+            if self.sampling not in ("corners", "centres"):
+                raise ValueError(f"course integrator: sampling must be 'corners' or 'centres', "
+                                 f"not {self.sampling!r}")
+            self.stats = {}
+
+        # --- Mitsuba's interfaces ------------------------------------------------------------
+
+        def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+            """The course image: (rows, columns, 3) unclamped intensities, row 0 the top."""
+            W, H = self.columns, self.rows
+            if W < 1 or H < 1:
+                film = (scene.sensors()[sensor] if isinstance(sensor, int) else sensor).film()
+                W, H = film.crop_size()
+            o, d = self.camera_rays(W, H)
+            rgb = self.shade(scene, o, d)
+            out = dr.zeros(mi.TensorXf, (H, W, 3))
+            idx = dr.arange(mi.UInt32, W * H)
+            for c in range(3):
+                dr.scatter(out.array, rgb[c], idx * 3 + c)
+            return out
+
+        def sample(self, scene, sampler, ray, medium=None, active=True):
+            """Mitsuba's render loop: the sensor's ray direction, from the viewpoint (the
+            sensor moves its origin to the near clip)."""
+            o = mi.Point3f(*self.viewpoint)
+            rgb = self.shade(scene, o, dr.normalize(mi.Vector3f(ray.d)), active)
+            return mi.Spectrum(rgb), mi.Bool(active), []
+
+        def aov_names(self):
+            return []
+
+        def to_string(self):
+            return (f"CourseIntegrator[{self.columns}x{self.rows}, {self.sampling}, "
+                    f"screen_clip={self.screen_clip}, max_dist={self.max_dist}]")
+
+        # --- the camera ----------------------------------------------------------------------
+
+        def camera_rays(self, W: int, H: int):
+            """(origin, unit directions) of the course's samples, image order (row 0 the
+            top): the window point x/(W−1)·ww − ww/2 (corners) or (2x+1)/(2W)·ww − ww/2
+            (centres), in float64 on the host, one rounding to float32."""
+            import numpy as np
+            ww, wh = self.window
+            vx, vy, vz = self.viewpoint
+            x = np.arange(W, dtype=np.float64)
+            y = (H - 1 - np.arange(H, dtype=np.float64)) + self.row_shift
+            if self.sampling == "corners":
+                wx = x / (W - 1) * ww - ww / 2 if W > 1 else np.zeros(1) - ww / 2
+                wy = y / (H - 1) * wh - wh / 2 if H > 1 else np.zeros(1) - wh / 2
+            else:
+                wx = (2 * x + 1) / (2 * W) * ww - ww / 2
+                wy = (2 * y + 1) / (2 * H) * wh - wh / 2
+            dx = np.tile(wx - vx, H)
+            dy = np.repeat(wy - vy, W)
+            dz = np.full(W * H, -vz)
+            n = np.sqrt(dx * dx + dy * dy + dz * dz)
+            d = mi.Vector3f(*(mi.Float(c / n) for c in (dx, dy, dz)))
+            return mi.Point3f(*self.viewpoint), d
+
+        # --- the course's hit rule -----------------------------------------------------------
+
+        def _point(self, si, o, d):
+            """(t, hit point, is a plane kind) of a hit: for plane kinds from the plane's
+            equation, t = n·(P − o)/(n·d) with the material's point and normal, rather than
+            Mitsuba's point on the rectangle, which for the large stand-in of an infinite
+            plane is off by ~2⁻²⁴ of its half-size (R = 64 × the scene's scale): Mitsuba
+            decides which surface the ray meets, the plane equation where on it."""
+            bsdf = si.bsdf()
+            valid = si.is_valid()
+            planar = bsdf.eval_attribute_1("clipped", si, valid) > 0.5
+            N = mi.Vector3f(bsdf.eval_attribute_3("normal", si, valid))
+            P = mi.Point3f(bsdf.eval_attribute_3("point", si, valid))
+            t = dr.select(planar, dr.dot(N, P - o) / dr.dot(N, d), dr.dot(si.p - o, d))
+            return t, dr.fma(d, t, o), planar
+
+        def _counts(self, t, p, planar):
+            """Does the course count this hit (the screen clip, t > t_min for plane kinds)?"""
+            ok = mi.Bool(True)
+            if self.screen_clip != "off":
+                front = (p.z > 0) if self.screen_clip == ">" else (p.z >= 0)
+                ok &= ~(front & (planar | self.clip_spheres))
+            if self.t_min > 0:
+                ok &= ~(planar & (t <= dr.opaque(mi.Float, self.t_min)))
+            return ok
+
+        def _closest(self, scene, o, d, active, maxt=None, start=None):
+            """The closest counted hit along o + t·d (t < maxt): (si, t, hit).  A hit not
+            counted is stepped over (the ray goes on from it); t is measured from o.
+            ``start``: where the search begins (a spawned origin just off the surface the
+            ray leaves), default o."""
+            start = o if start is None else start
+            ray = mi.Ray3f(start, d)
+            if maxt is not None:
+                ray.maxt = maxt                 # (Ray3f's third argument is the time)
+            si = scene.ray_intersect(ray, active)
+            hit = active & si.is_valid()
+            t, p, planar = self._point(si, o, d)
+            for _ in range(MAX_SKIPS):
+                skip = hit & ~self._counts(t, p, planar)
+                if not dr.any(skip):
+                    break
+                nxt = si.spawn_ray(d)
+                if maxt is not None:
+                    nxt.maxt = maxt - dr.dot(nxt.o - o, d)
+                si2 = scene.ray_intersect(nxt, skip)
+                si = dr.select(skip, si2, si)
+                hit = dr.select(skip, si2.is_valid(), hit)
+                t, p, planar = self._point(si, o, d)
+            return si, t, p, hit
+
+        # --- the shading ---------------------------------------------------------------------
+
+        def _lights(self, scene):
+            """(position, emissivity, spot) of each emitter: spot = (unit axis, cos θ)."""
+            out = []
+            for e in scene.emitters():
+                p = mi.traverse(e)
+                # (opaque: scene numbers are kernel data, so other scenes reuse the kernels)
+                E = mi.Color3f(p["intensity.value"])
+                if "position" in p:
+                    pos = mi.Point3f(p["position"])
+                    dr.make_opaque(pos, E)
+                    out.append((pos, E, None))
+                    continue
+                m = p["to_world"].matrix
+                pos = mi.Point3f(m[0, 3], m[1, 3], m[2, 3])
+                axis = dr.normalize(mi.Vector3f(m[0, 2], m[1, 2], m[2, 2]))
+                cos_t = mi.Float(math.cos(math.radians(float(p["cutoff_angle"][0]))))
+                dr.make_opaque(pos, E, axis, cos_t)
+                out.append((pos, E, (axis, cos_t)))
+            return out
+
+        def blocked(self, scene, sray, cast):
+            """Is a counted hit on the shadow ray (from just off the surface, to the light)?"""
+            return self._closest(scene, sray.o, dr.normalize(sray.d), cast,
+                                 sray.maxt * dr.norm(sray.d))[3]
+
+        def light_term(self, dif, E, c, ld):
+            """One light's diffuse term: diffuse ⊙ E · c / d (1/d, not 1/d²)."""
+            return dif * E * (c / ld)
+
+        def reflected(self, d, N):
+            """reflect(dir, N) = dir − 2(dir·N)N, normalised."""
+            return dr.normalize(d - 2 * dr.dot(d, N) * N)
+
+        def _material(self, si, p, hit):
+            """(ambient, diffuse, specular, normal) at the hits (p: the hit points)."""
+            bsdf = si.bsdf()
+            att = lambda k: bsdf.eval_attribute_3(k, si, hit)
+            amb, dif, spec = (att(k) for k in MATERIAL_FIELDS)
+            sphere = bsdf.eval_attribute_1("sphere", si, hit) > 0.5
+            N = dr.select(sphere, mi.Vector3f(si.n), mi.Vector3f(att("normal")))
+            tiled = bsdf.eval_attribute_1("tiled", si, hit) > 0.5
+            if dr.any(tiled & hit):
+                rel = p - mi.Point3f(att("point"))
+                size = att("tile_size")
+                u = dr.dot(rel, mi.Vector3f(att("xdir")))
+                v = dr.dot(rel, mi.Vector3f(att("ydir")))
+                if self.tile_add_first:
+                    u, v = u + 10000.0, v + 10000.0
+                odd = (_odd(dr.floor(u / size.x)) + _odd(dr.floor(v / size.y))) == 1
+                back = tiled & ~odd
+                bg = [att(k) for k in BACKGROUND_FIELDS]
+                amb, dif, spec = (dr.select(back, b, f) for b, f in zip(bg, (amb, dif, spec)))
+            return amb, dif, spec, N
+
+        def shade(self, scene, o, d, active=True):
+            """Unclamped course intensity of the rays o + t·d (o: the viewpoint)."""
+            n = dr.width(d)
+            lights = self._lights(scene)
+            image = dr.zeros(mi.Color3f, n)
+            weight = mi.Color3f(1.0)
+            total = dr.zeros(mi.Float, n)
+            live = mi.Bool(active) & dr.full(mi.Bool, True, n)
+            o = mi.Point3f(o) + dr.zeros(mi.Vector3f, n)
+            start = o
+            bounces = 0
+            while True:
+                si, t, p, hit = self._closest(scene, o, d, live, start=start)
+                total_here = total + t
+                amb, dif, spec, N = self._material(si, p, hit)
+                I = mi.Color3f(amb)
+                for Lp, E, spot in lights:
+                    D = Lp - p
+                    ld = dr.norm(D)
+                    L = D / ld
+                    c = dr.dot(L, N)
+                    cast = hit & (c > 0)
+                    if spot is not None:
+                        cast &= -dr.dot(L, spot[0]) > spot[1]
+                    if dr.any(cast):
+                        blocked = self.blocked(scene, si.spawn_ray_to(Lp), cast)
+                        I += dr.select(cast & ~blocked, self.light_term(dif, E, c, ld), 0.0)
+                div = t if self.reflect == "segment" else total_here
+                image = image + dr.select(hit, weight * I / div, 0.0)
+                go = hit & dr.any(spec != 0) & (total_here < dr.opaque(mi.Float, self.max_dist))
+                if not dr.any(go) or bounces >= self.max_bounces:
+                    self.stats = {"bounces": bounces, "capped": bool(dr.any(go))}
+                    break
+                R = self.reflected(d, N)
+                # the next segment starts at the hit point (its t is measured from there);
+                # the search starts just off the surface it leaves (the course skips it)
+                start = dr.select(go, si.spawn_ray(R).o, start)
+                o, d = dr.select(go, p, o), dr.select(go, R, d)
+                weight = weight * spec
+                total = total_here
+                live = go
+                bounces += 1
+                # one evaluation per bounce: the next bounce's kernels start from data
+                dr.eval(image, weight, total, o, d, start, live)
+            return image
+
+    def _odd(f):
+        return f - 2 * dr.floor(0.5 * f)
+
+    return CourseMaterial, CourseIntegrator

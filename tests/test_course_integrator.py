@@ -1,0 +1,177 @@
+"""Mitsuba renders the course image: the ``course`` integrator and ``course_material`` plugins
+(mitsuba_ref/integrator.py), ``rtval convert --shading``, ``rtval render --mitsuba`` and
+``rtval compare --shaded`` (tools/harness/shaded.py).
+
+* Every bundled scene and a sample of course scenes: rt_core's 8-bit image and Mitsuba's
+  agree at every pixel except ``rounding`` and ``boundary`` ones (both decided by the float64
+  shading oracle with float32's bounds); the sweep over every course scene is ``slow``.
+* A real shading error (1/d², a missing shadow, a wrong reflection direction) in the
+  integrator is reported ``wrong``.
+* The XML that ``rtval convert --shading`` writes renders, through ``rtval render
+  --mitsuba``, the same image as the dict.
+"""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rt_core.parser import parse_scene, parse_text
+from tools.harness.shaded import SHADED_CODE, compare_shaded, mitsuba_course_image
+from tools.harness.validate import default_scene_paths
+
+ROOT = Path(__file__).resolve().parents[1]
+BUNDLED = sorted((ROOT / "scenes").glob("*.txt"))
+COURSE = Path(__file__).resolve().parents[2] / "shared" / "course-scenes"
+# course scenes with mirrors, tiles, spotlights, many lights, a plane in z = 0
+SAMPLE = ["keyword/rm768__hisworld.txt", "numeric/m4__v1_r06.txt", "numeric/m4__v1_r04.txt",
+          "numeric/cbl__specTile.txt", "numeric/cd__spot1.txt"]
+W = 32
+
+
+def _rtval(*args, **kw):
+    return subprocess.run([sys.executable, "-m", "tools.cli", *map(str, args)], cwd=ROOT,
+                          capture_output=True, text=True, **kw)
+
+
+@pytest.mark.parametrize("path", BUNDLED, ids=[p.stem for p in BUNDLED])
+def test01_bundled_scenes_agree(path):
+    cmp = compare_shaded(parse_scene(path), W)
+    assert cmp.ok, (cmp.counts, cmp.worst)
+    assert cmp.counts["match"] > 0.9 * cmp.columns * cmp.rows
+
+
+@pytest.mark.skipif(not COURSE.is_dir(), reason="../shared/course-scenes is not there")
+@pytest.mark.parametrize("name", SAMPLE)
+def test02_course_scenes_agree(name):
+    path = COURSE / name
+    if not path.exists():
+        pytest.skip(f"{name} is not in this corpus")
+    cmp = compare_shaded(parse_scene(path), W)
+    assert cmp.ok, (cmp.counts, cmp.worst)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not COURSE.is_dir(), reason="../shared/course-scenes is not there")
+def test03_every_supported_scene_agrees():
+    from tools.harness.validate import load_supported
+    scenes, _ = load_supported(default_scene_paths(), explicit=False)
+    bad = {}
+    for sc in scenes:
+        cmp = compare_shaded(sc, W)
+        if not cmp.ok:
+            bad[sc.path] = (cmp.counts, cmp.worst[:2])
+    assert not bad, bad
+
+
+# --- a real shading error is reported wrong --------------------------------------------------
+
+def _broken(kind: str):
+    """A course integrator with one deliberate shading error, registered under its own name."""
+    from mitsuba_ref.convert import mitsuba
+    from mitsuba_ref.integrator import classes
+    mi = mitsuba()
+    base = classes(mi)[1]
+    dr = __import__("drjit")
+
+    class Broken(base):
+        def light_term(self, dif, E, c, ld):
+            if kind == "inverse_square":
+                return dif * E * (c / (ld * ld))
+            return base.light_term(self, dif, E, c, ld)
+
+        def reflected(self, d, N):
+            if kind == "reflection":
+                return dr.normalize(d + 2 * dr.dot(d, N) * N)     # through the surface
+            return base.reflected(self, d, N)
+
+        def blocked(self, scene, sray, cast):
+            if kind == "no_shadow":
+                return mi.Bool(False)
+            return base.blocked(self, scene, sray, cast)
+
+    name = f"course_broken_{kind}"
+    mi.register_integrator(name, lambda props: Broken(props))
+    return name
+
+
+SHADOWS = ROOT / "scenes" / "shade_shadows.txt"
+MIRRORS = ROOT / "scenes" / "shade_mirrors.txt"
+
+
+@pytest.mark.parametrize("kind, path", [("inverse_square", SHADOWS), ("no_shadow", SHADOWS),
+                                        ("reflection", MIRRORS)])
+def test04_a_shading_error_is_wrong(kind, path):
+    cmp = compare_shaded(parse_scene(path), W, integrator=_broken(kind))
+    assert not cmp.ok
+    assert cmp.counts["wrong"] > 20, cmp.counts
+
+
+def test05_clip_inside_one_scene():
+    """Spheres are not clipped and planes are: a sphere between the viewpoint and the window
+    shows, a plane's part in front of the window does not (the plane behind it shows
+    through), all in one Mitsuba scene."""
+    sc = parse_text("8 6  0 0 5\n"
+                    "pointlight 9 9 9  2 3 4\n"
+                    "sphere 1 0 0  4 0 0  0 0 0  -1.5 0 2.5  0.6\n"
+                    "plane 0 1 0  0 3 0  0 0 0  1 0 1  0 0 0\n"
+                    "plane 0 0 1  0 0 3  0 0 0  0 0 1  0 0 -6\n")
+    cmp = compare_shaded(sc, W)
+    assert cmp.ok, (cmp.counts, cmp.worst)
+    I = mitsuba_course_image(sc, W, cmp.rows)
+    # the sphere (red, in front of the window) and the clipped plane's far part (green)
+    # and the back wall (blue, where the tilted plane is clipped) are all in the image
+    assert (I[..., 0] > I[..., 1] + 0.05).any()
+    assert (I[..., 2] > 0.05).any() and (I[..., 1] > 0.05).any()
+
+
+def test06_xml_renders_like_the_dict(tmp_path):
+    """rtval convert --shading writes XML that rtval render --mitsuba renders to the same
+    8-bit image as the dict scene (compare_shaded's), with provenance in the PNG."""
+    from tools.harness.shaded import quantize32
+    path = ROOT / "scenes" / "shade_tiles.txt"
+    xml = tmp_path / "tiles.xml"
+    r = _rtval("convert", path, "--columns", W, "--shading", "-o", xml)
+    assert r.returncode == 0, r.stderr
+    assert 'type="course"' in xml.read_text() and 'type="course_material"' in xml.read_text()
+    ppm, png = tmp_path / "m.ppm", tmp_path / "m.png"
+    r = _rtval("render", "--mitsuba", xml, "--ppm", ppm, "--png", png)
+    assert r.returncode == 0, r.stderr
+    from rt_core.imageio import read_image
+    sc = parse_scene(path)
+    want = quantize32(mitsuba_course_image(sc, W, sc.default_rows(W)))
+    assert np.array_equal(read_image(str(ppm)), want)
+    assert b"rtval.integrator" in png.read_bytes()
+
+
+def test07_render_mitsuba_refuses_what_it_cannot_do(tmp_path):
+    xml = tmp_path / "aov.xml"
+    assert _rtval("convert", ROOT / "scenes" / "sphere.txt", "--columns", 16, "-o",
+                  xml).returncode == 0
+    r = _rtval("render", "--mitsuba", xml, "--ppm", tmp_path / "x.ppm")
+    assert r.returncode == 2 and "not 'course'" in r.stderr and len(r.stderr.splitlines()) == 1
+    assert not (tmp_path / "x.ppm").exists()
+    r = _rtval("render", "--mitsuba", xml, "--columns", 8, "--ppm", tmp_path / "x.ppm")
+    assert r.returncode != 0 and "--columns does not apply" in r.stderr
+    r = _rtval("render", ROOT / "scenes" / "sphere.txt", "--ppm", tmp_path / "x.ppm")
+    assert r.returncode != 0 and "--columns" in r.stderr
+
+
+def test08_compare_shaded_cli(tmp_path):
+    r = _rtval("compare", "--shaded", ROOT / "scenes" / "mixed.txt", "--columns", 24,
+               "--evidence", tmp_path)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert r.stdout.splitlines()[-1].startswith("PASS") and "match=" in r.stdout
+
+
+def test09_classes_are_decided():
+    """Every pixel that differs is classed by the oracle: rounding only where a channel is
+    off by one, and no class without the oracle's flag (a scene whose decisions lie far
+    from float32's bounds has only matches)."""
+    cmp = compare_shaded(parse_scene(ROOT / "scenes" / "fplane_tilted.txt"), W)
+    d = np.abs(cmp.ours.astype(int) - cmp.theirs.astype(int)).max(-1)
+    assert (d[cmp.classes == SHADED_CODE["rounding"]] == 1).all()
+    assert (d[cmp.classes == SHADED_CODE["match"]] == 0).all()

@@ -1,0 +1,173 @@
+"""The course image from rt_core against the course image Mitsuba renders with the ``course``
+integrator (mitsuba_ref/integrator.py), 8-bit pixel by pixel.
+
+Classes of a pixel (``SHADED_CLASSES``):
+
+* ``match``: the same three 8-bit values;
+* ``rounding``: no channel off by more than 1, and the float64 shading oracle
+  (mitsuba_ref/shade_oracle.py) puts a channel within float32's error bound of an 8-bit level
+  (255·I within K·u·err of an integer): the two floors may differ there;
+* ``boundary``: the oracle puts a decision of the pixel's rays (the primary or a reflection
+  ray's closest hit, a shadow test, a tile's parity, the distance cut-off) within float32's
+  bound of its threshold, or the geometry classifier (mitsuba_ref/explain.py, as in
+  ``rtval compare --mode rays``) explains the primary ray's disagreement (an edge, a tie,
+  the clip, the stand-in plane's extent, a grazing or parallel ray);
+* ``wrong``: anything else.  A wrong pixel fails the comparison.
+
+rt_core renders in float64 with exact decisions; Mitsuba's variant is float32, so the
+oracle's bounds are taken for float32 (``shade_oracle.flags(.., "f32")``).
+"""
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from rt_core import backend
+from rt_core.camera import make_camera
+from rt_core.render import render_image
+from rt_core.rules import Rules
+from rt_core.scene import Scene
+from rt_core.shading import DEFAULT_MAX_DIST, quantize
+
+SHADED_CLASSES = ("match", "rounding", "boundary", "wrong")
+SHADED_CODE = {c: i for i, c in enumerate(SHADED_CLASSES)}
+# named colours of the classes image (evidence): match black, rounding grey, boundary amber,
+# wrong red
+SHADED_COLOURS = {"match": (0, 0, 0), "rounding": (96, 96, 96), "boundary": (255, 176, 0),
+                  "wrong": (230, 0, 0)}
+
+
+@dataclass
+class ShadedComparison:
+    scene: Scene
+    columns: int
+    rows: int
+    ours: np.ndarray                  # (rows, columns, 3) uint8, rt_core f64
+    theirs: np.ndarray                # (rows, columns, 3) uint8, Mitsuba's course integrator
+    classes: np.ndarray               # (rows, columns) SHADED_CODE
+    counts: dict
+    ms_ours: float
+    ms_ref: float
+    sampling: str = "corners"
+    rules: Rules = Rules()
+    max_dist: float = DEFAULT_MAX_DIST
+    worst: list = field(default_factory=list)   # a few wrong pixels: (x, y, ours, theirs)
+
+    @property
+    def ok(self) -> bool:
+        return self.counts.get("wrong", 0) == 0
+
+    def summary(self) -> dict:
+        return {"scene": self.scene.path, "scene_sha256": self.scene.sha256, "mode": "shaded",
+                "precision": "f64 / mitsuba f32", "sampling": self.sampling,
+                "rules": self.rules.describe(), "max_dist": self.max_dist,
+                "columns": self.columns, "rows": self.rows,
+                "pixels": self.columns * self.rows, "classes": self.counts,
+                "wrong": self.counts.get("wrong", 0), "worst": self.worst,
+                "rt_core_ms": round(self.ms_ours, 3), "mitsuba_ms": round(self.ms_ref, 3),
+                "ok": self.ok}
+
+
+def mitsuba_course_image(scene: Scene, columns: int, rows: int, sampling: str = "corners",
+                         rules: Rules = Rules(), max_dist: float = DEFAULT_MAX_DIST,
+                         integrator=None) -> np.ndarray:
+    """Mitsuba's course image: (rows, columns, 3) float32 intensities, row 0 the top."""
+    from mitsuba_ref.convert import mitsuba, scene_dict
+    mi = mitsuba()
+    d = scene_dict(scene, columns, rows, sampling, shading=True, rules=rules,
+                   max_dist=max_dist)
+    if integrator is not None:
+        d["integrator"]["type"] = integrator
+    ms = mi.load_dict(d, optimize=False)
+    return np.asarray(ms.integrator().render(ms, 0), np.float32)
+
+
+def quantize32(I: np.ndarray) -> np.ndarray:
+    """floor(255 · clamp(I, 0, 1)) in float32 (Mitsuba's precision); NaN -> 0."""
+    a = np.nan_to_num(np.asarray(I, np.float32), nan=0.0)
+    return np.floor(np.float32(255) * np.clip(a, 0, 1)).astype(np.uint8)
+
+
+def classify_shaded(scene: Scene, ours: np.ndarray, theirs: np.ndarray, sampling: str,
+                    rules: Rules, max_dist: float) -> np.ndarray:
+    """SHADED_CODE per pixel (module docstring); the oracle runs on the differing pixels."""
+    from mitsuba_ref.shade_oracle import flags, shade_pixels
+    H, W = ours.shape[:2]
+    diff = np.abs(ours.astype(np.int16) - theirs.astype(np.int16)).max(-1)
+    classes = np.zeros((H, W), np.int8)
+    pix = np.flatnonzero(diff.ravel())
+    if not len(pix):
+        return classes
+    orc = shade_pixels(scene, W, H, pix, sampling, rules, max_dist)
+    f = flags(orc, "f32")
+    jump, quant = f["jump"], f["quant"]
+    small = diff.ravel()[pix] <= 1
+    code = np.where(jump, SHADED_CODE["boundary"],
+                    np.where(small & quant, SHADED_CODE["rounding"], SHADED_CODE["wrong"]))
+    classes.ravel()[pix] = code
+    return classes
+
+
+def compare_shaded(scene: Scene, columns: int, rows: int | None = None,
+                   sampling: str = "corners", rules: Rules = Rules(),
+                   max_dist: float = DEFAULT_MAX_DIST, integrator=None) -> ShadedComparison:
+    """rt_core's 8-bit course image (float64, exact decisions) against Mitsuba's.
+    ``integrator``: the registered plugin name of the integrator to use (tests: a
+    deliberately wrong one); default ``course``."""
+    cam = make_camera(scene, columns, rows, sampling, rules)
+    t0 = time.perf_counter()
+    ims, _ = render_image(scene, cam, backend.types("f64"), rules, geometry=False, shade=True,
+                          max_dist=max_dist)
+    ms_ours = (time.perf_counter() - t0) * 1e3
+    ours = quantize(np.stack([ims[c] for c in "RGB"], -1))
+    t0 = time.perf_counter()
+    I = mitsuba_course_image(scene, cam.columns, cam.rows, sampling, rules, max_dist,
+                             integrator)
+    ms_ref = (time.perf_counter() - t0) * 1e3
+    theirs = quantize32(I)
+    classes = classify_shaded(scene, ours, theirs, sampling, rules, max_dist)
+    wrong = classes == SHADED_CODE["wrong"]
+    if wrong.any():
+        # the geometry classifier on the primary rays (Mitsuba tracing rt_core's rays, as
+        # rtval compare --mode rays): a pixel whose first hit it explains (an edge, a tie, the
+        # clip, the stand-in plane's extent, a grazing or parallel ray) is a boundary pixel
+        from tools.harness.compare import compare
+        from mitsuba_ref.explain import CLASS_CODE
+        geo = compare(scene, cam.columns, cam.rows, "f64", "rays", sampling, rules).classes
+        explained = (geo != CLASS_CODE["agree"]) & (geo != CLASS_CODE["unexplained"])
+        classes[wrong & explained] = SHADED_CODE["boundary"]
+    counts = {c: int(np.count_nonzero(classes == i)) for i, c in enumerate(SHADED_CLASSES)}
+    ys, xs = np.nonzero(classes == SHADED_CODE["wrong"])
+    worst = [(int(x), int(y), ours[y, x].tolist(), theirs[y, x].tolist())
+             for y, x in list(zip(ys, xs))[:5]]
+    return ShadedComparison(scene, cam.columns, cam.rows, ours, theirs, classes, counts,
+                            ms_ours, ms_ref, sampling, rules, max_dist, worst)
+
+
+def classes_rgb(classes: np.ndarray) -> np.ndarray:
+    """The classes as an 8-bit RGB image in their named colours (SHADED_COLOURS)."""
+    lut = np.array([SHADED_COLOURS[c] for c in SHADED_CLASSES], np.uint8)
+    return lut[classes]
+
+
+def write_shaded_evidence(cmp: ShadedComparison, outdir: str, stem: str) -> list[str]:
+    """PNGs of ours, Mitsuba's and the classes (named colours, legend in the PNG's text),
+    with provenance; returns the paths written."""
+    from rt_core.imageio import write_png
+    os.makedirs(outdir, exist_ok=True)
+    legend = ", ".join(f"{c}={'rgb(%d,%d,%d)' % SHADED_COLOURS[c]}" for c in SHADED_CLASSES)
+    text = {"rtval.scene": str(cmp.scene.path), "rtval.scene_sha256": cmp.scene.sha256,
+            "rtval.rules": cmp.rules.describe(), "rtval.max_dist": repr(cmp.max_dist)}
+    paths = []
+    for name, img, extra in (("ours", cmp.ours, {"rtval.image": "rt_core f64"}),
+                             ("mitsuba", cmp.theirs,
+                              {"rtval.image": "mitsuba course integrator, llvm_ad_rgb"}),
+                             ("classes", classes_rgb(cmp.classes),
+                              {"rtval.image": "shaded classes", "rtval.classes": legend})):
+        path = os.path.join(outdir, f"{stem}.shaded.{name}.png")
+        write_png(path, img, {**text, **extra})
+        paths.append(path)
+    return paths
