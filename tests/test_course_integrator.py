@@ -175,3 +175,13 @@ def test09_classes_are_decided():
     d = np.abs(cmp.ours.astype(int) - cmp.theirs.astype(int)).max(-1)
     assert (d[cmp.classes == SHADED_CODE["rounding"]] == 1).all()
     assert (d[cmp.classes == SHADED_CODE["match"]] == 0).all()
+
+
+def test10_validate_lists_the_shaded_comparison(tmp_path):
+    import json
+    r = _rtval("validate", ROOT / "scenes" / "sphere.txt", "--columns", 16, "--precision",
+               "f32", "--mode", "rays", "--shaded-columns", 16, "-o", tmp_path)
+    assert r.returncode == 0, r.stderr
+    rows = json.loads((tmp_path / "report.json").read_text())["results"]
+    assert [x["mode"] for x in rows] == ["rays", "shaded"] and rows[1]["ok"]
+    assert "The course image" in (tmp_path / "report.md").read_text()
