@@ -251,13 +251,20 @@ def tile_size(o, rules: Rules) -> tuple:
     return (w / math.sqrt(max(1.0 - c * c, 0.0)), float(h))
 
 
-def course_material(o, rules: Rules) -> dict:
+def course_material(o, oid: int, rules: Rules) -> dict:
     """The ``course_material`` BSDF of one object (mitsuba_ref/integrator.py): its MAT, kind,
-    and the plane's normal as given (unit) and tiled-plane frame, computed here."""
-    b = {"type": "course_material", "kind": o.kind, **_mat(o.material)}
-    if o.kind != "sphere":
+    a sphere's centre and radius, a plane's normal as given (unit) and point, a tiled plane's
+    frame, computed here."""
+    b = {"type": "course_material", "kind": o.kind, "course_id": oid, **_mat(o.material)}
+    if o.kind == "sphere":
+        b["center"], b["radius"] = [float(c) for c in o.center], float(o.radius)
+    else:
         b["normal"] = list(normal(o))
         b["point"] = [float(c) for c in o.point]
+    if o.kind == "fplane":
+        x, y, _ = frame(o)
+        b.update({"xdir": list(x), "ydir": list(y),
+                  "size": [float(o.size[0]), float(o.size[1]), 0.0]})
     if o.kind == "tplane":
         x, y, _ = frame(o)
         b.update({"xdir": list(x), "ydir": list(y),
@@ -281,14 +288,16 @@ def course_integrator(scene: Scene, columns: int, rows: int, sampling: str, rule
 def scene_dict(scene: Scene, columns: int, rows: int | None = None, sampling: str = "corners",
                shading: bool = False, integrator: bool = True, only=None,
                clip: bool = True, rules: Rules | None = None,
-               max_dist: float = DEFAULT_MAX_DIST) -> dict:
+               max_dist: float = DEFAULT_MAX_DIST, aovs: bool = False) -> dict:
     """The Mitsuba 3 scene as a dict for ``mi.load_dict(d, optimize=False)``.
 
     ``only``: a set of object kinds to include (default all); ``clip``: whether the sensor
     applies the course's screen clip (see ``sensor_setup``).  ``shading``: each shape gets
     its ``course_material``, the lights become emitters, and the integrator is ``course``
-    (the course image, ``rules`` and ``max_dist`` as in ``rtval render``)."""
+    (the course image, ``rules`` and ``max_dist`` as in ``rtval render``).  ``aovs``: the same,
+    with the integrator in its AOV mode (rtval's geometry channels of the primary rays)."""
     mi = mitsuba()
+    shading = shading or aovs
     rules = Rules() if rules is None else rules
     T = mi.ScalarTransform4f
     R = plane_extent(scene)
@@ -300,7 +309,7 @@ def scene_dict(scene: Scene, columns: int, rows: int | None = None, sampling: st
         shape = dispatch(_SHAPES, o.kind)(o, scene.viewpoint, R, T)
         shape["id"] = sid
         if shading:
-            shape["bsdf"] = course_material(o, rules)
+            shape["bsdf"] = course_material(o, oid, rules)
         d[sid] = shape
     if shading:
         for i, light in enumerate(scene.lights):
@@ -320,6 +329,8 @@ def scene_dict(scene: Scene, columns: int, rows: int | None = None, sampling: st
     if integrator:
         d["integrator"] = (course_integrator(scene, columns, s.rows, sampling, rules, max_dist)
                            if shading else {"type": "aov", "aovs": AOVS})
+        if aovs:
+            d["integrator"]["aovs"] = True
     _check_float32(scene, d)
     return d
 
@@ -412,16 +423,21 @@ def _xml_object(d: dict, indent: str, name: str | None = None) -> list:
 
 def scene_xml(scene: Scene, columns: int, rows: int | None = None, sampling: str = "corners",
               shading: bool = False, rules: Rules | None = None,
-              max_dist: float = DEFAULT_MAX_DIST) -> str:
+              max_dist: float = DEFAULT_MAX_DIST, aovs: bool = False) -> str:
     """The same scene as ``scene_dict``, as Mitsuba 3 XML (``mi.load_file`` accepts it once
     mitsuba_ref has registered its plugins: ``rtval render --mitsuba``)."""
-    d = scene_dict(scene, columns, rows, sampling, shading, rules=rules, max_dist=max_dist)
+    d = scene_dict(scene, columns, rows, sampling, shading, rules=rules, max_dist=max_dist,
+                   aovs=aovs)
     s = sensor_setup(scene, columns, rows, sampling)
     lines = ['<?xml version="1.0" encoding="utf-8"?>',
              f"<!-- rtval convert: {scene.path} ({columns}x{s.rows}, {sampling} sampling) -->",
              f"<!-- infinite and tiled planes: rectangles of half-size {plane_extent(scene):.6g}"
              " (64 x scene scale) around the viewpoint's foot point -->"]
-    if shading:
+    if aovs:
+        lines.append("<!-- --aovs: the 'course' integrator in its AOV mode: rtval's geometry "
+                     "channels (hit.mask, depth.Z, object.id, normal, position, uv); write them "
+                     "with rtval render --mitsuba -o OUT.exr -->")
+    elif shading:
         lines.append("<!-- --shading: the course image: the 'course' integrator and each shape's"
                      " 'course_material' (plugins of rtval's mitsuba_ref: render with"
                      " rtval render --mitsuba, or register them with"

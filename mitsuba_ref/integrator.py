@@ -33,6 +33,10 @@ from __future__ import annotations
 import math
 
 MATERIAL_FIELDS = ("ambient", "diffuse", "specular")
+# the channels of the integrator's AOV mode, rtval render's names and order (rt_core's
+# GEOMETRY_CHANNELS, written out here: the reference does not import the tracer's renderer)
+GEOMETRY = ("hit.mask", "depth.Z", "object.id", "normal.X", "normal.Y", "normal.Z",
+            "position.X", "position.Y", "position.Z", "uv.U", "uv.V")
 # a tiled plane's second MAT (the course's background: even parity)
 BACKGROUND_FIELDS = tuple("background_" + k for k in MATERIAL_FIELDS)
 MAX_BOUNCES = 10_000
@@ -76,11 +80,15 @@ def _classes(mi):
             mi.BSDF.__init__(self, props)
             vec = lambda k: mi.Color3f(props.get(k, mi.ScalarColor3f(0.0)))
             self.vals = {k: vec(k) for k in MATERIAL_FIELDS + BACKGROUND_FIELDS +
-                         ("normal", "point", "xdir", "ydir", "tile_size")}
+                         ("normal", "point", "xdir", "ydir", "tile_size", "size", "center")}
+            # opaque: scene numbers are kernel data, so the next scene reuses the kernels
+            dr.make_opaque(*self.vals.values())
             kind = props.get("kind", "sphere")
             self.kind = kind
             self.ones = {"clipped": float(kind != "sphere"), "sphere": float(kind == "sphere"),
-                         "tiled": float(kind == "tplane")}
+                         "tiled": float(kind == "tplane"), "finite": float(kind == "fplane"),
+                         "radius": float(props.get("radius", 0.0)),
+                         "course_id": float(props.get("course_id", -1))}
             self.m_flags = mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide
             self.m_components = [self.m_flags]
 
@@ -103,7 +111,7 @@ def _classes(mi):
             return self.vals[name]
 
         def eval_attribute_1(self, name, si, active=True):
-            return mi.Float(self.ones[name])
+            return dr.opaque(mi.Float, self.ones[name])
 
         def eval_diffuse_reflectance(self, si, active=True):
             return self.vals["diffuse"]
@@ -138,6 +146,8 @@ def _classes(mi):
             self.tile_add_first = bool(props.get("tile_add_first", False))
             self.max_dist = float(props.get("max_dist", 1000.0))
             self.max_bounces = int(props.get("max_bounces", MAX_BOUNCES))
+            # aovs: render the primary rays' geometry channels (GEOMETRY) instead of the image
+            self.aovs = bool(props.get("aovs", False))
             if self.screen_clip not in (">", ">=", "off"):
                 raise ValueError(f"course integrator: screen_clip must be '>', '>=' or 'off', "
                                  f"not {self.screen_clip!r}")
@@ -155,17 +165,42 @@ def _classes(mi):
                 film = (scene.sensors()[sensor] if isinstance(sensor, int) else sensor).film()
                 W, H = film.crop_size()
             o, d = self.camera_rays(W, H)
-            rgb = self.shade(scene, o, d)
-            out = dr.zeros(mi.TensorXf, (H, W, 3))
+            chans = self.geometry(scene, o, d) if self.aovs else list(self.shade(scene, o, d))
+            out = dr.zeros(mi.TensorXf, (H, W, len(chans)))
             idx = dr.arange(mi.UInt32, W * H)
-            for c in range(3):
-                dr.scatter(out.array, rgb[c], idx * 3 + c)
+            for c, v in enumerate(chans):
+                dr.scatter(out.array, v, idx * len(chans) + c)
             return out
+
+        def geometry(self, scene, o, d):
+            """The primary rays' channels in GEOMETRY's order and rtval's conventions:
+            depth = distance from the viewpoint, a plane's normal as given or the sphere's
+            outward one, the world position, a finite or tiled plane's lasthit as uv (a
+            finite plane's kept in [0, w] × [0, h]); zeros and id −1 on a miss."""
+            n = dr.width(d)
+            o = mi.Point3f(o) + dr.zeros(mi.Vector3f, n)
+            self.tab = self._tables(scene)
+            si, t, p, hit = self._closest(scene, o, d, dr.full(mi.Bool, True, n))
+            idx = self._ids(si, hit)
+            att = one = lambda k: self._get(k, idx, hit)
+            planar = one("clipped") > 0.5
+            N = dr.select(planar, att("normal"), dr.normalize(p - mi.Point3f(att("center"))))
+            rel = p - mi.Point3f(att("point"))
+            lasthit = planar & ((one("tiled") > 0.5) | (one("finite") > 0.5))
+            u = dr.select(lasthit, dr.dot(rel, att("xdir")), 0.0)
+            v = dr.select(lasthit, dr.dot(rel, att("ydir")), 0.0)
+            size = att("size")
+            finite = one("finite") > 0.5
+            u = dr.select(finite, dr.clip(u, 0.0, size.x), u)
+            v = dr.select(finite, dr.clip(v, 0.0, size.y), v)
+            z = lambda x: dr.select(hit, x, 0.0)
+            return [dr.select(hit, 1.0, 0.0), z(t), dr.select(hit, one("course_id"), -1.0),
+                    z(N.x), z(N.y), z(N.z), z(p.x), z(p.y), z(p.z), z(u), z(v)]
 
         def sample(self, scene, sampler, ray, medium=None, active=True):
             """Mitsuba's render loop: the sensor's ray direction, from the viewpoint (the
             sensor moves its origin to the near clip)."""
-            o = mi.Point3f(*self.viewpoint)
+            o = mi.Point3f(*(dr.opaque(mi.Float, c) for c in self.viewpoint))
             rgb = self.shade(scene, o, dr.normalize(mi.Vector3f(ray.d)), active)
             return mi.Spectrum(rgb), mi.Bool(active), []
 
@@ -198,7 +233,41 @@ def _classes(mi):
             dz = np.full(W * H, -vz)
             n = np.sqrt(dx * dx + dy * dy + dz * dz)
             d = mi.Vector3f(*(mi.Float(c / n) for c in (dx, dy, dz)))
-            return mi.Point3f(*self.viewpoint), d
+            return mi.Point3f(*(dr.opaque(mi.Float, c) for c in self.viewpoint)), d
+
+        # --- the shapes' materials as tables ---------------------------------------------------
+
+        def _tables(self, scene):
+            """Every shape's course_material values as arrays by course id (read once per
+            render from the scene's own BSDFs): a hit then costs one call through the BSDF
+            pointer (its course id) and gathers, not one call per value."""
+            mats = {}
+            for sh in scene.shapes():
+                b = sh.bsdf()
+                if not hasattr(b, "ones"):
+                    raise ValueError(f"shape {sh.id()!r} has no course_material BSDF; convert "
+                                     "the course scene with rtval convert --shading")
+                mats[int(b.ones["course_id"])] = b
+            n = max(mats, default=-1) + 1
+            first = next(iter(mats.values()), None)
+            tab = {}
+            for k in (first.vals if first else {}):
+                cols = [[float(mats[i].vals[k][c][0]) if i in mats else 0.0 for i in range(n)]
+                        for c in range(3)]
+                tab[k] = mi.Vector3f(*(mi.Float(col) for col in cols))
+            for k in (first.ones if first else {}):
+                tab[k] = mi.Float([float(mats[i].ones[k]) if i in mats else 0.0
+                                   for i in range(n)])
+            dr.make_opaque(*tab.values())
+            return tab
+
+        def _ids(self, si, hit):
+            """The course id of each hit (one call through the BSDF pointer); 0 on a miss."""
+            cid = si.bsdf().eval_attribute_1("course_id", si, hit)
+            return mi.UInt32(dr.select(hit, cid, 0.0))
+
+        def _get(self, name, idx, hit):
+            return dr.gather(type(self.tab[name]), self.tab[name], idx, hit)
 
         # --- the course's hit rule -----------------------------------------------------------
 
@@ -208,12 +277,26 @@ def _classes(mi):
             Mitsuba's point on the rectangle, which for the large stand-in of an infinite
             plane is off by ~2⁻²⁴ of its half-size (R = 64 × the scene's scale): Mitsuba
             decides which surface the ray meets, the plane equation where on it."""
-            bsdf = si.bsdf()
             valid = si.is_valid()
-            planar = bsdf.eval_attribute_1("clipped", si, valid) > 0.5
-            N = mi.Vector3f(bsdf.eval_attribute_3("normal", si, valid))
-            P = mi.Point3f(bsdf.eval_attribute_3("point", si, valid))
-            t = dr.select(planar, dr.dot(N, P - o) / dr.dot(N, d), dr.dot(si.p - o, d))
+            idx = self._ids(si, valid)
+            get = lambda k: self._get(k, idx, valid)
+            planar = get("clipped") > 0.5
+            N = get("normal")
+            P = mi.Point3f(get("point"))
+            t_plane = dr.dot(N, P - o) / dr.dot(N, d)
+            # a sphere: the root from its centre and radius in a form that does not cancel
+            # (Mitsuba's float32 root loses ~√u of the radius near the outline):
+            # disc = (r − |q×d|)(r + |q×d|), near root c/(q·d + √disc), c = (|q|−r)(|q|+r),
+            # far root q·d + √disc when the origin is inside (c <= 0)
+            q = get("center") - mi.Vector3f(o)
+            r = get("radius")
+            b, cn, qn = dr.dot(q, d), dr.norm(dr.cross(q, d)), dr.norm(q)
+            sd = dr.sqrt(dr.maximum((r - cn) * (r + cn), 0))
+            c = (qn - r) * (qn + r)
+            t_sphere = dr.select(c > 0, c / (b + sd), b + sd)
+            t_sphere = dr.select(dr.isfinite(t_sphere) & (t_sphere > 0), t_sphere,
+                                 dr.dot(si.p - o, d))
+            t = dr.select(planar, t_plane, t_sphere)
             return t, dr.fma(d, t, o), planar
 
         def _counts(self, t, p, planar):
@@ -288,28 +371,29 @@ def _classes(mi):
 
         def _material(self, si, p, hit):
             """(ambient, diffuse, specular, normal) at the hits (p: the hit points)."""
-            bsdf = si.bsdf()
-            att = lambda k: bsdf.eval_attribute_3(k, si, hit)
-            amb, dif, spec = (att(k) for k in MATERIAL_FIELDS)
-            sphere = bsdf.eval_attribute_1("sphere", si, hit) > 0.5
-            N = dr.select(sphere, mi.Vector3f(si.n), mi.Vector3f(att("normal")))
-            tiled = bsdf.eval_attribute_1("tiled", si, hit) > 0.5
+            idx = self._ids(si, hit)
+            att = lambda k: self._get(k, idx, hit)
+            amb, dif, spec = (mi.Color3f(att(k)) for k in MATERIAL_FIELDS)
+            sphere = att("sphere") > 0.5
+            N = dr.select(sphere, dr.normalize(p - mi.Point3f(att("center"))), att("normal"))
+            tiled = att("tiled") > 0.5
             if dr.any(tiled & hit):
                 rel = p - mi.Point3f(att("point"))
                 size = att("tile_size")
-                u = dr.dot(rel, mi.Vector3f(att("xdir")))
-                v = dr.dot(rel, mi.Vector3f(att("ydir")))
+                u = dr.dot(rel, att("xdir"))
+                v = dr.dot(rel, att("ydir"))
                 if self.tile_add_first:
                     u, v = u + 10000.0, v + 10000.0
                 odd = (_odd(dr.floor(u / size.x)) + _odd(dr.floor(v / size.y))) == 1
                 back = tiled & ~odd
-                bg = [att(k) for k in BACKGROUND_FIELDS]
+                bg = [mi.Color3f(att(k)) for k in BACKGROUND_FIELDS]
                 amb, dif, spec = (dr.select(back, b, f) for b, f in zip(bg, (amb, dif, spec)))
             return amb, dif, spec, N
 
         def shade(self, scene, o, d, active=True):
             """Unclamped course intensity of the rays o + t·d (o: the viewpoint)."""
             n = dr.width(d)
+            self.tab = self._tables(scene)
             lights = self._lights(scene)
             image = dr.zeros(mi.Color3f, n)
             weight = mi.Color3f(1.0)

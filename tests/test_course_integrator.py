@@ -185,3 +185,32 @@ def test10_validate_lists_the_shaded_comparison(tmp_path):
     rows = json.loads((tmp_path / "report.json").read_text())["results"]
     assert [x["mode"] for x in rows] == ["rays", "shaded"] and rows[1]["ok"]
     assert "The course image" in (tmp_path / "report.md").read_text()
+
+
+def test11_aovs_diff_with_rtvals_exr(tmp_path):
+    """rtval convert --aovs + rtval render --mitsuba -o: a float32 EXR with rtval's channel
+    names and conventions, which rtval exr diff compares with rtval render's EXR directly
+    (the README's command passes); a plane moved by 1e-3 fails it."""
+    import OpenEXR
+    path = ROOT / "scenes" / "fplane_tilted.txt"
+    ours, theirs = tmp_path / "ours.exr", tmp_path / "mitsuba.exr"
+    assert _rtval("render", path, "--columns", W, "-o", ours).returncode == 0
+
+    def mitsuba_exr(scene_path, out):
+        xml = tmp_path / "aovs.xml"
+        assert _rtval("convert", scene_path, "--columns", W, "--aovs", "-o", xml
+                      ).returncode == 0
+        r = _rtval("render", "--mitsuba", xml, "-o", out)
+        assert r.returncode == 0, r.stderr
+    mitsuba_exr(path, theirs)
+    with OpenEXR.File(str(ours)) as a, OpenEXR.File(str(theirs)) as b:
+        assert set(a.channels()) == set(b.channels())
+    diff = ["exr", "diff", ours, theirs, "--fail-relative", "1e-5", "--warn-relative", "1e-5",
+            "--fail-percent", "1"]
+    r = _rtval(*diff)
+    assert r.returncode == 0 and "PASS" in r.stdout, r.stdout
+    moved = tmp_path / "moved.txt"
+    moved.write_text(path.read_text().replace("-5.5 -2 -9", "-5.5 -2 -9.001"))
+    mitsuba_exr(moved, theirs)
+    r = _rtval(*diff)
+    assert r.returncode != 0 and "FAIL" in r.stdout, r.stdout

@@ -303,7 +303,7 @@ def test42_validate_writes_report(tmp_path):
     stale.parent.mkdir()
     stale.write_bytes(b"")
     r = _cli("validate", "scenes/sphere.txt", "scenes/plane.txt", "--columns", "32",
-             "-o", str(tmp_path))
+             "--shaded-columns", "0", "-o", str(tmp_path))
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "report.md").exists() and (tmp_path / "report.json").exists()
     import json

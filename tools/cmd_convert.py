@@ -24,6 +24,11 @@ def add_parser(sub) -> None:
                    help="the course image: each shape's course MAT as a 'course_material' BSDF, "
                         "the lights as point/spot emitters and the 'course' integrator with the "
                         "camera and rules (render it with rtval render --mitsuba)")
+    p.add_argument("--aovs", action="store_true",
+                   help="the 'course' integrator in its AOV mode: rtval render --mitsuba -o "
+                        "OUT.exr writes rtval's geometry channels (hit.mask, depth.Z, "
+                        "object.id, normal, position, uv), so rtval exr diff compares them "
+                        "with rtval render's EXR")
     p.add_argument("--rules", type=rules_arg, default=None, metavar="NAME=VALUE,...",
                    help="--shading: the hit-rule variants the integrator shades with (as in "
                         "rtval render)")
@@ -45,12 +50,14 @@ def run(args) -> int:
         raise InputError(f"{args.output}: no directory {parent}; create it first")
     scene = parse_scene(args.scene)
     setup = sensor_setup(scene, args.columns, args.rows, args.sampling)
-    if setup.note and not args.shading:     # the course integrator makes its own rays
+    course = args.shading or args.aovs
+    if setup.note and not course:           # the course integrator makes its own rays
         print(f"rtval convert: warning: {setup.note}", file=sys.stderr)
-    if not args.shading and (args.rules or args.max_dist is not None):
-        args.usage_error("--rules and --max-dist go with --shading")
+    if not course and (args.rules or args.max_dist is not None):
+        args.usage_error("--rules and --max-dist go with --shading or --aovs")
     xml = scene_xml(scene, args.columns, args.rows, args.sampling, args.shading,
-                    rules=args.rules, max_dist=1000.0 if args.max_dist is None else args.max_dist)
+                    rules=args.rules, max_dist=1000.0 if args.max_dist is None else args.max_dist,
+                    aovs=args.aovs)
     atomic_write(args.output, lambda tmp: Path(tmp).write_text(xml))
     print(f"{args.output}: {len(scene.objects)} shapes, {setup.columns}x{setup.rows}",
           file=sys.stderr)

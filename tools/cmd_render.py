@@ -236,11 +236,24 @@ def _run_mitsuba(args, outs) -> int:
         raise InputError(f"{args.scene}: its integrator is not 'course' ({name}); convert the "
                          "course scene with rtval convert --shading")
     I = np.asarray(integ.render(ms, 0), np.float32)
-    pixels = quantize32(I)
     bad = int(np.count_nonzero(~np.isfinite(I)))
     attrs = {"rtval.source": "mitsuba course integrator", "rtval.scene": args.scene,
              "rtval.integrator": str(integ.to_string()),
              "rtval.versions": json.dumps(versions())}
+    if integ.aovs:          # rtval's geometry channels, names and conventions
+        from mitsuba_ref.integrator import GEOMETRY
+        if any(opt != "-o" for opt, _ in outs):
+            args.usage_error("this scene's course integrator renders AOVs (convert --aovs): "
+                             "write them with -o OUT.exr")
+        images = {name: I[..., k] for k, name in enumerate(GEOMETRY)}
+        for _, path in outs:
+            write_images(path, images, {**attrs, "rtval.image": "geometry AOVs"},
+                         args.compression)
+            print(f"{path}: {I.shape[1]}x{I.shape[0]} geometry AOVs by Mitsuba's course "
+                  f"integrator, {int(images['hit.mask'].sum())} hits"
+                  + (f", {bad} NON-FINITE values" if bad else ""), file=sys.stderr)
+        return 1 if bad else 0
+    pixels = quantize32(I)
     for opt, path in outs:
         if opt == "-o":
             write_images(path, {c: I[..., k] for k, c in enumerate("RGB")}, attrs,

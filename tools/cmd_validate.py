@@ -22,11 +22,10 @@ def add_parser(sub) -> None:
     p.add_argument("--junit", metavar="FILE.xml",
                    help="also write JUnit XML: one test case per comparison (CI systems show "
                         "them), a failure for each failing one, an error for each skipped file")
-    p.add_argument("--shaded-columns", type=int, default=0, metavar="N",
+    p.add_argument("--shaded-columns", type=int, default=48, metavar="N",
                    help="also compare each scene's shaded course image with Mitsuba's 'course' "
-                        "integrator at N columns (rtval compare --shaded; e.g. 48; default 0: "
-                        "off, since it adds 1-2 s a scene and one course scene still has a "
-                        "pixel off by one that the oracle's float32 bound does not cover)")
+                        "integrator at N columns (rtval compare --shaded; default 48; 0: off; "
+                        "about 2 s a scene, mostly Mitsuba's kernel launches)")
     p.add_argument("--evidence", choices=("failures", "all"), default="failures",
                    help="EXRs of the failing comparisons only (default), or also ours and "
                         "Mitsuba's of every passing one (under DIR/exr)")
