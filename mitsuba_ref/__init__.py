@@ -6,3 +6,22 @@
 * ``explain``: the classification of disagreeing pixels and rays;
 * ``convert`` and ``reference``: the equivalent Mitsuba 3 scene and its renders.
 """
+
+import sys as _sys
+
+
+def _register_if_loaded() -> None:
+    """The course plugins (``integrator``) are registered whenever mitsuba_ref loads Mitsuba
+    (``convert.mitsuba()``); when Mitsuba is already imported in rtval's variant, right away,
+    so that ``mi.load_file`` reads a ``rtval convert --shading`` scene after
+    ``import mitsuba_ref``.  (Importing mitsuba_ref never imports Mitsuba itself.)"""
+    mi = _sys.modules.get("mitsuba")
+    if mi is None or not hasattr(mi, "variant"):
+        return
+    from .convert import VARIANT
+    if mi.variant() == VARIANT:
+        from .integrator import register
+        register(mi)
+
+
+_register_if_loaded()

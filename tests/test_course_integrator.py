@@ -214,3 +214,19 @@ def test11_aovs_diff_with_rtvals_exr(tmp_path):
     mitsuba_exr(moved, theirs)
     r = _rtval(*diff)
     assert r.returncode != 0 and "FAIL" in r.stdout, r.stdout
+
+
+def test12_plugins_registered_on_import(tmp_path):
+    """With Mitsuba already in rtval's variant, ``import mitsuba_ref`` registers the plugins:
+    a converted scene then loads with plain ``mi.load_file``; without Mitsuba imported,
+    importing mitsuba_ref does not import it."""
+    xml = tmp_path / "s.xml"
+    assert _rtval("convert", ROOT / "scenes" / "sphere.txt", "--columns", 8, "--shading",
+                  "-o", xml).returncode == 0
+    code = ("import mitsuba as mi; mi.set_variant('llvm_ad_rgb'); import mitsuba_ref; "
+            f"s = mi.load_file({str(xml)!r}); print(type(s.integrator()).__name__)")
+    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
+    assert r.stdout.strip() == "CourseIntegrator", r.stderr
+    code = "import sys, mitsuba_ref, mitsuba_ref.convert; print('mitsuba' in sys.modules)"
+    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
+    assert r.stdout.strip() == "False", r.stderr
