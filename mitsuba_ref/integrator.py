@@ -244,10 +244,12 @@ def _classes(mi):
             mats = {}
             for sh in scene.shapes():
                 b = sh.bsdf()
-                if not hasattr(b, "ones"):
-                    raise ValueError(f"shape {sh.id()!r} has no course_material BSDF; convert "
-                                     "the course scene with rtval convert --shading")
-                mats[int(b.ones["course_id"])] = b
+                cid = int(b.ones["course_id"]) if hasattr(b, "ones") else -1
+                if cid < 0 or cid in mats:
+                    raise ValueError(f"shape {sh.id()!r} has no course_material BSDF with its "
+                                     "own course_id; convert the course scene again with "
+                                     "rtval convert --shading")
+                mats[cid] = b
             n = max(mats, default=-1) + 1
             first = next(iter(mats.values()), None)
             tab = {}

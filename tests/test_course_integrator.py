@@ -158,6 +158,19 @@ def test07_render_mitsuba_refuses_what_it_cannot_do(tmp_path):
     assert r.returncode != 0 and "--columns does not apply" in r.stderr
     r = _rtval("render", ROOT / "scenes" / "sphere.txt", "--ppm", tmp_path / "x.ppm")
     assert r.returncode != 0 and "--columns" in r.stderr
+    # an XML whose materials lack their course ids (hand-made, or an older convert)
+    shaded = tmp_path / "s.xml"
+    assert _rtval("convert", ROOT / "scenes" / "mixed.txt", "--columns", 16, "--shading",
+                  "-o", shaded).returncode == 0
+    old = tmp_path / "old.xml"
+    old.write_text("\n".join(ln for ln in shaded.read_text().splitlines()
+                             if "course_id" not in ln))
+    r = _rtval("render", "--mitsuba", old, "--ppm", tmp_path / "x.ppm")
+    assert r.returncode == 2 and "course_id" in r.stderr and len(r.stderr.splitlines()) == 1
+    assert not (tmp_path / "x.ppm").exists()
+    r = _rtval("validate", ROOT / "scenes" / "sphere.txt", "--shaded-columns", 1, "-o",
+               tmp_path / "v")
+    assert r.returncode == 2 and "at least 2" in r.stderr
 
 
 def test08_compare_shaded_cli(tmp_path):

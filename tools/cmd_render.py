@@ -216,7 +216,7 @@ def _run_mitsuba(args, outs) -> int:
     from mitsuba_ref.convert import mitsuba
     from tools.harness.shaded import quantize32
 
-    for flag in ("columns", "rows", "rules", "max_dist"):
+    for flag in ("columns", "rows", "rules", "max_dist", "tile"):
         if getattr(args, flag, None) is not None:
             args.usage_error(f"--{flag.replace('_', '-')} does not apply with --mitsuba: the "
                              "XML scene holds the camera, the rules and max_dist (give them "
@@ -235,7 +235,12 @@ def _run_mitsuba(args, outs) -> int:
     if name != "CourseIntegrator":
         raise InputError(f"{args.scene}: its integrator is not 'course' ({name}); convert the "
                          "course scene with rtval convert --shading")
-    I = np.asarray(integ.render(ms, 0), np.float32)
+    if args.explain or args.shade:
+        args.usage_error("--explain and --shade do not apply with --mitsuba")
+    try:
+        I = np.asarray(integ.render(ms, 0), np.float32)
+    except ValueError as e:         # the integrator's own refusals: one line
+        raise InputError(f"{args.scene}: {e}") from None
     bad = int(np.count_nonzero(~np.isfinite(I)))
     attrs = {"rtval.source": "mitsuba course integrator", "rtval.scene": args.scene,
              "rtval.integrator": str(integ.to_string()),

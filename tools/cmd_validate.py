@@ -66,9 +66,10 @@ def run(args) -> int:
         progress, done = (lambda row: bar.update(1)), bar.close
     else:                       # a log (CI): a plain line every tenth of the way
         progress, done = _log_progress(total), (lambda: None)
-    if args.shaded_columns < 0:
+    if args.shaded_columns < 0 or args.shaded_columns == 1:
         from rt_core.errors import InputError
-        raise InputError(f"--shaded-columns {args.shaded_columns}: give 0 (off) or a width")
+        raise InputError(f"--shaded-columns {args.shaded_columns}: give 0 (off) or a width of "
+                         "at least 2")
     results = validate(scenes, args.columns, precisions, modes, args.output,
                        progress=progress, evidence=args.evidence,
                        shaded_columns=args.shaded_columns)
