@@ -16,9 +16,11 @@ written here with Mitsuba's own queries and nothing from rt_core:
   only with clip_spheres.  One scene: spheres and planes clip differently inside it.
 * **Shadows**: one ray per light toward it (``si.spawn_ray_to``, which leaves the surface
   itself, as the course skips the object a ray leaves), blocked by the first counted hit.
-* **Normals**: a plane kind's as given in the file (never flipped), carried by its material;
-  a sphere's outward one (Mitsuba's ``si.n``).  A tiled plane picks its MAT by the parity of
-  floor(u/w) + floor(v/h), with u, v from its point and frame (also carried by the material).
+* **Hit points and normals**: Mitsuba decides which surface a ray meets; where on it comes
+  from the course geometry its material carries (``_point``): a plane's equation, a
+  sphere's centre and radius.  A plane kind's normal is as given in the file (never
+  flipped), a sphere's the outward one.  A tiled plane picks its MAT by the parity of
+  floor(u/w) + floor(v/h), with u, v from its point and frame.
 * **Camera**: one ray per pixel from the viewpoint through the course's sample (corner grid
   or centres), built here from the integrator's parameters: the course image itself, also
   for sample grids Mitsuba's square pixels cannot make.  ``sample`` serves Mitsuba's own
@@ -71,10 +73,12 @@ def _classes(mi):
 
     class CourseMaterial(mi.BSDF):
         """A course MAT (ambient, diffuse, specular: RGB, unbounded) and what the integrator
-        needs of the shape: ``kind`` ("sphere", "plane", "fplane", "tplane"), for plane
-        kinds the normal as given (unit), for tiled planes its point, frame, tile size and
-        background MAT.  Read with ``eval_attribute_3``/``_1``; it scatters nothing (the
-        course integrator is the only one that uses it)."""
+        needs of the shape: ``kind`` ("sphere", "plane", "fplane", "tplane"), its
+        ``course_id``, a sphere's centre and radius, a plane kind's normal as given (unit)
+        and point, a finite or tiled plane's frame (and size, or tile size and background
+        MAT).  The integrator reads these values once per render into tables by course id
+        (``_tables``) and, per hit, only ``eval_attribute_1("course_id")``; other code can
+        read any of them with ``eval_attribute_3``/``_1``.  It scatters nothing."""
 
         def __init__(self, props):
             mi.BSDF.__init__(self, props)

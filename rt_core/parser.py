@@ -347,8 +347,7 @@ def _parse_keyword(ctx: _Ctx):
     def word(what: str, name: str) -> str:
         nonlocal pos
         if pos >= len(toks):
-            raise ctx.error(f"{what}: expected the {name} (a file name), found end of file",
-                            ctx.eof)
+            raise _no_word(ctx, what, name)
         pos += 1
         return toks[pos - 1].text
 
@@ -368,6 +367,11 @@ def _parse_keyword(ctx: _Ctx):
         form = next(f for f in FORMS.values() if f.keyword == kind)
         _read_object(ctx, form, start, group, word, lights, objects)
     return window, viewpoint, lights, objects
+
+
+def _no_word(ctx: _Ctx, what: str, name: str) -> SceneError:
+    """The error of a file-name field (a texture) missing at the end of the file."""
+    return ctx.error(f"{what}: expected the {name} (a file name), found end of file", ctx.eof)
 
 
 # --- numeric dialect ----------------------------------------------------------------------
@@ -403,8 +407,7 @@ def _parse_numeric(ctx: _Ctx):
     def word(what: str, name: str) -> str:
         nonlocal idx
         if idx >= len(content):
-            raise ctx.error(f"{what}: expected the {name} (a file name), found end of file",
-                            ctx.eof)
+            raise _no_word(ctx, what, name)
         idx += 1
         return content[idx - 1][0].text
 

@@ -171,6 +171,8 @@ def test07_render_mitsuba_refuses_what_it_cannot_do(tmp_path):
     r = _rtval("validate", ROOT / "scenes" / "sphere.txt", "--shaded-columns", 1, "-o",
                tmp_path / "v")
     assert r.returncode == 2 and "at least 2" in r.stderr
+    r = _rtval("compare", ROOT / "scenes" / "sphere.txt", "--columns", 8, "--max-dist", 5)
+    assert r.returncode == 64 and "--max-dist goes with --shaded" in r.stderr
 
 
 def test08_compare_shaded_cli(tmp_path):
@@ -243,3 +245,17 @@ def test12_plugins_registered_on_import(tmp_path):
     code = "import sys, mitsuba_ref, mitsuba_ref.convert; print('mitsuba' in sys.modules)"
     r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
     assert r.stdout.strip() == "False", r.stderr
+
+
+def test13_geometry_classifier_decides_what_the_oracle_cannot(tmp_path):
+    """A bright floor far below a level camera: rt_core sees the infinite plane out to the
+    horizon, Mitsuba's stand-in square (64 × the scene's scale) ends before it.  The shading
+    oracle (infinite planes) sees no decision there; the geometry classifier names the
+    stand-in's extent, so those pixels are boundary, not wrong."""
+    from tools.harness.shaded import classify_shaded
+    sc = parse_text("8 6  0 0 5\npointlight 9 9 9  0 4 0\n"
+                    "plane 5000 5000 5000  0 0 0  0 0 0  0 1 0  0 -100 0\n")
+    cmp = compare_shaded(sc, 64)
+    assert cmp.ok and cmp.counts["boundary"] > 0, cmp.counts
+    oracle_only = classify_shaded(sc, cmp.ours, cmp.theirs, "corners", cmp.rules, cmp.max_dist)
+    assert (oracle_only == SHADED_CODE["wrong"]).sum() == cmp.counts["boundary"]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import sys
 
-from .options import positive_int, rules_arg, nonneg_float
+from .options import add_max_dist, add_rules, nonneg_float, positive_int
 
 
 def add_parser(sub) -> None:
@@ -26,11 +26,9 @@ def add_parser(sub) -> None:
                    help="image width (with --run: required; otherwise only to override)")
     p.add_argument("--rows", type=positive_int, default=None,
                    help="image height (default: the image's, or int(h/w*columns) with --run)")
-    p.add_argument("--rules", type=rules_arg, default=None, metavar="NAME=VALUE,...",
-                   help="fix the rules instead of inferring them (edges, screen_clip, ties, "
-                        "t_min, clip_spheres, reflect, rows, tile_add_first, tile_project)")
-    p.add_argument("--max-dist", type=nonneg_float, default=None, metavar="D",
-                   help="fix the reflection cut-off instead of inferring it")
+    add_rules(p, "fix the rules instead of inferring them (edges, screen_clip, ties, t_min, "
+                 "clip_spheres, reflect, rows, tile_add_first, tile_project)")
+    add_max_dist(p, "fix the reflection cut-off instead of inferring it")
     p.add_argument("--hits", metavar="FILE",
                    help="a hit dump of the image: 'column row object t' per pixel")
     p.add_argument("--timeout", type=nonneg_float, default=60.0, metavar="S",

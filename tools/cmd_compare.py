@@ -4,7 +4,7 @@ from __future__ import annotations
 import json
 import sys
 
-from .options import add_image_options, nonneg_float
+from .options import add_image_options, add_max_dist
 
 
 def add_parser(sub) -> None:
@@ -23,14 +23,13 @@ def add_parser(sub) -> None:
                         "against Mitsuba's 'course' integrator, each pixel match, rounding "
                         "(±1 at an 8-bit level), boundary (a decision within float32's bound, "
                         "from the float64 shading oracle) or wrong; exit 1 on a wrong pixel")
-    p.add_argument("--max-dist", type=nonneg_float, default=None, metavar="D",
-                   help="--shaded: reflections stop at this path length (default 1000)")
+    add_max_dist(p, "--shaded: reflections stop at this path length (default 1000)")
     p.add_argument("--evidence", default="out/compare", metavar="DIR",
                    help="where evidence EXRs go on failure (default out/compare)")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
     p.add_argument("--junit", metavar="FILE.xml",
                    help="also write JUnit XML, one test case per mode")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, usage_error=p.error)
 
 
 def run(args) -> int:
@@ -39,6 +38,9 @@ def run(args) -> int:
     from tools.harness.compare import compare, write_evidence
     from tools.harness.validate import stem_of
 
+    if args.max_dist is not None and not args.shaded:
+        args.usage_error("--max-dist goes with --shaded (the geometry comparison has no "
+                         "reflections)")
     scene = parse_scene(args.scene)
     if args.shaded:
         return _run_shaded(args, scene)

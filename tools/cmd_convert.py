@@ -5,7 +5,7 @@ import sys
 import os
 from pathlib import Path
 
-from .options import nonneg_float, positive_int, rules_arg
+from .options import add_max_dist, add_rules, positive_int
 
 
 def add_parser(sub) -> None:
@@ -29,11 +29,9 @@ def add_parser(sub) -> None:
                         "OUT.exr writes rtval's geometry channels (hit.mask, depth.Z, "
                         "object.id, normal, position, uv), so rtval exr diff compares them "
                         "with rtval render's EXR")
-    p.add_argument("--rules", type=rules_arg, default=None, metavar="NAME=VALUE,...",
-                   help="--shading: the hit-rule variants the integrator shades with (as in "
-                        "rtval render)")
-    p.add_argument("--max-dist", type=nonneg_float, default=None, metavar="D",
-                   help="--shading: reflections stop at this path length (default 1000)")
+    add_rules(p, "--shading/--aovs: the hit-rule variants the integrator uses (as in rtval "
+                 "render)")
+    add_max_dist(p, "--shading: reflections stop at this path length (default 1000)")
     p.add_argument("-o", "--output", required=True, metavar="OUT.xml",
                    help="the Mitsuba 3 XML scene to write")
     p.set_defaults(func=run, usage_error=p.error)
@@ -42,7 +40,7 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     from rt_core.exrio import atomic_write
     from rt_core.parser import parse_scene
-    from mitsuba_ref.convert import scene_xml, sensor_setup
+    from mitsuba_ref.convert import DEFAULT_MAX_DIST, scene_xml, sensor_setup
 
     from rt_core.usererror import InputError
     parent = os.path.dirname(os.path.abspath(args.output))
@@ -56,7 +54,7 @@ def run(args) -> int:
     if not course and (args.rules or args.max_dist is not None):
         args.usage_error("--rules and --max-dist go with --shading or --aovs")
     xml = scene_xml(scene, args.columns, args.rows, args.sampling, args.shading,
-                    rules=args.rules, max_dist=1000.0 if args.max_dist is None else args.max_dist,
+                    rules=args.rules, max_dist=DEFAULT_MAX_DIST if args.max_dist is None else args.max_dist,
                     aovs=args.aovs)
     atomic_write(args.output, lambda tmp: Path(tmp).write_text(xml))
     print(f"{args.output}: {len(scene.objects)} shapes, {setup.columns}x{setup.rows}",

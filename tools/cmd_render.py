@@ -11,7 +11,7 @@ import os
 import tempfile
 import sys
 
-from .options import add_image_options, nonneg_float, positive_int
+from .options import add_image_options, add_max_dist, positive_int
 
 
 def add_parser(sub) -> None:
@@ -39,9 +39,8 @@ def add_parser(sub) -> None:
     p.add_argument("--png", metavar="OUT.png", help="shaded image as PNG")
     p.add_argument("--shade", action="store_true",
                    help="shade even when only -o is given (adds R, G, B to the EXR)")
-    p.add_argument("--max-dist", type=nonneg_float, default=None, metavar="D",
-                   help="reflections stop once a path is this long (the notes' MAX_DIST; "
-                        "default 1000)")
+    add_max_dist(p, "reflections stop once a path is this long (the notes' MAX_DIST; "
+                    "default 1000)")
     p.add_argument("--compression", choices=("piz", "zip", "zstd", "htj2k", "none"),
                    default="piz", help="EXR compression, all lossless (default piz: read by "
                                        "every OpenEXR; zstd and htj2k are faster and smaller "

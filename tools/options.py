@@ -77,6 +77,18 @@ def add_image_options(p: argparse.ArgumentParser, columns_required: bool = True)
     p.add_argument("--backend", choices=("llvm", "cuda"), default="llvm")
     p.add_argument("--sampling", choices=("corners", "centers"), default="corners",
                    help="course corner grid (default) or pixel centres")
-    p.add_argument("--rules", type=rules_arg, default=None, metavar="NAME=VALUE,...",
-                   help="hit-rule variants: t_min=1e-4, screen_clip='>'|'>='|off, "
-                        "clip_spheres=true, edges=closed|open, ties=first|last")
+    add_rules(p)
+
+
+RULES_HELP = ("hit-rule variants: t_min=1e-4, screen_clip='>'|'>='|off, clip_spheres=true, "
+              "edges=closed|open, ties=first|last")
+
+
+def add_rules(p: argparse.ArgumentParser, help: str = RULES_HELP) -> None:
+    """--rules NAME=VALUE,... (rt_core.rules.Rules.parse)."""
+    p.add_argument("--rules", type=rules_arg, default=None, metavar="NAME=VALUE,...", help=help)
+
+
+def add_max_dist(p: argparse.ArgumentParser, help: str) -> None:
+    """--max-dist D: the notes' MAX_DIST, where reflections stop (None: the default, 1000)."""
+    p.add_argument("--max-dist", type=nonneg_float, default=None, metavar="D", help=help)
