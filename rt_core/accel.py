@@ -39,7 +39,7 @@ import numpy as np
 
 from .rules import Rules
 from .kinds import PLANE_KINDS
-from .shapes import BOUND_FIELDS, object_t
+from .shapes import BOUND_FIELDS, TAME, object_t
 
 # More (bounded) objects than this: the symbolic loop instead of unrolled code.  Measured
 # crossover (bench, f32): unrolled wins up to ~8-12 objects, the binned loop above.
@@ -107,6 +107,7 @@ class KindTable:
     # bound of every row's (a larger bound is still a bound): host numbers, not gathered
     wide: dict | None = None
     folded: bool = False         # plane kinds: rows with sign(n·q) folded in (fold_signs)
+    tame: bool = False           # every row's numbers within shapes.TAME (shapes.least)
 
     def view(self, T, k):
         """The constants of row k (per ray), in the form shapes.object_t reads."""
@@ -125,7 +126,7 @@ class KindTable:
         else:
             out.n, out.nq = A3(v["nx"], v["ny"], v["nz"]), v["nq"]
             out.g = v["g"]
-        out.folded = self.folded
+        out.folded, out.tame = self.folded, self.tame
         if self.kind == "fplane":
             out.xdir = A3(v["xx"], v["xy"], v["xz"])
             out.ydir = A3(v["yx"], v["yy"], v["yz"])
@@ -166,7 +167,9 @@ def _upload(ks, kind: str, rows: np.ndarray, offsets=None, wide=None,
     if offsets is not None:
         off = T.UInt32(offsets)
         dr.make_opaque(off)
-    return KindTable(kind, len(ks.by_kind[kind]), flat, off, wide, folded)
+    bounds = [j for j, name in enumerate(LAYOUT[kind]) if name in BOUND_FIELDS]
+    tame = bool((np.abs(np.delete(rows, bounds, axis=1)) <= TAME).all())
+    return KindTable(kind, len(ks.by_kind[kind]), flat, off, wide, folded, tame)
 
 
 # the bounds taken table-wide on bins (a sphere's bs too: its t bound is bs/(b' + √disc)

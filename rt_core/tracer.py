@@ -24,7 +24,7 @@ from .decide import decide, decide_rays, prepare as prepare_exact
 from .rules import Rules
 from .scene import Scene, SceneError, locate
 from .kinds import KIND_CODE, PLANE_KINDS
-from .shapes import BOUND_FIELDS, ObjectConstants, object_constants, object_t
+from .shapes import ObjectConstants, least, numbers, object_constants, object_t
 
 backend.require("llvm")     # fail early, with a message, on an LLVM that would abort kernels
 
@@ -105,15 +105,9 @@ def _overflow(scene: Scene, obj) -> SceneError:
 
 
 def _magnitudes(c: ObjectConstants):
-    """Absolute values of every number a kernel receives for object constants ``c``."""
-    for f in dataclasses.fields(c):
-        if f.name in BOUND_FIELDS:          # the certified decisions' bounds (NaN marks a
-            continue                        # certain miss), not inputs of the kernels' arithmetic
-        v = getattr(c, f.name)
-        if isinstance(v, tuple):
-            yield from (abs(x) for x in v)
-        elif isinstance(v, float):
-            yield abs(v)
+    """Absolute values of every number a kernel receives for object constants ``c`` (the
+    certified decisions' bounds, where NaN marks a certain miss, are not among them)."""
+    return (abs(x) for x in numbers(c))
 
 
 def _finite(c: ObjectConstants) -> bool:
@@ -244,13 +238,16 @@ class Best:
             elif grp is None:
                 # the displaced winner, or this hit, joins the others (inf·1 before a hit)
                 lo = dr.select(upd, self.t * self.lf, dr.select(hit, t * lf, unsure))
-                self.lo2 = dr.minimum(self.lo2, lo)
+                # (lo is never NaN: a winner's or a certain hit's t·lf, inf or −inf; a
+                # select, not dr.minimum: see shapes.least)
+                self.lo2 = _least(self.lo2, lo)
                 self.lf = dr.select(upd, lf, self.lf)
             else:
                 uns = possible & ~hit
+                # (NaN only on lanes the selects drop: see above)
                 old = dr.select((self.id >= 0) & (self.grp != grp),
-                                dr.minimum(self.lo2, self.t * self.lf), self.lo2)
-                new = dr.select(hit & (grp != self.grp), dr.minimum(self.lo2, t * lf),
+                                _least(self.lo2, self.t * self.lf), self.lo2)
+                new = dr.select(hit & (grp != self.grp), _least(self.lo2, t * lf),
                                 self.lo2)
                 self.grp = dr.select(upd, grp, self.grp)
             if old is not None:
@@ -258,6 +255,10 @@ class Best:
                 self.lf = dr.select(upd, lf, self.lf)
         self.t = dr.select(upd, t, self.t)
         self.id = dr.select(upd, oid, self.id)
+
+
+def _least(a, b):
+    return least(a, b, True)
 
 
 FLAG_SLOTS = 4096

@@ -395,3 +395,42 @@ def test09_more_flagged_rays_than_slots(monkeypatch, tmp_path):
     assert (listed == compressed).all() and (listed >= -1).all()
     ex = _exact(path, W, H, range(W * H), Rules())
     assert (compressed == ex.id).all()
+
+
+@pytest.mark.parametrize("layout", ["unrolled", "looped"])
+def test10_untamed_objects_keep_the_nan_safe_minimum(layout, monkeypatch):
+    """The least of an object's decision values is a select (shapes.least) only where no
+    value can be NaN: every host number within shapes.TAME.  An object at 1e152, or a
+    far viewpoint, is untamed; table rows carry the flag.  Untamed (TAME = 0: dr.minimum
+    everywhere), the near-decision rays of test08 get the same answers."""
+    import drjit as dr
+    from rt_core import accel, shapes
+    from rt_core.parser import parse_text
+    from rt_core.tracer import closest_hit, prepare
+    T = backend.types("f64")
+    ks = prepare(parse_text(NEAR), T)
+    vz = ks.scene.viewpoint[2]
+    assert all(shapes.tame(c, vz) for c in ks.consts)
+    assert not any(shapes.tame(c, 1e160) for c in ks.consts)
+    big = parse_text("8 6  0 0 4.7\nsphere " + M0 + "  1e152 0 -3  2\n"
+                     "fplane " + M0 + "  0 0 1  1e152 0 -3  1 0 0  2 2\n")
+    assert not any(shapes.tame(c, 4.7) for c in prepare(big, T).consts)
+    monkeypatch.setattr(accel, "UNROLL_MAX", 0)
+    assert accel.tables(prepare(parse_text(NEAR), T))["fplane"].tame
+    assert not accel.tables(prepare(big, T))["fplane"].tame
+    monkeypatch.undo()
+    if layout == "looped":
+        monkeypatch.setattr(accel, "UNROLL_MAX", 0)
+    xs = parse_exact(NEAR)
+    d = _near_rays(xs, 3200)
+    D = T.Array3(*(T.Float(c) for c in d.T))
+    dmax = float(np.linalg.norm(d, axis=1).max())
+    ids = {}
+    for limit in (shapes.TAME, 0.0):
+        monkeypatch.setattr(shapes, "TAME", limit)
+        monkeypatch.setattr(accel, "TAME", limit)
+        ks = prepare(parse_text(NEAR), T)
+        _, oid, _ = closest_hit(ks, D, None, Rules(), cam="rays", dmax=dmax)
+        ids[limit] = np.asarray(oid.numpy())
+    assert (ids[0.0] == ids[shapes.TAME]).all()
+    assert (ids[0.0] == trace_exact(xs, d, Rules()).id).all()
