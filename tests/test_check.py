@@ -266,7 +266,8 @@ def test09_cli_outputs_and_exit_codes(ctracer, tmp_path):
     assert suite.get("tests") == "1" and suite.get("failures") == "1"
     assert any(p.get("name") == "drjit" for p in suite.iter("property"))
     html = (report / "index.html").read_text()
-    assert "wrong" in html and len(list(report.glob("*.png"))) == 3
+    # reference, theirs, classes and their difference (tests/test_html_report.py: the page)
+    assert "wrong" in html and len(list(report.glob("*.png"))) == 4
     good = _render(ctracer / "course", scene, 40, tmp_path)
     assert main(["check", str(scene), str(good)]) == 0
 

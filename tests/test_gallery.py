@@ -67,3 +67,20 @@ def test02_given_files(tmp_path):
     pngs = sorted(p.name for p in (tmp_path / "g2").glob("*s.png"))
     assert len(pngs) == 2, pngs
 
+
+
+def test03_json(tmp_path):
+    """--json: what was written, on stdout, instead of the two paths."""
+    import json
+    out = tmp_path / "g"
+    r = rtval("gallery", "-o", out, "--columns", 20, "--json", REPO / "scenes" / "sphere.txt",
+              REPO / "scenes" / "mixed.txt")
+    assert r.returncode == 0, r.stderr
+    data = json.loads(r.stdout)
+    assert [s["name"] for s in data["scenes"]] == ["sphere", "mixed"]
+    for s in data["scenes"]:
+        with Image.open(s["png"]) as im:
+            assert im.size == (s["columns"], s["rows"]) == (20, 15)
+    assert [s["reflection_bounces"] for s in data["scenes"]] == [0, 1]
+    assert data["page"] == str(out / "index.html") and Path(data["contact_sheet"]).is_file()
+    assert data["skipped"] == [] and data["meta"]["drjit"] and data["meta"]["columns"] == 20

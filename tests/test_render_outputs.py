@@ -129,3 +129,19 @@ def test06_bounce_cap_is_a_warning(tmp_path, monkeypatch, capsys):
     err = capsys.readouterr().err
     assert "warning: reflections stopped at the safety cap of 3 bounces with" in err
     assert "SAFETY CAP reached" in err and (tmp_path / "m.png").exists()
+
+
+def test07_json_summary(tmp_path):
+    """--json: a summary of what was written on stdout (and nothing else there)."""
+    import json
+    png = tmp_path / "a.png"
+    r = rtval("render", "scenes/mixed.txt", "--columns", 32, "--png", png, "--json")
+    assert r.returncode == 0, r.stderr
+    data = json.loads(r.stdout)
+    assert data["outputs"] == [{"option": "--png", "path": str(png)}] and png.is_file()
+    assert (data["columns"], data["rows"], data["objects"]) == (32, 24, 4)
+    assert data["reflection_bounces"] == 1 and data["nonfinite"] == 0 and data["shaded"]
+    assert data["provenance"]["rtval.scene"].endswith("mixed.txt")
+    r = rtval("render", "scenes/mixed.txt", "--columns", 32, "-o", tmp_path / "g.exr", "--json")
+    data = json.loads(r.stdout)
+    assert data["hits"] == 32 * 24 and not data["shaded"] and data["reflection_bounces"] is None

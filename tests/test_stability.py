@@ -366,6 +366,46 @@ def test07_cli_quick(tmp_path):
     assert main(["stability", "--quick", "--families", "nosuch"]) == 2
 
 
+def test07b_cli_json_on_stdout_and_junit(tmp_path, capsys):
+    """--json alone prints the JSON on stdout (the tables go to stderr); --junit writes a
+    test case per generated case."""
+    import xml.etree.ElementTree as ET
+    from tools.cli import main
+    junit = tmp_path / "s.xml"
+    assert main(["stability", "--quick", "--families", "straddle", "--json", "--junit",
+                 str(junit), "-o", str(tmp_path)]) == 0
+    out, err = capsys.readouterr()
+    data = json.loads(out)
+    assert set(data["summary"]) == {"straddle"} and len(data["cases"]) == 3
+    assert data["meta"]["drjit"] and "straddle" in err          # the tables, on stderr
+    suite = ET.parse(junit).getroot()
+    assert (suite.get("name"), suite.get("tests"), suite.get("failures")) == \
+        ("rtval stability", "3", "0")
+    assert [c.get("name") for c in suite.iter("testcase")] == [c["label"] for c in data["cases"]]
+    assert all("rt_f64: " in c.find("system-out").text for c in suite.iter("testcase"))
+
+
+def test07c_junit_says_why_a_case_fails():
+    from tools.harness.junit import junit_xml, stability_cases
+    import xml.etree.ElementTree as ET
+
+    def m(unexplained, nonfinite=0, over=0):
+        return S.Metrics(100, 50, unexplained, unexplained, nonfinite, 0.0, 0.0, 50, 0,
+                         over_target=over)
+    good = S.CaseResult("edges", 1.0, "edges[1]", {"rt_f32": m(0), "rt_f64": m(0),
+                                                   "mitsuba": m(2)}, 0.5)
+    bad = S.CaseResult("edges", 2.0, "edges[2]", {"rt_f32": m(3, nonfinite=1),
+                                                  "rt_f64": m(1, over=2), "mitsuba": m(2)}, 0.5)
+    suite = ET.fromstring(junit_xml("rtval stability", stability_cases([good, bad])))
+    assert suite.get("failures") == "1"
+    f = [c for c in suite.iter("testcase") if c.find("failure") is not None]
+    assert [c.get("name") for c in f] == ["edges[2]"]
+    msg = f[0].find("failure").get("message")
+    assert msg == ("rt_f32 1 non-finite values; rt_f32 3 unexplained mismatches, more than "
+                   "Mitsuba's 2; rt_f64 1 unexplained mismatches; rt_f64 2 depths over 1e-12 "
+                   "where the condition number allows it")
+
+
 # --- the full sweep ------------------------------------------------------------------------------
 
 @pytest.mark.slow

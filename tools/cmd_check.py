@@ -33,7 +33,9 @@ def add_parser(sub) -> None:
                    help="a hit dump of the image: 'column row object t' per pixel")
     p.add_argument("--timeout", type=nonneg_float, default=60.0, metavar="S",
                    help="with --run: seconds before a run is killed (default 60)")
-    p.add_argument("--report", metavar="DIR", help="write an HTML report into DIR")
+    p.add_argument("--report", metavar="DIR",
+                   help="write an HTML report into DIR (new, empty or an earlier report): "
+                        "failures first, rt_core's image, yours and the classes side by side")
     p.add_argument("--junit", metavar="FILE", help="write JUnit XML (one test case per scene)")
     p.add_argument("--json", action="store_true", help="print the results as JSON on stdout")
     p.set_defaults(func=run)
@@ -42,9 +44,11 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     from rt_core.errors import InputError
     from rt_core.outputs import atomic_write
-    from tools.harness.check import (check_image, check_run, junit_xml, text_report,
-                                     write_report)
+    from tools.harness.check import check_image, check_run, junit_xml, text_report
     kw = {"rules": args.rules, "max_dist": args.max_dist}
+    if args.report:                     # refused before the runs, not after them
+        from tools.harness.html_report import check_target
+        check_target(args.report)
     if args.run:
         if args.columns is None:
             raise InputError("--run needs --columns (the image width to ask the tracer for)")
@@ -75,8 +79,10 @@ def run(args) -> int:
                 f.write(text)
         atomic_write(args.junit, write)
     if args.report:
-        path = write_report(results, args.report)
-        print(f"report: {path}", file=sys.stderr)
+        from tools.harness.html_report import check_report
+        page = check_report(args.report, results, run=args.run, rows=args.rows, hits=args.hits,
+                            timeout=args.timeout, **kw)
+        print(f"report: {page}", file=sys.stderr)
     single = len(results) == 1 and not args.run
     if single and results[0].status in ("error", "refused"):
         print(f"rtval check: {results[0].reason}", file=sys.stderr)

@@ -27,6 +27,9 @@ def add_parser(sub) -> None:
     p.add_argument("--evidence", default="out/compare", metavar="DIR",
                    help="where evidence EXRs go on failure (default out/compare)")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    p.add_argument("--report", metavar="DIR",
+                   help="also write an HTML report into DIR (new, empty or an earlier "
+                        "report): Mitsuba's picture, rt_core's and the classes per mode")
     p.add_argument("--junit", metavar="FILE.xml",
                    help="also write JUnit XML, one test case per mode")
     p.set_defaults(func=run, usage_error=p.error)
@@ -36,11 +39,15 @@ def run(args) -> int:
     from rt_core.parser import parse_scene
     from rt_core.rules import Rules
     from tools.harness.compare import compare, write_evidence
-    from tools.harness.validate import stem_of
+    from tools.harness.html_report import comparison_pictures
+    from tools.harness.validate import public, stem_of
 
     if args.max_dist is not None and not args.shaded:
         args.usage_error("--max-dist goes with --shaded (the geometry comparison has no "
                          "reflections)")
+    if args.report:
+        from tools.harness.html_report import check_target
+        check_target(args.report, {"--evidence": args.evidence})
     scene = parse_scene(args.scene)
     if args.shaded:
         return _run_shaded(args, scene)
@@ -56,6 +63,8 @@ def run(args) -> int:
             ok = False
             row["evidence"] = write_evidence(cmp, args.evidence,
                                              f"{stem_of(scene.path)}.{mode}.{args.precision}")
+        if args.report:
+            row["pictures"] = comparison_pictures(cmp)
         rows.append(row)
         if not args.json:
             d = row["depth"]
@@ -70,8 +79,9 @@ def run(args) -> int:
         from tools.harness.validate import comparison_cases
         from tools.harness.junit import write_junit
         write_junit(args.junit, "rtval compare", comparison_cases(rows, "rtval.compare"))
+    _report(args, rows)
     if args.json:
-        json.dump(rows, sys.stdout, indent=1)
+        json.dump([public(r) for r in rows], sys.stdout, indent=1)
         print()
     else:
         print(f"{'PASS' if ok else 'FAIL'} {args.scene}: {len(rows)} comparison"
@@ -84,20 +94,24 @@ def run(args) -> int:
 def _run_shaded(args, scene) -> int:
     from rt_core.rules import Rules
     from rt_core.shading import DEFAULT_MAX_DIST
+    from tools.harness.html_report import comparison_pictures
     from tools.harness.shaded import compare_shaded, write_shaded_evidence
-    from tools.harness.validate import stem_of
+    from tools.harness.validate import public, stem_of
     max_dist = DEFAULT_MAX_DIST if args.max_dist is None else args.max_dist
     cmp = compare_shaded(scene, args.columns, args.rows, args.sampling, args.rules or Rules(),
                          max_dist)
     row = cmp.summary()
     if not cmp.ok:
         row["evidence"] = write_shaded_evidence(cmp, args.evidence, stem_of(scene.path))
+    if args.report:
+        row["pictures"] = comparison_pictures(cmp)
     if args.junit:
         from tools.harness.validate import comparison_cases
         from tools.harness.junit import write_junit
         write_junit(args.junit, "rtval compare", comparison_cases([row], "rtval.compare"))
+    _report(args, [row])
     if args.json:
-        json.dump([row], sys.stdout, indent=1)
+        json.dump([public(row)], sys.stdout, indent=1)
         print()
         return 0 if cmp.ok else 1
     classes = " ".join(f"{k}={v}" for k, v in row["classes"].items() if v)
@@ -110,3 +124,10 @@ def _run_shaded(args, scene) -> int:
     print(f"{'PASS' if cmp.ok else 'FAIL'} {args.scene}: shaded, "
           + ("no wrong pixel" if cmp.ok else f"{row['wrong']} wrong pixels"))
     return 0 if cmp.ok else 1
+
+
+def _report(args, rows) -> None:
+    if args.report:
+        from tools.harness.html_report import comparisons_report
+        page = comparisons_report(args.report, "rtval compare", rows, rows_given=args.rows)
+        print(f"report: {page}", file=sys.stderr)

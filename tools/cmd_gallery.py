@@ -32,6 +32,10 @@ def add_parser(sub) -> None:
     p.add_argument("--columns", type=positive_int, default=160,
                    help="image width in pixels (default 160)")
     p.add_argument("--precision", choices=("f32", "f64"), default="f32")
+    p.add_argument("--json", action="store_true",
+                   help="print what was written as JSON on stdout (each scene's PNG, size "
+                        "and reflection bounces, the skipped files and why, provenance) "
+                        "instead of the two paths")
     p.set_defaults(func=run)
 
 
@@ -100,6 +104,17 @@ def run(args) -> int:
                "rtval.backend": "llvm", "rtval.columns": str(args.columns),
                "rtval.versions": " ".join(f"{k}={v}" for k, v in versions().items())})
     print(f"rtval gallery: {len(done)} scenes rendered, {len(skipped)} skipped", file=sys.stderr)
+    if args.json:
+        from rt_core.outputs import json_text
+        print(json_text({
+            "meta": {"columns": args.columns, "precision": args.precision, "backend": "llvm",
+                     **versions()},
+            "page": str(page), "contact_sheet": str(sheet),
+            "scenes": [{"name": n, "png": str(outdir / f), "columns": int(p.shape[1]),
+                        "rows": int(p.shape[0]), "reflection_bounces": int(b)}
+                       for n, f, p, b in done],
+            "skipped": [{"name": n, "reason": e} for n, e in skipped]}), end="")
+        return 0
     print(page)
     print(sheet)
     return 0

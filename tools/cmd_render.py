@@ -49,6 +49,10 @@ def add_parser(sub) -> None:
                    help="trace the image in bands of ROWS rows, so that memory grows with the "
                         "outputs only (default: bands of about 2 million pixels); the image "
                         "is the same")
+    p.add_argument("--json", action="store_true",
+                   help="print a summary of what was written as JSON on stdout: the outputs, "
+                        "size, hits, reflection bounces, non-finite count, stand-ins, "
+                        "provenance (not with --mitsuba)")
     p.add_argument("--explain", action="store_true",
                    help="print on stderr the object kinds, the passes that ran and the Dr.Jit "
                         "kernels they compiled and launched")
@@ -130,6 +134,8 @@ def run(args) -> int:
     phase("import")             # (the imports above: rt_core, Dr.Jit, numpy, OpenEXR)
     outs = _outputs(args)
     if args.mitsuba:
+        if args.json:
+            args.usage_error("--json does not apply with --mitsuba")
         return _run_mitsuba(args, outs)
     if args.columns is None:
         args.usage_error("the following arguments are required: --columns")
@@ -200,6 +206,16 @@ def run(args) -> int:
         print(f"rtval render: warning: reflections stopped at the safety cap of "
               f"{shading.MAX_BOUNCES} bounces with {res.left_active} rays still short of "
               f"max-dist {max_dist:g}", file=sys.stderr)
+    if args.json:
+        from rt_core.outputs import json_text
+        print(json_text({
+            "outputs": [{"option": opt, "path": path} for opt, path in outs],
+            "columns": cam.columns, "rows": cam.rows, "precision": args.precision,
+            "objects": len(scene.objects), "hits": int(images["hit.mask"].sum())
+            if "hit.mask" in images else None, "shaded": shade,
+            "reflection_bounces": res.bounces if shade else None,
+            "max_dist": max_dist if shade else None, "nonfinite": bad,
+            "stand_ins": scene.stand_ins() if shade else [], "provenance": attrs}), end="")
     return 1 if bad else 0
 
 

@@ -2,6 +2,7 @@
 oracle (tools.harness.stability does the work)."""
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 
@@ -31,7 +32,12 @@ def add_parser(sub) -> None:
                    help=f"only these families (default all: {FAMILY_HELP})")
     p.add_argument("--seeds", type=positive_int, default=1, metavar="N",
                    help="run N seeds (0..N-1) of every case (default 1)")
-    p.add_argument("--json", metavar="OUT", help="write the results as JSON to OUT")
+    p.add_argument("--json", nargs="?", const="-", metavar="FILE",
+                   help="print the results as JSON on stdout (the tables go to stderr), as "
+                        "rtval's other commands do; with FILE write them there instead")
+    p.add_argument("--junit", metavar="FILE.xml",
+                   help="also write JUnit XML: one test case per generated case, a failure "
+                        "for each case that misses the bar")
     p.add_argument("-o", "--output", metavar="DIR", default="out/stability",
                    help="where stability.png goes (default out/stability)")
     p.set_defaults(func=run)
@@ -54,34 +60,44 @@ def run(args) -> int:
     bar = tqdm(total=total, file=sys.stderr, unit="case", disable=None)
     results = S.run_suite(mode, fams, seeds, progress=lambda r: bar.update(1))
     bar.close()
-    print(S.table(results))
-    summ = S.summary(results)
-    print()
-    print(f"{'family':12s} {'cases':>5s}  {'rt_f32 unexpl':>13s} {'mitsuba unexpl':>14s} "
-          f"{'naive unexpl':>12s} {'rt_f64 unexpl':>13s} {'f64 >1e-12':>10s} "
-          f"{'rt nonfinite':>12s}  ok")
-    for fam, f in summ.items():
-        g = lambda t, k: f.get(t, {}).get(k, 0)
-        print(f"{fam:12s} {f['cases']:5d}  {g('rt_f32', 'unexplained'):13d} "
-              f"{g('mitsuba', 'unexplained'):14d} {g('naive_f32', 'unexplained'):12d} "
-              f"{g('rt_f64', 'unexplained'):13d} {g('rt_f64', 'over_target'):10d} "
-              f"{g('rt_f32', 'nonfinite') + g('rt_f64', 'nonfinite'):12d}  "
-              f"{'yes' if f['ok'] else 'NO'}")
-    head = S.headline(results)
-    if head:
-        print("\nthe issue's case (square of side 2e-7·D tilted 50°, D away, 1e-6 window): "
-              "fraction of the square's pixels missed")
-        for row in head:
-            print(f"  D = {row['distance']:<8g} exact hits {row['exact_hits']:4d}:  "
-                  + "  ".join(f"{k} {row[k]:.1%}" for k in S.TRACERS if k in row))
+    to_json = args.json == "-"      # stdout is the JSON's; the tables go to stderr
+    tables = contextlib.redirect_stdout(sys.stderr) if to_json else contextlib.nullcontext()
+    with tables:
+        print(S.table(results))
+        summ = S.summary(results)
+        print()
+        print(f"{'family':12s} {'cases':>5s}  {'rt_f32 unexpl':>13s} {'mitsuba unexpl':>14s} "
+              f"{'naive unexpl':>12s} {'rt_f64 unexpl':>13s} {'f64 >1e-12':>10s} "
+              f"{'rt nonfinite':>12s}  ok")
+        for fam, f in summ.items():
+            g = lambda t, k: f.get(t, {}).get(k, 0)
+            print(f"{fam:12s} {f['cases']:5d}  {g('rt_f32', 'unexplained'):13d} "
+                  f"{g('mitsuba', 'unexplained'):14d} {g('naive_f32', 'unexplained'):12d} "
+                  f"{g('rt_f64', 'unexplained'):13d} {g('rt_f64', 'over_target'):10d} "
+                  f"{g('rt_f32', 'nonfinite') + g('rt_f64', 'nonfinite'):12d}  "
+                  f"{'yes' if f['ok'] else 'NO'}")
+        head = S.headline(results)
+        if head:
+            print("\nthe issue's case (square of side 2e-7·D tilted 50°, D away, 1e-6 window): "
+                  "fraction of the square's pixels missed")
+            for row in head:
+                print(f"  D = {row['distance']:<8g} exact hits {row['exact_hits']:4d}:  "
+                      + "  ".join(f"{k} {row[k]:.1%}" for k in S.TRACERS if k in row))
     meta = dict(mode=mode, seeds=list(seeds), backend="llvm", precisions="f32 f64",
                 reference="mitsuba llvm_ad_rgb", **versions())
     plot = os.path.join(args.output, "stability.png")
     S.write_plot(results, plot, {f"rtval.{k}": v for k, v in meta.items()})
     print(f"plot: {plot}", file=sys.stderr)
-    if args.json:
+    if to_json:
+        from rt_core.outputs import json_text
+        print(json_text(S.report_data(results, meta)), end="")
+    elif args.json:
         S.write_json(results, args.json, meta)
         print(f"json: {args.json}", file=sys.stderr)
+    if args.junit:
+        from tools.harness.junit import stability_cases, write_junit
+        write_junit(args.junit, "rtval stability", stability_cases(results))
+        print(f"junit: {args.junit}", file=sys.stderr)
     bad = [fam for fam, f in summ.items() if not f["ok"]]
     if bad:
         print(f"rtval stability: bar not met in: {', '.join(bad)}", file=sys.stderr)

@@ -22,6 +22,13 @@ def add_parser(sub) -> None:
     p.add_argument("--junit", metavar="FILE.xml",
                    help="also write JUnit XML: one test case per comparison (CI systems show "
                         "them), a failure for each failing one, an error for each skipped file")
+    p.add_argument("--report", metavar="DIR",
+                   help="also write an HTML report into DIR (new, empty or an earlier "
+                        "report): a row per comparison, failures first, Mitsuba's picture, "
+                        "rt_core's and the classes side by side, the skipped files")
+    p.add_argument("--json", action="store_true",
+                   help="print the results as JSON on stdout (what report.json holds) "
+                        "instead of the table")
     p.add_argument("--shaded-columns", type=int, default=48, metavar="N",
                    help="also compare each scene's shaded course image with Mitsuba's 'course' "
                         "integrator at N columns (rtval compare --shaded; default 48; 0: off; "
@@ -54,6 +61,9 @@ def run(args) -> int:
     from tools.harness.validate import (default_scene_paths, load_supported, skip_counts,
                                         stem_of, validate, write_report)
 
+    if args.report:                     # refused before the run, not after it
+        from tools.harness.html_report import check_target
+        check_target(args.report, {"-o": args.output})
     paths = args.scenes or default_scene_paths()
     scenes, skipped = load_supported(paths, explicit=bool(args.scenes))
     precisions = ("f32", "f64") if args.precision == "both" else (args.precision,)
@@ -72,7 +82,7 @@ def run(args) -> int:
                          "at least 2")
     results = validate(scenes, args.columns, precisions, modes, args.output,
                        progress=progress, evidence=args.evidence,
-                       shaded_columns=args.shaded_columns)
+                       shaded_columns=args.shaded_columns, pictures=bool(args.report))
     done()
     meta = dict(columns=args.columns, backend="llvm", reference="mitsuba llvm_ad_rgb",
                 **versions())
@@ -82,6 +92,19 @@ def run(args) -> int:
         from tools.harness.validate import comparison_cases, skip_case
         write_junit(args.junit, "rtval validate", comparison_cases(results, "rtval.validate")
                     + [skip_case(s) for s in skipped])
+    if args.report:
+        from tools.harness.html_report import comparisons_report
+        page = comparisons_report(args.report, "rtval validate", results, skipped, meta=meta)
+        print(f"report: {page}", file=sys.stderr)
+    bad = [r for r in results if not r["ok"]]
+    summary = (f"{len(results)} comparisons on {len(scenes)} scenes (skipped: "
+               f"{skip_counts(skipped)}): {len(bad)} failed. Report: {md}, {js}")
+    if args.json:
+        from rt_core.outputs import json_text
+        from tools.harness.validate import report_data
+        print(json_text(report_data(results, skipped, meta)), end="")
+        print(summary, file=sys.stderr)
+        return 1 if bad else 0
     head = (f"{'scene':34s} {'mode':6s} {'prec':4s} {'pixels':>7s} {'explained':>9s} "
             f"{'unexpl':>6s} {'depth max rel':>13s} {'rt_core ms':>10s} {'Mitsuba ms':>10s}")
     print(head)
@@ -97,7 +120,5 @@ def run(args) -> int:
               f"{r['pixels']:7d} {r['explained']:9d} {r['unexplained']:6d} "
               f"{r['depth']['max_rel']:13.2e} {r['rt_core_ms']:10.2f} {r['mitsuba_ms']:10.2f}"
               + ("" if r["ok"] else "  FAIL"))
-    bad = [r for r in results if not r["ok"]]
-    print(f"{len(results)} comparisons on {len(scenes)} scenes (skipped: "
-          f"{skip_counts(skipped)}): {len(bad)} failed. Report: {md}, {js}", file=sys.stderr)
+    print(summary, file=sys.stderr)
     return 1 if bad else 0

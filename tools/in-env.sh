@@ -2,7 +2,9 @@
 # Set up everything rtval needs on a fresh Debian machine, then run the given command inside
 # that environment:   tools/in-env.sh rtval validate    |    tools/in-env.sh python -m pytest
 #  1. an LLVM that Dr.Jit can use (>= 16; Debian 12's LLVM 15 aborts Dr.Jit kernels),
-#  2. a virtual environment (.venv, unless one is already active) with rtval installed.
+#  2. a virtual environment (.venv, unless one is already active) with rtval installed,
+#  3. when the command runs the tests (python -m pytest): Chromium and its driver, for the
+#     HTML report's browser test (tests/test_html_report.py).
 set -euo pipefail
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "$root"
@@ -42,6 +44,17 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
     "$venv/bin/python" -m pip install -q --disable-pip-version-check -e ".[test]" >&2
     echo "$want" > "$stamp"
 fi
+
+# the headless browser the report tests drive; only when the tests are what runs
+case "$*" in
+    "python -m pytest"|"python -m pytest "*|"python3 -m pytest"|"python3 -m pytest "*|pytest|"pytest "*)
+        if ! command -v chromium >/dev/null || ! command -v chromedriver >/dev/null; then
+            echo "in-env: installing chromium and chromium-driver (the HTML report's browser" \
+                 "test)" >&2
+            apt_install chromium chromium-driver ||
+                echo "in-env: chromium did not install; the browser test will be skipped" >&2
+        fi ;;
+esac
 
 [ $# -gt 0 ] || exit 0
 export PATH="$venv/bin:$PATH" VIRTUAL_ENV="$venv"

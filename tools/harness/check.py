@@ -652,11 +652,6 @@ def _check_runs(pool, work, template, scenes, columns, rows, timeout, results, k
 
 # --- outputs --------------------------------------------------------------------------------------
 
-def class_image(cls: np.ndarray) -> np.ndarray:
-    lut = np.array([COLORS[c][1] for c in CLASSES], np.uint8)
-    return lut[cls]
-
-
 def junit_xml(results) -> str:
     from .junit import Case, junit_xml as xml
     cases = []
@@ -706,54 +701,3 @@ def text_report(results) -> str:
     ok = sum(r.ok for r in results)
     lines.append(f"{ok} of {n} scenes pass")
     return "\n".join(lines)
-
-
-def write_report(results, directory: str) -> str:
-    """An HTML page, failures first: reference, theirs and the class image side by side, the
-    inferred rules; refused or crashed scenes with the reason."""
-    import json
-    from html import escape
-    from rt_core.imageio import write_png
-    from rt_core.render import versions
-    os.makedirs(directory, exist_ok=True)
-    order = {"fail": 0, "error": 1, "refused": 2, "pass": 3}
-    rows = []
-    for k, r in enumerate(sorted(results, key=lambda r: order.get(r.status, 4))):
-        cells = ""
-        if r.classes is not None:
-            for what, img in (("rt_core", r.ours), ("theirs", r.theirs),
-                              ("classes", class_image(r.classes))):
-                name = f"{k:03d}-{Path(r.scene).stem}-{what}.png"
-                write_png(os.path.join(directory, name), img)
-                cells += (f'<td><img src="{escape(name)}" alt="{what}" '
-                          f'style="image-rendering:pixelated;max-width:320px"></td>')
-        else:
-            cells = f'<td colspan="3">{escape(r.reason)}</td>'
-        info = escape(_one_line(r))
-        if r.findings:
-            info += "<br>rules: " + escape(", ".join(
-                f"{f.rule}={f.value}{'' if f.determined else ' (undetermined)'}"
-                for f in r.findings))
-        for d in r.deviations:
-            info += f"<br>deviation: {escape(d)}"
-        if r.worst:
-            info += "<br>wrong: " + escape(str(r.worst))
-        rows.append(f'<tr class="{r.status}"><td>{info}</td>{cells}</tr>')
-    legend = " ".join(f'<span style="background:rgb{COLORS[c][1]};color:white;padding:2px 6px">'
-                      f'{c} ({COLORS[c][0]})</span>' for c in CLASSES)
-    ok = sum(r.ok for r in results)
-    html = ("<!doctype html><meta charset='utf-8'><title>rtval check</title>"
-            "<style>body{font-family:sans-serif} td{vertical-align:top;padding:4px}"
-            "tr.fail td:first-child{color:#b00} tr.error td:first-child{color:#a60}</style>"
-            f"<h1>rtval check: {ok} of {len(results)} scenes pass</h1><p>{legend}</p>"
-            "<table><tr><th>scene</th><th>rt_core (f64)</th><th>theirs</th><th>classes</th>"
-            "</tr>" + "".join(rows) + "</table>"
-            f"<p><small>{escape(json.dumps(versions()))}</small></p>")
-    path = os.path.join(directory, "index.html")
-    from rt_core.outputs import atomic_write
-
-    def write(tmp):
-        with open(tmp, "w", encoding="utf-8") as f:
-            f.write(html)
-    atomic_write(path, write)
-    return path

@@ -48,3 +48,32 @@ def write_junit(path: str, suite: str, cases: list[Case]) -> None:
         with open(tmp, "w", encoding="utf-8") as f:
             f.write(text)
     atomic_write(path, write)
+
+
+def stability_cases(results) -> list[Case]:
+    """JUnit cases of ``rtval stability``: one per generated case (family[parameter]#seed),
+    a failure when it misses the bar (tools/harness/stability.py ``case_ok``), saying which
+    part of the bar and by how much."""
+    from .stability import F64_TARGET, case_ok
+    cases = []
+    for r in results:
+        m = r.metrics
+        c = Case(r.label, f"rtval.stability.{r.family}", r.seconds)
+        c.body = "\n".join(f"{k}: {v.rays} rays, mismatch {v.mismatch}, unexplained "
+                           f"{v.unexplained}, non-finite {v.nonfinite}, depth max rel "
+                           f"{v.depth_max:.3g}" for k, v in m.items())
+        if not case_ok(r):
+            why = [f"{k} {v.nonfinite} non-finite values" for k, v in m.items()
+                   if k.startswith("rt_") and v.nonfinite]
+            if "rt_f32" in m and "mitsuba" in m and \
+                    m["rt_f32"].unexplained > m["mitsuba"].unexplained:
+                why.append(f"rt_f32 {m['rt_f32'].unexplained} unexplained mismatches, more "
+                           f"than Mitsuba's {m['mitsuba'].unexplained}")
+            if "rt_f64" in m and m["rt_f64"].unexplained:
+                why.append(f"rt_f64 {m['rt_f64'].unexplained} unexplained mismatches")
+            if "rt_f64" in m and m["rt_f64"].over_target:
+                why.append(f"rt_f64 {m['rt_f64'].over_target} depths over {F64_TARGET:g} "
+                           "where the condition number allows it")
+            c.failure = "; ".join(why)
+        cases.append(c)
+    return cases

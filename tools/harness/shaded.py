@@ -34,10 +34,11 @@ from rt_core.shading import DEFAULT_MAX_DIST, quantize
 
 SHADED_CLASSES = ("match", "rounding", "boundary", "wrong")
 SHADED_CODE = {c: i for i, c in enumerate(SHADED_CLASSES)}
-# named colours of the classes image (evidence): match black, rounding grey, boundary amber,
-# wrong red
-SHADED_COLOURS = {"match": (0, 0, 0), "rounding": (96, 96, 96), "boundary": (255, 176, 0),
-                  "wrong": (230, 0, 0)}
+# named colours of the classes image (evidence, HTML report): those of rtval check's classes
+SHADED_COLOURS = {"match": (48, 48, 48), "rounding": (70, 110, 230), "boundary": (240, 200, 40),
+                  "wrong": (230, 30, 30)}
+SHADED_COLOUR_NAMES = {"match": "dark grey", "rounding": "blue", "boundary": "yellow",
+                       "wrong": "red"}
 
 
 @dataclass
@@ -158,7 +159,8 @@ def write_shaded_evidence(cmp: ShadedComparison, outdir: str, stem: str) -> list
     with provenance; returns the paths written."""
     from rt_core.imageio import write_png
     os.makedirs(outdir, exist_ok=True)
-    legend = ", ".join(f"{c}={'rgb(%d,%d,%d)' % SHADED_COLOURS[c]}" for c in SHADED_CLASSES)
+    legend = ", ".join(f"{c}={SHADED_COLOUR_NAMES[c]} {'rgb(%d,%d,%d)' % SHADED_COLOURS[c]}"
+                       for c in SHADED_CLASSES)
     text = {"rtval.scene": str(cmp.scene.path), "rtval.scene_sha256": cmp.scene.sha256,
             "rtval.rules": cmp.rules.describe(), "rtval.max_dist": repr(cmp.max_dist)}
     paths = []

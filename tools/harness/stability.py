@@ -815,10 +815,16 @@ def summary(results) -> dict:
     return fams
 
 
+def report_data(results, meta: dict | None = None) -> dict:
+    """What ``--json`` prints or writes: provenance, per-family summary, the issue's case,
+    every case."""
+    return {"meta": meta or {}, "summary": summary(results), "headline": headline(results),
+            "cases": [r.to_json() for r in results]}
+
+
 def write_json(results, path: str, meta: dict | None = None) -> None:
     from rt_core.outputs import write_json as write
-    write(path, {"meta": meta or {}, "summary": summary(results),
-                 "headline": headline(results), "cases": [r.to_json() for r in results]})
+    write(path, report_data(results, meta))
 
 
 def write_plot(results, path: str, provenance: dict | None = None) -> None:

@@ -1,7 +1,6 @@
 """Validation runs: every scene × precision × mode compared, with a report on disk."""
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -65,7 +64,7 @@ def stem_of(path: str) -> str:
 
 
 def validate(scenes, columns: int, precisions, modes, outdir: str, progress=None,
-             evidence: str = "failures", shaded_columns: int = 0):
+             evidence: str = "failures", shaded_columns: int = 0, pictures: bool = False):
     """Run every comparison; write the evidence EXRs under ``outdir``: of every failing
     comparison (ours, Mitsuba, difference, classes, in ``failures/``) and, with
     ``evidence="all"``, ours and Mitsuba's of the passing ones too (in ``exr/``).
@@ -74,8 +73,13 @@ def validate(scenes, columns: int, precisions, modes, outdir: str, progress=None
     (``rtval compare --shaded``, tools/harness/shaded.py) at that width; the evidence PNGs of
     a failing one go to ``failures/`` too.
 
+    ``pictures``: each row also gets "pictures", its PNGs for the HTML report
+    (tools/harness/html_report.py; ``public`` drops them from what is written as JSON).
+
     Evidence of an earlier run in ``outdir/failures`` and ``outdir/exr`` is removed first,
     so what is there belongs to this run."""
+    if pictures:
+        from .html_report import comparison_pictures
     for sub in ("failures", "exr"):
         for old in [*Path(outdir, sub).glob("*.exr"), *Path(outdir, sub).glob("*.png")]:
             old.unlink()
@@ -92,6 +96,8 @@ def validate(scenes, columns: int, precisions, modes, outdir: str, progress=None
                 elif evidence == "all" and precision == precisions[0]:
                     row["evidence"] = write_evidence(cmp, os.path.join(outdir, "exr"), stem,
                                                      ("ours", "mitsuba"))
+                if pictures:
+                    row["pictures"] = comparison_pictures(cmp)
                 results.append(row)
                 if progress:
                     progress(row)
@@ -102,20 +108,32 @@ def validate(scenes, columns: int, precisions, modes, outdir: str, progress=None
             if not cmp.ok:
                 row["evidence"] = write_shaded_evidence(cmp, os.path.join(outdir, "failures"),
                                                         stem_of(scene.path))
+            if pictures:
+                row["pictures"] = comparison_pictures(cmp)
             results.append(row)
             if progress:
                 progress(row)
     return results
 
 
-def write_report(results, skipped, outdir: str, meta: dict) -> tuple[str, str]:
-    data = {"meta": meta, "results": results,
+def public(row: dict) -> dict:
+    """A result row as written to JSON: without the report's pictures."""
+    return {k: v for k, v in row.items() if k != "pictures"}
+
+
+def report_data(results, skipped, meta: dict) -> dict:
+    """What report.json holds and ``rtval validate --json`` prints."""
+    return {"meta": meta, "results": [public(r) for r in results],
             "skipped": [{"path": s.path, "category": s.category, "reason": s.reason}
                         for s in skipped]}
+
+
+def write_report(results, skipped, outdir: str, meta: dict) -> tuple[str, str]:
+    from rt_core.outputs import atomic_write, json_text
+    text = json_text(report_data(results, skipped, meta))
     jpath = os.path.join(outdir, "report.json")
     mpath = os.path.join(outdir, "report.md")
-    from rt_core.exrio import atomic_write
-    atomic_write(jpath, lambda tmp: Path(tmp).write_text(json.dumps(data, indent=1)))
+    atomic_write(jpath, lambda tmp: Path(tmp).write_text(text))
     lines = ["# rtval validate", "",
              "rt_core against Mitsuba 3 (llvm_ad_rgb, float32), pixel by pixel. Modes: `rays` = "
              "Mitsuba intersects rt_core's exact rays; `camera` = Mitsuba's own perspective "
