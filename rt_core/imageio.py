@@ -70,14 +70,16 @@ def _reason(text: str, path: str) -> str:
     return line.split(". ")[0] or "no reason given"
 
 
-def _needs_bytes(path: str, error, nbytes: int) -> None:
+def _needs_bytes(path: str, error, spec, bytes_per_value: int) -> None:
     """Refuse before allocating what this process cannot hold (a damaged header may claim
     any size)."""
     from .memory import available
     have, why = available()
-    if nbytes > 0.9 * have:
-        raise error(f"{path}: its pixels need {nbytes / 1e9:.1f} GB, {have / 1e9:.1f} GB "
-                    f"available ({why}); is the file damaged?")
+    need = spec.width * spec.height * max(1, spec.nchannels) * bytes_per_value
+    if need > 0.9 * have:
+        size = lambda n: f"{n / 1e9:.1f} GB" if n >= 1e9 else f"{n / 1e6:.0f} MB"
+        raise error(f"{path}: its {spec.width} x {spec.height} pixels need {size(need)}, "
+                    f"{size(have)} available ({why}); is the file damaged?")
 
 
 def open_input(path, what: str = "image", error=ImageError):
@@ -95,7 +97,9 @@ def open_input(path, what: str = "image", error=ImageError):
         raise error(f"{path}: cannot read it ({(exc.strerror or str(exc)).lower()})") from None
     if size == 0:
         raise error(f"{path}: the file is empty")
-    inp = oiio.ImageInput.open(path)
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)    # colours as stored, not premultiplied
+    inp = oiio.ImageInput.open(path, config)
     if inp is None:
         raise error(f"{path}: not an image OpenImageIO can read ({_reason(oiio.geterror(), path)})"
                     "; expected an EXR, PPM, PNG or another format it reads")
@@ -123,7 +127,7 @@ def _read_part(inp, path: str, error, index: int, deep_ok: bool):
             raise error(f"{path}: cannot read the deep pixels, truncated or corrupt "
                         f"({_reason(inp.geterror(), path)})")
         return spec, {}, types
-    _needs_bytes(path, error, spec.width * spec.height * max(1, len(names)) * 4)
+    _needs_bytes(path, error, spec, 4)
     px = inp.read_image(index, 0, 0, len(names), "float")
     if px is None:
         raise error(f"{path}: cannot read the pixels, truncated or corrupt "
@@ -196,7 +200,7 @@ def read_image(path: str) -> np.ndarray:
         spec = inp.spec()
         if spec.deep:
             raise ImageError(f"{path}: a deep image; expected the 8-bit image a tracer writes")
-        _needs_bytes(path, ImageError, spec.width * spec.height * max(1, spec.nchannels))
+        _needs_bytes(path, ImageError, spec, 1)
         px = inp.read_image(0, 0, 0, spec.nchannels, "uint8")
         if px is None:
             raise ImageError(f"{path}: cannot read the pixels, truncated or corrupt "

@@ -177,8 +177,11 @@ def test07_diff_box_counts_worst_pixel_and_values(pair, capsys):
     n_values = H * W * len(aovs())
     total = (BOX_PIXELS - 1) * DELTA + PEAK
     assert r["mean_error"] == pytest.approx(total / n_values)
-    assert r["rms_error"] == pytest.approx(math.sqrt(((BOX_PIXELS - 1) * DELTA ** 2 + PEAK ** 2)
-                                                     / n_values))
+    rms = math.sqrt(((BOX_PIXELS - 1) * DELTA ** 2 + PEAK ** 2) / n_values)
+    assert r["rms_error"] == pytest.approx(rms)
+    # PSNR as idiff defines it: the peak is the largest value in either image (at least 1)
+    peak = max(float(np.max(v)) for v in aovs().values())               # position.X: 26
+    assert peak == 26 and r["psnr"] == pytest.approx(20 * math.log10(peak / rms))
     pc = r["per_channel"]
     assert pc["depth.Z"]["failing_pixels"] == BOX_PIXELS and pc["depth.Z"]["worst"] == [*PEAK_XY]
     assert all(c["max_error"] == 0 for n, c in pc.items() if n != "depth.Z")
@@ -187,6 +190,7 @@ def test07_diff_box_counts_worst_pixel_and_values(pair, capsys):
     assert f"Max error  = 0.5 @ ({PEAK_XY[0]}, {PEAK_XY[1]}, depth.Z)  values are 10 vs 10.5" \
         in out
     assert f"{BOX_PIXELS} pixels (1.56%) over 1e-06" in out
+    assert f"Peak SNR = {20 * math.log10(peak / rms):.6g}" in out          # 67.8473, as idiff
     assert out.splitlines()[-1] == "FAILURE" and err == ""
 
 
@@ -569,3 +573,111 @@ def test21_cli_subprocess_exit_codes_and_clean_streams(pair, tmp_path):
     assert "Traceback" not in p.stderr
     p = rtval("diff", pair[0], "B", "--fail", "-1")
     assert p.returncode == 64
+
+
+# ----------------------------------------------------------------------------- other formats
+
+def test22_ppm_and_png_are_compared_like_exrs(tmp_path, capsys):
+    """Any format OpenImageIO reads: a course PPM against a PNG of the same pixels passes;
+    one changed pixel fails at its place, values in OpenImageIO's 0..1 scale (as idiff)."""
+    from rt_core.imageio import write_png, write_ppm
+    px = np.random.default_rng(5).integers(1, 255, (H, W, 3), np.uint8)
+    changed = px.copy()
+    changed[5, 12] = (0, px[5, 12, 1], px[5, 12, 2])                    # R of (x=12, y=5)
+    ppm, png, other = tmp_path / "a.ppm", tmp_path / "a.png", tmp_path / "b.png"
+    write_ppm(str(ppm), px)
+    write_png(str(png), px)
+    write_png(str(other), changed)
+    code, r = run_json(capsys, "diff", ppm, png)
+    assert code == 0 and r["max_error"] == 0 and r["channels"] == ["B", "G", "R"]
+    assert r["psnr"] == "inf"
+    code, r = run_json(capsys, "diff", ppm, other)
+    assert code == 2 and r["failing_pixels"] == 1
+    w = r["worst"]
+    assert (w["x"], w["y"], w["channel"]) == (12, 5, "R") and w["b"] == 0.0
+    assert round(w["a"] * 255) == px[5, 12, 0]
+    code, out, err = run(capsys, "diff", ppm, other)
+    assert "not an OpenEXR file" not in err and out.splitlines()[-1] == "FAILURE"
+    code, data = run_json(capsys, "info", ppm, png)
+    assert code == 0 and [d["format"] for d in data] == ["pnm", "png"]
+    assert {c["type"] for c in data[0]["channels"]} == {"UINT8"}
+    code, r = run_json(capsys, "stats", png, "--channels", "R")
+    assert code == 0 and round(r["channels"]["R"]["max"] * 255) == px[..., 0].max()
+
+
+# ----------------------------------------------------------------------------- FLIP
+
+def _colours(tmp_path, scale=1.0):
+    """(A, B): a smooth colour image, and the same with a block of pixels inverted."""
+    yy, xx = np.mgrid[0:40, 0:48]
+    a = {"R": xx / 48.0, "G": yy / 40.0, "B": np.full((40, 48), 0.5)}
+    b = {k: v.copy() for k, v in a.items()}
+    for v in b.values():
+        v[FLIP_BLOCK] = 1.0 - v[FLIP_BLOCK]
+    pa, pb = tmp_path / "ca.exr", tmp_path / "cb.exr"
+    write_exr(pa, {k: v * scale for k, v in a.items()}, PROVENANCE)
+    write_exr(pb, {k: v * scale for k, v in b.items()}, PROVENANCE)
+    return pa, pb
+
+
+FLIP_BLOCK = (slice(10, 16), slice(20, 28))        # rows 10..15, columns 20..27
+
+
+def test23_flip_zero_for_identical_positive_for_changed_and_the_map(tmp_path, capsys):
+    pa, pb = _colours(tmp_path)
+    code, r = run_json(capsys, "diff", pa, pa, "--metric", "flip")
+    assert code == 0 and r["flip_mean"] == 0 and r["max_error"] == 0 and r["status"] == "PASS"
+    assert r["channels"] == ["R", "G", "B"] and r["flip"]["dynamic_range"] == "LDR"
+
+    png, exr = tmp_path / "flip.png", tmp_path / "flip.exr"
+    code, r = run_json(capsys, "diff", pa, pb, "--metric", "flip", "-o", exr)
+    assert code == 2 and r["flip_mean"] > 0 and r["flip_map"] == str(exr)
+    ch, hdr = read_exr(exr)
+    m = ch["flip"]                                  # the raw per-pixel FLIP error
+    assert m.shape == (40, 48) and 0 <= m.min() and m.max() <= 1
+    assert float(m.mean()) == pytest.approx(r["flip_mean"], rel=1e-5)
+    hot = np.unravel_index(int(np.argmax(m)), m.shape)
+    assert FLIP_BLOCK[0].start <= hot[0] < FLIP_BLOCK[0].stop
+    assert FLIP_BLOCK[1].start <= hot[1] < FLIP_BLOCK[1].stop
+    assert (r["worst"]["x"], r["worst"]["y"]) == (hot[1], hot[0])
+    far = np.ones(m.shape, bool)
+    far[2:24, 12:36] = False                        # 8 pixels or more from the block
+    assert m[FLIP_BLOCK].mean() > 10 * m[far].max()
+    assert hdr["rtval.kind"] == "flip" and hdr["rtval.flip.reference"] == str(pa)
+
+    code, out, err = run(capsys, "diff", pa, pb, "--metric", "flip", "-o", png,
+                         "--fail", "0.5", "--fail-percent", "5")
+    assert f"FLIP mean = {r['flip_mean']:.6g}" in out and f"FLIP error map: {png}" in out
+    pic = np.asarray(Image.open(png).convert("RGB")).astype(int)
+    assert Image.open(png).text["rtval.kind"] == "flip"
+    # the PNG is the same map in magma: the block bright, far pixels dark
+    np.testing.assert_array_equal(pic, exrtool.flip_colours(m))
+    assert pic[FLIP_BLOCK].sum(-1).mean() > 300 and pic[far].sum(-1).max() < 60
+
+    ha, hb = _colours(tmp_path, scale=4.0)          # beyond [0, 1]: HDR
+    code, r = run_json(capsys, "diff", ha, hb, "--metric", "flip")
+    assert r["flip"]["dynamic_range"] == "HDR" and r["flip_mean"] > 0
+
+
+@pytest.mark.parametrize("extra", [["--fail-relative", "0.1"], ["--warn-relative", "0.1"],
+                                   ["--channels", "R,G"], ["--metric", "ssim"]])
+def test24_flip_invalid_options_exit_64(tmp_path, capsys, extra):
+    pa, pb = _colours(tmp_path)
+    with pytest.raises(SystemExit) as e:
+        main(["exr", "diff", str(pa), str(pb), "--metric", "flip", *extra])
+    err = capsys.readouterr().err
+    assert e.value.code == 64 and err.splitlines()[-1].startswith("rtval exr diff: error: ")
+
+
+def test25_flip_inputs_it_cannot_judge_exit_4(tmp_path, capsys, pair):
+    code, out, err = run(capsys, "diff", *pair, "--metric", "flip")      # AOVs: no R, G, B
+    assert code == 4 and len(err.splitlines()) == 1 and "no channel 'R'" in err
+    pa, _ = _colours(tmp_path)
+    nan = tmp_path / "nan.exr"
+    ch, _ = read_exr(pa)
+    ch["G"] = ch["G"].copy()
+    ch["G"][3, 4] = np.nan
+    write_exr(nan, ch)
+    code, out, err = run(capsys, "diff", pa, nan, "--metric", "flip", "-o", tmp_path / "m.png")
+    assert code == 4 and len(err.splitlines()) == 1 and "FLIP needs finite colours" in err
+    assert not (tmp_path / "m.png").exists()
