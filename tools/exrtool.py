@@ -24,6 +24,7 @@ import numpy as np
 
 from rt_core.exrio import ExrError, write_exr
 from rt_core.outputs import WriteError
+from tools.harness.flip import flip_colours, flip_map
 
 # idiff's process return codes
 PASS, WARN, FAIL, MISMATCH, FILE_ERROR = 0, 1, 2, 3, 4
@@ -422,30 +423,6 @@ def _oneline(e: BaseException) -> str:
 
 
 # ----------------------------------------------------------------------------- FLIP
-
-def flip_map(ref: np.ndarray, test: np.ndarray) -> tuple[np.ndarray, float, dict]:
-    """NVIDIA FLIP of two (rows, columns, 3) colour images: (per-pixel error in [0, 1],
-    mean error, FLIP's parameters with ``dynamic_range``).  LDR (sRGB-encoded values in
-    [0, 1], as PPM/PNG and the course programs' colours are) when both images lie within
-    [0, 1], else HDR (linear, FLIP's tone-mapped exposures)."""
-    import flip_evaluator
-    ref = np.ascontiguousarray(ref, np.float32)
-    test = np.ascontiguousarray(test, np.float32)
-    ldr = ref.min() >= 0 and test.min() >= 0 and ref.max() <= 1 and test.max() <= 1
-    err, mean, params = flip_evaluator.evaluate(ref, test, "LDR" if ldr else "HDR",
-                                                applyMagma=False)
-    params = {k: (float(v) if isinstance(v, float) else v) for k, v in params.items()}
-    params["dynamic_range"] = "LDR" if ldr else "HDR"
-    return np.asarray(err, np.float32).reshape(ref.shape[:2]), float(mean), params
-
-
-def flip_colours(err: np.ndarray) -> np.ndarray:
-    """FLIP's error map in the magma colour map FLIP's own tool uses: (rows, columns, 3)
-    uint8, 0 black, 1 light yellow."""
-    import matplotlib
-    rgb = matplotlib.colormaps["magma"](np.clip(err, 0.0, 1.0))[..., :3]
-    return (rgb * 255 + 0.5).astype(np.uint8)
-
 
 def write_flip_map(out, err: np.ndarray, attrs: dict) -> str:
     """The FLIP error map: an EXR (channel ``flip``: the raw per-pixel error) or, for any
