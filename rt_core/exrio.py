@@ -63,7 +63,8 @@ def incomplete(path: str) -> str | None:
     """Why a single-part scanline EXR is not complete, or None: the header ends, the
     offset table points at chunks that follow one another and the last one ends the file.
     (What ``write_exr`` writes; the chunk count comes from the table itself, so no table of
-    lines per chunk per compression is needed.)"""
+    lines per chunk per compression is needed.)  OpenImageIO finds a cut file too, but only
+    by decoding every pixel: 3.5 s against this walk's 1 ms at 1920 columns (README)."""
     size = os.path.getsize(path)
     with open(path, "rb") as f:
         head = f.read(8)

@@ -101,8 +101,8 @@ def open_input(path, what: str = "image", error=ImageError):
     config.attribute("oiio:UnassociatedAlpha", 1)    # colours as stored, not premultiplied
     inp = oiio.ImageInput.open(path, config)
     if inp is None:
-        raise error(f"{path}: not an image OpenImageIO can read ({_reason(oiio.geterror(), path)})"
-                    "; expected an EXR, PPM, PNG or another format it reads")
+        raise error(f"{path}: cannot read it as an image ({_reason(oiio.geterror(), path)}); "
+                    "rtval reads what OpenImageIO reads: EXR, PPM, PNG, TIFF, ...")
     return inp
 
 

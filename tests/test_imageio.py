@@ -63,7 +63,7 @@ def test03_course_ppm_bytes_and_channels_of_each_format(tmp_path):
 @pytest.mark.parametrize("name, data, why", [
     ("short.ppm", b"P6 40 30 255\n" + b"\0" * 100, "truncated or corrupt"),
     ("short.png", None, "truncated or corrupt"),
-    ("text.ppm", b"P6 garbage\n", "not an image OpenImageIO can read"),
+    ("text.ppm", b"P6 garbage\n", "cannot read it as an image ("),
     ("empty.png", b"", "the file is empty"),
 ])
 def test04_unreadable_images_are_one_line(tmp_path, name, data, why):
