@@ -324,9 +324,11 @@ def test10_diff_writes_difference_exr_atomically(pair, tmp_path, capsys):
     assert hdr["rtval.kind"] == "diff" and hdr["rtval.diff.status"] == "FAILURE"
     assert os.listdir(out.parent) == ["d.exr"]
     # an unwritable output: exit 4, nothing left behind
-    code, out2, err = run(capsys, "diff", *pair, "-o", tmp_path / "sub")
-    assert code == 4 and len(err.splitlines()) == 1 and "sub" in err
-    assert os.listdir(out.parent) == ["d.exr"]
+    blocked = tmp_path / "sub" / "blocked.exr"          # a directory of that name
+    blocked.mkdir()
+    code, out2, err = run(capsys, "diff", *pair, "-o", blocked)
+    assert code == 4 and len(err.splitlines()) == 1 and "blocked.exr" in err
+    assert sorted(os.listdir(out.parent)) == ["blocked.exr", "d.exr"] and not os.listdir(blocked)
 
 
 def test11_diff_size_and_channel_mismatch_exit_3(pair, tmp_path, capsys):
@@ -467,11 +469,11 @@ def test15_preview_rgb_diff_and_default_channel(pair, tmp_path, capsys):
 
 
 def test16_preview_write_failure_leaves_no_file(pair, tmp_path, capsys):
-    target = tmp_path / "adir"
+    target = tmp_path / "adir.png"                      # a directory of that name
     target.mkdir()
     code, out, err = run(capsys, "preview", pair[0], "-o", target)
     assert code == 4 and len(err.splitlines()) == 1 and "adir" in err and "Traceback" not in err
-    assert os.listdir(target) == [] and sorted(os.listdir(tmp_path)) == ["a.exr", "adir",
+    assert os.listdir(target) == [] and sorted(os.listdir(tmp_path)) == ["a.exr", "adir.png",
                                                                          "b.exr"]
 
 
@@ -531,6 +533,8 @@ def test18_missing_channel_exits_4_naming_file_and_channel(pair, tmp_path, capsy
     ["diff", "A"],
     ["stats", "A", "--channels", "depth.Z,,uv.U"],
     ["preview", "A"],
+    ["diff", "A", "B", "-o", "d.png"],          # the difference image is an EXR
+    ["preview", "A", "-o", "p.exr"],             # the preview is a PNG
     ["bogus"],
     [],
 ])

@@ -149,7 +149,7 @@ def add_parser(subparsers) -> None:
     q.add_argument("--channel", metavar="NAME",
                    help="channel or layer to show (default depth.Z, else the first channel)")
     q.add_argument("--json", action="store_true", help="print what was drawn as JSON")
-    q.set_defaults(func=run_preview)
+    q.set_defaults(func=run_preview, usage_error=q.error)
 
 
 # ----------------------------------------------------------------------------- option types
@@ -205,6 +205,13 @@ def _fmt_attr(v) -> str:
 
 def _error(e) -> None:
     print(f"rtval exr: {e}", file=sys.stderr)
+
+
+def _named(path: str, ext: str) -> bool:
+    """``path`` ends in ``ext``, or is a device or pipe (``/dev/null``: no name to check)."""
+    import os
+    return path.lower().endswith(ext) or (os.path.exists(path) and not os.path.isfile(path)
+                                          and not os.path.isdir(path))
 
 
 def run_info(args) -> int:
@@ -275,6 +282,9 @@ def run_stats(args) -> int:
 
 def run_diff(args) -> int:
     from tools import exrtool
+    if args.metric == "idiff" and args.output and not _named(args.output, ".exr"):
+        args.usage_error(f"-o {args.output}: the difference image is an EXR; name it .exr "
+                         "(--metric flip writes its map as .exr or .png)")
     if args.metric == "flip":
         if args.fail_relative or args.warn_relative:
             args.usage_error("--metric flip takes absolute limits only: a FLIP error is "
@@ -351,6 +361,8 @@ def _triple(v) -> str:
 
 def run_preview(args) -> int:
     from tools import exrtool
+    if not _named(args.output, ".png"):
+        args.usage_error(f"-o {args.output}: the preview is a PNG; name it .png")
     r = exrtool.preview(args.file, args.output, args.channel)
     if args.json:
         _print_json(r)

@@ -294,7 +294,7 @@ def _compare(A, B, th: Thresholds, roi=None):
     """OpenImageIO's CompareResults of two float ImageBufs (idiff's figures)."""
     oiio = _oiio()
     return oiio.ImageBufAlgo.compare(A, B, th.fail, th.warn, th.fail_relative,
-                                     th.warn_relative, roi or oiio.ROI())
+                                     th.warn_relative, oiio.ROI() if roi is None else roi)
 
 
 def diff(path_a, path_b, channels=None, thresholds: Thresholds | None = None,
@@ -655,7 +655,7 @@ def preview(path, out, channel: str | None = None) -> dict:
         channel = select_channels(img, [channel])[0]      # a layer name, e.g. "normal"
     kind = preview_kind(img, channel)
     rgb, legend, ids = _render(img, channel, kind)
-    H, W = img.height, img.width
+    W = img.width
     scale = max(1, math.ceil(PREVIEW_MIN_WIDTH / W))
     pic = np.repeat(np.repeat(rgb, scale, 0), scale, 1)          # each pixel a scale² block
     canvas = np.concatenate([pic, np.asarray(_legend_strip(W * scale, legend, ids))], 0)
