@@ -60,6 +60,15 @@ class ImageData:
     tiled: bool = False
 
 
+def _error_of(obj) -> str:
+    """The pending error message of an OpenImageIO object (or of the module), retrieved, so
+    that the library does not print it when the object goes away."""
+    try:
+        return obj.geterror()
+    except UnicodeDecodeError:           # it quotes a damaged header's bytes
+        return "its message is not UTF-8 text: the file's header is damaged"
+
+
 def _reason(text: str, path: str) -> str:
     """OpenImageIO's error text as one short clause: its first line, without the file name
     (the caller's message starts with it)."""
@@ -101,7 +110,7 @@ def open_input(path, what: str = "image", error=ImageError):
     config.attribute("oiio:UnassociatedAlpha", 1)    # colours as stored, not premultiplied
     inp = oiio.ImageInput.open(path, config)
     if inp is None:
-        raise error(f"{path}: cannot read it as an image ({_reason(oiio.geterror(), path)}); "
+        raise error(f"{path}: cannot read it as an image ({_reason(_error_of(oiio), path)}); "
                     "rtval reads what OpenImageIO reads: EXR, PPM, PNG, TIFF, ...")
     return inp
 
@@ -113,7 +122,7 @@ def _type_name(t) -> str:
 def _read_part(inp, path: str, error, index: int, deep_ok: bool):
     """(spec, {channel: 2-D array}, {channel: type}) of subimage ``index``."""
     if not inp.seek_subimage(index, 0):
-        raise error(f"{path}: cannot read part {index} ({_reason(inp.geterror(), path)})")
+        raise error(f"{path}: cannot read part {index} ({_reason(_error_of(inp), path)})")
     spec = inp.spec()
     names = list(spec.channelnames)
     formats = list(spec.channelformats) or [spec.format] * len(names)
@@ -125,13 +134,13 @@ def _read_part(inp, path: str, error, index: int, deep_ok: bool):
                         "(oiiotool IN --flatten -o OUT)")
         if inp.read_native_deep_image(index, 0) is None:      # read to check it is whole
             raise error(f"{path}: cannot read the deep pixels, truncated or corrupt "
-                        f"({_reason(inp.geterror(), path)})")
+                        f"({_reason(_error_of(inp), path)})")
         return spec, {}, types
     _needs_bytes(path, error, spec, 4)
     px = inp.read_image(index, 0, 0, len(names), "float")
     if px is None:
         raise error(f"{path}: cannot read the pixels, truncated or corrupt "
-                    f"({_reason(inp.geterror(), path)})")
+                    f"({_reason(_error_of(inp), path)})")
     px = np.asarray(px, np.float32).reshape(spec.height, spec.width, len(names))
     chans = {n: px[..., i] for i, n in enumerate(names)}
     if inp.format_name() == "openexr":
@@ -142,7 +151,7 @@ def _read_part(inp, path: str, error, index: int, deep_ok: bool):
                 u = inp.read_image(index, 0, i, i + 1, "uint")
                 if u is None:
                     raise error(f"{path}: cannot read channel {n} "
-                                f"({_reason(inp.geterror(), path)})")
+                                f"({_reason(_error_of(inp), path)})")
                 chans[n] = np.asarray(u, np.uint32).reshape(spec.height, spec.width)
     return spec, chans, types
 
@@ -204,7 +213,7 @@ def read_image(path: str) -> np.ndarray:
         px = inp.read_image(0, 0, 0, spec.nchannels, "uint8")
         if px is None:
             raise ImageError(f"{path}: cannot read the pixels, truncated or corrupt "
-                             f"({_reason(inp.geterror(), path)})")
+                             f"({_reason(_error_of(inp), path)})")
     finally:
         inp.close()
     px = np.asarray(px, np.uint8).reshape(spec.height, spec.width, spec.nchannels)
@@ -253,11 +262,11 @@ def write_image(path: str, pixels, text: dict | None = None, fmt: str = "png") -
     def write(tmp):
         out = oiio.ImageOutput.create(fmt)
         if out is None:
-            raise RuntimeError(_reason(oiio.geterror(), tmp))
+            raise RuntimeError(_reason(_error_of(oiio), tmp))
         ok = out.open(tmp, spec) and out.write_image(a)
         ok = out.close() and ok
         if not ok:
-            raise RuntimeError(_reason(out.geterror(), tmp))
+            raise RuntimeError(_reason(_error_of(out), tmp))
     atomic_write(path, write)
 
 

@@ -88,3 +88,19 @@ def test05_a_size_beyond_memory_is_refused_before_reading(tmp_path, monkeypatch)
     with pytest.raises(ImageError, match=r"big\.ppm: its 3000 x 2000 pixels need 18 MB, 1 MB "
                                          r"available \(a test\); is the file damaged\?"):
         read_image(str(p))
+
+
+def test06_header_bytes_that_are_not_utf8_are_one_line(tmp_path):
+    """A damaged header whose names are not UTF-8: OpenImageIO's message quotes them, and
+    reading that message must not raise (hypothesis found it in tests/test_fuzz.py)."""
+    p = tmp_path / "a.exr"
+    write_exr(str(p), {"depth.Z": np.ones((3, 4))})
+    data = p.read_bytes()
+    assert data.count(b"compression\x00compression") == data.count(b"channels\x00chlist") == 1
+    # (hypothesis's case: the channel list renamed, the next name run into its type)
+    data = data.replace(b"channels\x00chlist", b"bhannels\x00chlist")
+    p.write_bytes(data.replace(b"compression\x00compression", b"compression\x80compression"))
+    for read in (read_channels, read_image):
+        with pytest.raises(ImageError) as e:
+            read(str(p))
+        assert str(e.value).startswith(f"{p}: ") and "\n" not in str(e.value)
