@@ -1,22 +1,228 @@
-"""8-bit images: binary PPM as the course programs write it, and PNG; and reading what a
-course tracer wrote (``read_image``: PPM P6 or P3, PNG).
+"""Image files through OpenImageIO: reading any format it knows (EXR, PPM, PNG, TIFF, ...),
+writing PNG, and binary PPM byte for byte as the course programs write it.
 
-Both take a (rows, columns, 3) uint8 array, row 0 the top of the image, and write atomically
-(``exrio.atomic_write``): an error never leaves a partial file.
+``read_channels`` reads every channel of every part (subimage) of a file with its pixel
+types and header attributes; ``read_image`` reads the 8-bit RGB image a course tracer
+wrote.  Errors are one line naming the file (OpenImageIO's own message, retrieved from the
+library, never from its console output).  Writers take a (rows, columns, 3) uint8 array,
+row 0 the top of the image, and write atomically (``outputs.atomic_write``): an error never
+leaves a partial file.
 
 PPM header: ``P6 <W> <H> 255`` and one newline, on one line, as five of the six course
 programs write it (``"P6 %d %d 255\\n"`` in cblades, scottgigawatt, m4rk4l, coilingdragon and
 NickWilsonDev; rocketman768 alone writes ``P6\\n<W>\\n<H>\\n255\\n``).  Pixels follow as RGB
 bytes, top row first: byte for byte what those programs output for the same pixels.
+OpenImageIO's PPM writer puts the header on three lines (``P6\\n<W> <H>\\n255\\n``), so the
+PPM writer stays here; every reader of PPM (OpenImageIO's included) accepts both.
 """
 from __future__ import annotations
 
+import os
+from dataclasses import dataclass, field
+
 import numpy as np
 
-from .exrio import atomic_write
-from .inputfile import read_input
+from .inputfile import check_input
+from .outputs import atomic_write
 from .usererror import InputError
 
+
+class ImageError(ValueError):
+    """An image that cannot be read; ``str(err)`` is one line naming the file."""
+    exit_code = 2
+
+
+def _oiio():
+    import OpenImageIO
+    return OpenImageIO
+
+
+# ----------------------------------------------------------------------------- reading
+
+@dataclass
+class ImageData:
+    """One image file: ``channels`` {name: 2-D array, rows top first} (float32, or uint32
+    for an EXR's UINT channels), ``types`` {name: pixel type as exrinfo names it: HALF,
+    FLOAT, UINT, UINT8, ...; ``deep FLOAT`` for a deep channel}, ``header`` {attribute:
+    value} of the first part with ``parts`` (their names) for a multi-part file.  A deep
+    file has ``types`` but no ``channels`` (its pixels are checked, not kept)."""
+    path: str
+    width: int
+    height: int
+    channels: dict
+    types: dict
+    header: dict
+    format: str = ""                 # OpenImageIO's name of the file format: openexr, pnm, png
+    deep: bool = False
+    parts: list = field(default_factory=list)
+    data_window: list | None = None       # [[x0, y0], [x1, y1]]
+    display_window: list | None = None
+    tiled: bool = False
+
+
+def _error_of(obj) -> str:
+    """The pending error message of an OpenImageIO object (or of the module), retrieved, so
+    that the library does not print it when the object goes away."""
+    try:
+        return obj.geterror()
+    except UnicodeDecodeError:           # it quotes a damaged header's bytes
+        return "its message is not UTF-8 text: the file's header is damaged"
+
+
+def _reason(text: str, path: str) -> str:
+    """OpenImageIO's error text as one short clause: its first line, without the file name
+    (the caller's message starts with it)."""
+    line = next((ln.strip() for ln in (text or "").splitlines() if ln.strip()), "")
+    for form in (f' "{path}"', f" ({path})", f" {path}", path):
+        line = line.replace(form, "")
+    line = line.replace(" :", ":").replace("  ", " ").strip(" .")
+    return line.split(". ")[0] or "no reason given"
+
+
+def _needs_bytes(path: str, error, spec, bytes_per_value: int) -> None:
+    """Refuse before allocating what this process cannot hold (a damaged header may claim
+    any size)."""
+    from .memory import available
+    have, why = available()
+    need = spec.width * spec.height * max(1, spec.nchannels) * bytes_per_value
+    if need > 0.9 * have:
+        size = lambda n: f"{n / 1e9:.1f} GB" if n >= 1e9 else f"{n / 1e6:.0f} MB"
+        raise error(f"{path}: its {spec.width} x {spec.height} pixels need {size(need)}, "
+                    f"{size(have)} available ({why}); is the file damaged?")
+
+
+def open_input(path, what: str = "image", error=ImageError):
+    """An open ``ImageInput`` for ``path`` (a regular file within the size limit for
+    ``what``), or ``error`` with one line naming the file."""
+    oiio = _oiio()
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise error(f"{path}: no such file")
+    try:
+        size = check_input(path, what)
+    except InputError as exc:
+        raise error(str(exc)) from None
+    except OSError as exc:
+        raise error(f"{path}: cannot read it ({(exc.strerror or str(exc)).lower()})") from None
+    if size == 0:
+        raise error(f"{path}: the file is empty")
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)    # colours as stored, not premultiplied
+    inp = oiio.ImageInput.open(path, config)
+    if inp is None:
+        raise error(f"{path}: cannot read it as an image ({_reason(_error_of(oiio), path)}); "
+                    "rtval reads what OpenImageIO reads: EXR, PPM, PNG, TIFF, ...")
+    return inp
+
+
+def _type_name(t) -> str:
+    return str(t).upper()
+
+
+def _read_part(inp, path: str, error, index: int, deep_ok: bool):
+    """(spec, {channel: 2-D array}, {channel: type}) of subimage ``index``."""
+    if not inp.seek_subimage(index, 0):
+        raise error(f"{path}: cannot read part {index} ({_reason(_error_of(inp), path)})")
+    spec = inp.spec()
+    names = list(spec.channelnames)
+    formats = list(spec.channelformats) or [spec.format] * len(names)
+    types = {n: ("deep " if spec.deep else "") + _type_name(t) for n, t in zip(names, formats)}
+    if spec.deep:
+        if not deep_ok:
+            raise error(f"{path}: a deep {'EXR' if inp.format_name() == 'openexr' else 'image'}"
+                        ": rtval compares flat images only; flatten it first "
+                        "(oiiotool IN --flatten -o OUT)")
+        if inp.read_native_deep_image(index, 0) is None:      # read to check it is whole
+            raise error(f"{path}: cannot read the deep pixels, truncated or corrupt "
+                        f"({_reason(_error_of(inp), path)})")
+        return spec, {}, types
+    _needs_bytes(path, error, spec, 4)
+    px = inp.read_image(index, 0, 0, len(names), "float")
+    if px is None:
+        raise error(f"{path}: cannot read the pixels, truncated or corrupt "
+                    f"({_reason(_error_of(inp), path)})")
+    px = np.asarray(px, np.float32).reshape(spec.height, spec.width, len(names))
+    chans = {n: px[..., i] for i, n in enumerate(names)}
+    if inp.format_name() == "openexr":
+        # an EXR's UINT channel holds integers (ids); read as float, OpenImageIO would
+        # normalise them to [0, 1] as it does 8-bit colours
+        for i, (n, t) in enumerate(zip(names, formats)):
+            if str(t) == "uint":
+                u = inp.read_image(index, 0, i, i + 1, "uint")
+                if u is None:
+                    raise error(f"{path}: cannot read channel {n} "
+                                f"({_reason(_error_of(inp), path)})")
+                chans[n] = np.asarray(u, np.uint32).reshape(spec.height, spec.width)
+    return spec, chans, types
+
+
+def read_channels(path, deep_ok: bool = False, what: str = "image",
+                  error=ImageError) -> ImageData:
+    """Every channel of every part of an image file (OpenImageIO reads it).
+
+    A multi-part file's channels are named ``part.channel`` (the part's name, or
+    ``part<i>``) and its parts must share one size.  A deep file is refused unless
+    ``deep_ok`` (``rtval exr info``).  Integer formats (PPM, PNG) come as OpenImageIO's
+    normalised floats (0..1), as idiff and oiiotool see them; an EXR's UINT channels as
+    uint32.  ``error`` (one line naming the file) for anything unreadable."""
+    path = os.fspath(path)
+    inp = open_input(path, what, error)
+    try:
+        fmt = inp.format_name()
+        nparts = max(1, inp.spec().get_int_attribute("oiio:subimages", 1))
+        parts = [_read_part(inp, path, error, i, deep_ok) for i in range(nparts)]
+    finally:
+        inp.close()
+    spec0 = parts[0][0]
+    header = {a.name: a.value for a in spec0.extra_attribs if a.name != "oiio:subimages"}
+    data = ImageData(path, spec0.width, spec0.height, {}, {}, header, fmt,
+                     deep=any(s.deep for s, _, _ in parts), tiled=spec0.tile_width > 0,
+                     data_window=[[spec0.x, spec0.y],
+                                  [spec0.x + spec0.width - 1, spec0.y + spec0.height - 1]],
+                     display_window=[[spec0.full_x, spec0.full_y],
+                                     [spec0.full_x + spec0.full_width - 1,
+                                      spec0.full_y + spec0.full_height - 1]])
+    if nparts == 1:
+        data.channels, data.types = parts[0][1], parts[0][2]
+        return data
+    data.parts = [s.get_string_attribute("oiio:subimagename") or f"part{i}"
+                  for i, (s, _, _) in enumerate(parts)]
+    header["parts"] = data.parts
+    for pname, (s, ch, ty) in zip(data.parts, parts):
+        if (s.width, s.height) != (spec0.width, spec0.height):
+            raise error(f"{path}: a multi-part file whose parts differ in size ({pname} is "
+                        f"{s.width} x {s.height}, part 0 is {spec0.width} x {spec0.height}); "
+                        "rtval reads parts of one size")
+        data.types.update({f"{pname}.{k}": v for k, v in ty.items()})
+        data.channels.update({f"{pname}.{k}": v for k, v in ch.items()})
+    return data
+
+
+def read_image(path: str) -> np.ndarray:
+    """A (rows, columns, 3) uint8 image, row 0 the top, from any file OpenImageIO reads
+    (the course tracers write binary or ASCII PPM; PNG works too).  Grey images are
+    repeated into R, G and B, alpha is dropped; 16-bit and other maxvals are scaled to 8
+    bits by OpenImageIO."""
+    path = os.fspath(path)
+    inp = open_input(path, "image", ImageError)
+    try:
+        spec = inp.spec()
+        if spec.deep:
+            raise ImageError(f"{path}: a deep image; expected the 8-bit image a tracer writes")
+        _needs_bytes(path, ImageError, spec, 1)
+        px = inp.read_image(0, 0, 0, spec.nchannels, "uint8")
+        if px is None:
+            raise ImageError(f"{path}: cannot read the pixels, truncated or corrupt "
+                             f"({_reason(_error_of(inp), path)})")
+    finally:
+        inp.close()
+    px = np.asarray(px, np.uint8).reshape(spec.height, spec.width, spec.nchannels)
+    if spec.nchannels < 3:
+        return np.repeat(px[..., :1], 3, -1)
+    return np.ascontiguousarray(px[..., :3])
+
+
+# ----------------------------------------------------------------------------- writing
 
 def _check(pixels) -> np.ndarray:
     a = np.asarray(pixels)
@@ -40,98 +246,30 @@ def write_ppm(path: str, pixels) -> None:
     atomic_write(path, write)
 
 
+def write_image(path: str, pixels, text: dict | None = None, fmt: str = "png") -> None:
+    """Write ``pixels`` ((rows, columns, channels) uint8 or float32) in OpenImageIO's format
+    ``fmt`` (png, whatever the file name's extension), with ``text`` as string attributes
+    (PNG text chunks: provenance)."""
+    oiio = _oiio()
+    a = np.ascontiguousarray(pixels)
+    if a.ndim == 2:
+        a = a[..., None]
+    spec = oiio.ImageSpec(a.shape[1], a.shape[0], a.shape[2],
+                          "uint8" if a.dtype == np.uint8 else "float")
+    for k, v in (text or {}).items():
+        spec.attribute(str(k), str(v))
+
+    def write(tmp):
+        out = oiio.ImageOutput.create(fmt)
+        if out is None:
+            raise RuntimeError(_reason(_error_of(oiio), tmp))
+        ok = out.open(tmp, spec) and out.write_image(a)
+        ok = out.close() and ok
+        if not ok:
+            raise RuntimeError(_reason(_error_of(out), tmp))
+    atomic_write(path, write)
+
+
 def write_png(path: str, pixels, text: dict | None = None) -> None:
     """PNG with ``text`` as tEXt chunks (provenance)."""
-    from PIL import Image
-    from PIL.PngImagePlugin import PngInfo
-    img = Image.fromarray(_check(pixels), "RGB")
-    info = PngInfo()
-    for k, v in (text or {}).items():
-        info.add_text(k, str(v))
-    atomic_write(path, lambda tmp: img.save(tmp, format="PNG", pnginfo=info))
-
-
-class ImageError(ValueError):
-    """An image that cannot be read; ``str(err)`` is one line naming the file."""
-    exit_code = 2
-
-
-def _ppm_header(data: bytes, path: str):
-    """(magic, width, height, maxval, offset of the pixels): the header's four tokens,
-    separated by white space, with '#' comments (Netpbm)."""
-    toks, i, n = [], 0, len(data)
-    while len(toks) < 4:
-        while i < n and data[i:i + 1].isspace():
-            i += 1
-        if i < n and data[i:i + 1] == b"#":
-            while i < n and data[i:i + 1] not in (b"\n", b"\r"):
-                i += 1
-            continue
-        j = i
-        while j < n and not data[j:j + 1].isspace() and data[j:j + 1] != b"#":
-            j += 1
-        if j == i:
-            raise ImageError(f"{path}: PPM header ends after {len(toks)} of its 4 fields "
-                             "(magic, width, height, maxval)")
-        toks.append(data[i:j])
-        i = j
-    magic = toks[0].decode("ascii", "replace")
-    try:
-        w, h, maxval = (int(t) for t in toks[1:])
-    except ValueError:
-        raise ImageError(f"{path}: PPM header: expected width, height and maxval as "
-                         f"integers, found {b' '.join(toks[1:]).decode('ascii', 'replace')!r}")
-    if not (w > 0 and h > 0 and 0 < maxval < 65536):
-        raise ImageError(f"{path}: PPM header: {w}x{h} with maxval {maxval} is not an image")
-    return magic, w, h, maxval, i + 1
-
-
-def read_image(path: str) -> np.ndarray:
-    """A (rows, columns, 3) uint8 image from a binary (P6) or ASCII (P3) PPM or a PNG, row 0
-    the top.  16-bit PPMs (maxval > 255) are scaled to 8 bits; PNG through Pillow."""
-    try:
-        data = read_input(path, "image")
-    except InputError as exc:
-        raise ImageError(str(exc)) from None
-    except OSError as exc:
-        raise ImageError(f"{path}: cannot read the image: {exc.strerror or exc}") from None
-    if data[:8] == b"\x89PNG\r\n\x1a\n":
-        import io
-        from PIL import Image
-        try:
-            with Image.open(io.BytesIO(data)) as im:
-                return np.asarray(im.convert("RGB"), np.uint8).copy()
-        except Exception as exc:
-            raise ImageError(f"{path}: not a readable PNG: {exc}") from None
-    if not data:
-        raise ImageError(f"{path}: the image file is empty")
-    if data[:2] not in (b"P6", b"P3"):
-        head = data[:2].decode("ascii", "replace")
-        raise ImageError(f"{path}: not a PPM (P6/P3) or PNG image (it starts with {head!r})")
-    magic, w, h, maxval, off = _ppm_header(data, path)
-    if magic not in ("P6", "P3"):
-        raise ImageError(f"{path}: unknown PPM magic {magic!r}; expected P6 or P3")
-    count = w * h * 3
-    if count > 1 << 31:
-        raise ImageError(f"{path}: {w}x{h} is too large an image")
-    if magic == "P6":
-        size = 2 if maxval > 255 else 1
-        body = data[off:off + count * size]
-        if len(body) < count * size:
-            raise ImageError(f"{path}: P6 {w}x{h} needs {count * size} bytes of pixels, the "
-                             f"file has {len(body)} (truncated?)")
-        a = np.frombuffer(body, ">u2" if size == 2 else np.uint8).astype(np.int64)
-    else:
-        vals = data[off:].split()
-        if len(vals) < count:
-            raise ImageError(f"{path}: P3 {w}x{h} needs {count} numbers, the file has "
-                             f"{len(vals)} (truncated?)")
-        try:
-            a = np.array([int(v) for v in vals[:count]], np.int64)
-        except ValueError:
-            raise ImageError(f"{path}: P3 pixel values must be integers") from None
-    if a.max(initial=0) > maxval:
-        raise ImageError(f"{path}: a pixel value exceeds the header's maxval {maxval}")
-    if maxval != 255:
-        a = (a * 255 + maxval // 2) // maxval
-    return a.astype(np.uint8).reshape(h, w, 3)
+    write_image(path, _check(pixels), text, "png")

@@ -16,10 +16,10 @@ _lock = threading.Lock()
 def native_output_captured():
     """Capture what native libraries print while the block runs.
 
-    The OpenEXR binding prints its own messages on a corrupt file (through Python's
-    ``sys.stdout`` and from C++ straight to descriptor 2), and Dr.Jit prints one when it
-    meets an old LLVM.  Either would break one-line error messages and ``--json`` output, so
-    both the Python streams and descriptors 1 and 2 are redirected.  Yields a list that is
+    Dr.Jit prints a message (from C++, straight to descriptor 2) when it meets an old LLVM;
+    it would break one-line error messages and ``--json`` output, so both the Python streams
+    and descriptors 1 and 2 are redirected.  (Images are read through OpenImageIO, whose
+    errors are retrieved from the library, not from its output.)  Yields a list that is
     filled with the captured lines when the block ends.
     """
     lines: list[str] = []

@@ -12,6 +12,8 @@
 """
 from __future__ import annotations
 
+import os
+
 import subprocess
 import sys
 from pathlib import Path
@@ -108,6 +110,27 @@ def test04_a_shading_error_is_wrong(kind, path):
     cmp = compare_shaded(parse_scene(path), W, integrator=_broken(kind))
     assert not cmp.ok
     assert cmp.counts["wrong"] > 20, cmp.counts
+    # FLIP sees it too: its mean is positive and its hottest pixel is one that differs
+    assert cmp.summary()["flip_mean"] == cmp.flip_mean > 0
+    y, x = np.unravel_index(int(np.argmax(cmp.flip)), cmp.flip.shape)
+    assert (cmp.ours[y, x] != cmp.theirs[y, x]).any()
+
+
+def test04b_flip_map_in_the_evidence(tmp_path):
+    from PIL import Image
+    from tools.harness.flip import flip_colours
+    from tools.harness.shaded import write_shaded_evidence
+    cmp = compare_shaded(parse_scene(SHADOWS), W, integrator=_broken("no_shadow"))
+    paths = write_shaded_evidence(cmp, str(tmp_path), "s")
+    assert [os.path.basename(p) for p in paths] == [f"s.shaded.{n}.png" for n in
+                                                    ("ours", "mitsuba", "classes", "flip")]
+    with Image.open(paths[-1]) as im:
+        assert float(im.text["rtval.flip.mean"]) == cmp.flip_mean
+        pic = np.asarray(im.convert("RGB"))
+    np.testing.assert_array_equal(pic, flip_colours(cmp.flip))       # the map, pixel for pixel
+    same = (cmp.ours == cmp.theirs).all(-1)
+    bright = pic.astype(int).sum(-1)
+    assert bright[~same].mean() > bright[same].mean()  # the differing pixels are hotter
 
 
 def test05_clip_inside_one_scene():

@@ -116,7 +116,7 @@ def _run_shaded(args, scene) -> int:
         return 0 if cmp.ok else 1
     classes = " ".join(f"{k}={v}" for k, v in row["classes"].items() if v)
     print(f"shaded rt_core f64 / Mitsuba course integrator {row['columns']}x{row['rows']}: "
-          f"{classes}")
+          f"{classes}; FLIP mean {row['flip_mean']:.4g}")
     for x, y, ours, theirs in row["worst"]:
         print(f"       wrong pixel (column {x}, row {y}): rt_core {ours}, Mitsuba {theirs}")
     for path in row.get("evidence", []):

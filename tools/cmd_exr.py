@@ -1,6 +1,7 @@
-"""``rtval exr``: inspect and compare OpenEXR outputs (exrinfo, oiiotool --stats, idiff).
+"""``rtval exr``: inspect and compare images (iinfo, oiiotool --stats, idiff, FLIP).
 
-Only argument parsing and formatting live here; the work is in :mod:`tools.exrtool`.
+Only argument parsing and formatting live here; the work is in :mod:`tools.exrtool`
+(OpenImageIO and NVIDIA FLIP underneath).
 """
 from __future__ import annotations
 
@@ -12,14 +13,16 @@ import textwrap
 
 from .options import count, nonneg, percent
 
+METRICS = ("idiff", "flip")          # tools.exrtool.METRICS (not imported: it loads numpy)
+
 EXIT_CODES = """\
 exit codes:
   0   PASS: the images match within the warning and failure limits
   1   WARNING: some pixels differ, but within the failure limits
   2   FAILURE: too many pixels fail, or one exceeds --hard-fail
   3   the images differ in size or in their channels and were not compared
-  4   file error: a file is missing, truncated or not an OpenEXR file, a requested
-      channel is missing, or the difference image cannot be written
+  4   file error: a file is missing, truncated or not an image OpenImageIO reads, a
+      requested channel is missing, or the difference image or FLIP map cannot be written
   64  usage error: unknown option, bad or negative option value
 """
 
@@ -27,14 +30,23 @@ DIFF_RULES = """\
 A pixel fails when, in any of its channels, the error |a - b| exceeds both --fail
 (absolute) and --fail-relative (relative to the mean of |a| and |b|); it warns likewise
 with --warn and --warn-relative.  NaN matches only NaN and Inf only the same-signed Inf;
-a non-finite value against anything else is an infinite error: that pixel fails and warns.
+a non-finite value against anything else is an infinite error: that pixel fails and warns
+(idiff lets such pixels pass).
 
-The comparison FAILS if any error exceeds --hard-fail (regardless of the other limits),
-or if more pixels fail than both --allow-failures and --fail-percent of all pixels
-allow.  Failing pixels within --allow-failures are excused entirely; failing pixels
-within --fail-percent still count as warnings.  Otherwise it is a WARNING if more than
---warn-percent of the pixels warn or an error exceeds --hard-warn, else it PASSES.
-Mean and RMS error are over the values finite in both images (as idiff reports them).
+As idiff decides: the comparison PASSES when at most --allow-failures pixels fail
+(default 0: a comparison in which no pixel fails passes, however many pixels warn; the
+hard limits are not consulted).  Otherwise it FAILS if more pixels fail than
+--fail-percent of all pixels allow, or an error exceeds --hard-fail; otherwise it is a
+WARNING if more than --warn-percent of the pixels warn or an error exceeds --hard-warn,
+else it PASSES.  So a WARNING needs failing pixels tolerated by --fail-percent.
+Mean and RMS error and the PSNR are OpenImageIO's (idiff's): over all values, a value
+non-finite in either image counting as 0.
+
+--metric flip compares the colours (R,G,B, or the three --channels) by NVIDIA FLIP
+instead: A is the reference, a pixel's error is its FLIP value in [0, 1] (0: identical),
+judged by the same absolute limits and rules; the report gives the FLIP mean, and -o writes
+the FLIP error map (.exr: the raw values; other names: a magma-coloured PNG).  Images
+within [0, 1] are compared as LDR (sRGB-encoded, as PPM and PNG are), others as HDR.
 """
 
 
@@ -44,9 +56,11 @@ def _wrap(text: str) -> str:
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
-        "exr", help="inspect and compare OpenEXR outputs (info, stats, diff, preview)",
-        description=_wrap("Inspect and compare the OpenEXR files rtval and the course tracer "
-                          "write, the way exrinfo, oiiotool --stats and idiff do."),
+        "exr", help="inspect and compare images (info, stats, diff, preview)",
+        description=_wrap("Inspect and compare the EXR files rtval writes and the images "
+                          "the course tracer writes (any format OpenImageIO reads: EXR, PPM, "
+                          "PNG, TIFF, ...), the way iinfo, oiiotool --stats and idiff do, "
+                          "with OpenImageIO underneath; FLIP for the perceptual difference."),
         epilog="`rtval exr diff` exits like idiff:\n" + EXIT_CODES
                + "info, stats and preview exit 0, 4 or 64.",
         formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -54,10 +68,11 @@ def add_parser(subparsers) -> None:
                            parser_class=type(p))
 
     q = sub.add_parser("info", help="size, channels and pixel types, compression, attributes",
-                       description=_wrap("Print each file's size, windows, compression, "
-                                         "channels with pixel types and every header "
-                                         "attribute, rtval.* provenance included (like "
-                                         "exrinfo/exrheader)."),
+                       description=_wrap("Print each file's format, size, windows, "
+                                         "compression, channels with pixel types and every "
+                                         "header attribute as OpenImageIO names it, rtval.* "
+                                         "provenance included (like iinfo -v).  The pixels "
+                                         "are read too, so a truncated file is an error."),
                        epilog="exit codes: 0 ok, 4 a file cannot be read, 64 usage error",
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     q.add_argument("files", nargs="+", metavar="FILE")
@@ -65,10 +80,11 @@ def add_parser(subparsers) -> None:
     q.set_defaults(func=run_info)
 
     q = sub.add_parser("stats", help="per-channel min/max/mean/std and NaN/Inf/finite counts",
-                       description=_wrap("Per-channel statistics like `oiiotool --stats`: "
-                                         "min, max, mean and std over the finite values, "
-                                         "and NaN, Inf and finite counts.  depth.* channels "
-                                         "are also summarised over hit pixels only "
+                       description=_wrap("Per-channel statistics by OpenImageIO, as "
+                                         "`oiiotool --stats` prints them: min, max, mean and "
+                                         "std (float32) over the finite values, and NaN, Inf "
+                                         "and finite counts.  depth.* channels are also "
+                                         "summarised over hit pixels only "
                                          "(hit.mask > 0.5)."),
                        epilog="exit codes: 0 ok, 4 the file or a channel cannot be read, "
                               "64 usage error",
@@ -78,11 +94,13 @@ def add_parser(subparsers) -> None:
     q.add_argument("--json", action="store_true", help="print JSON")
     q.set_defaults(func=run_stats)
 
-    q = sub.add_parser("diff", help="compare two EXRs with idiff's thresholds and exit codes",
+    q = sub.add_parser("diff", help="compare two images with idiff's thresholds and exit "
+                                    "codes, or by FLIP",
                        description=_wrap("Compare A and B channel by channel with idiff's "
-                                         "semantics and report mean, RMS and max error, the "
-                                         "worst pixel and the failing and warning pixel "
-                                         "counts.") + "\n\n" + DIFF_RULES,
+                                         "semantics (OpenImageIO's comparison) and report "
+                                         "mean, RMS and max error, PSNR, the worst pixel and "
+                                         "the failing and warning pixel counts.")
+                       + "\n\n" + DIFF_RULES,
                        epilog=EXIT_CODES,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     q.add_argument("a", metavar="A")
@@ -106,10 +124,13 @@ def add_parser(subparsers) -> None:
                    help="warn if any error exceeds H (default inf)")
     q.add_argument("--allow-failures", type=count, default=0, metavar="N",
                    help="N pixels may fail by any amount below --hard-fail (default 0)")
+    q.add_argument("--metric", choices=METRICS, default="idiff",
+                   help="idiff: |A-B| per value (default); flip: NVIDIA FLIP of the colours")
     q.add_argument("-o", "--output", metavar="DIFF.exr",
-                   help="write |A-B| per channel to this EXR (atomically)")
+                   help="write |A-B| per channel to this EXR, or with --metric flip the "
+                        "FLIP error map (.exr or .png); atomically")
     q.add_argument("--json", action="store_true", help="print the report as JSON")
-    q.set_defaults(func=run_diff)
+    q.set_defaults(func=run_diff, usage_error=q.error)
 
     q = sub.add_parser("preview", help="false-colour PNG of one channel with a colour bar",
                        description=_wrap("Write a false-colour PNG of one channel with a "
@@ -128,7 +149,7 @@ def add_parser(subparsers) -> None:
     q.add_argument("--channel", metavar="NAME",
                    help="channel or layer to show (default depth.Z, else the first channel)")
     q.add_argument("--json", action="store_true", help="print what was drawn as JSON")
-    q.set_defaults(func=run_preview)
+    q.set_defaults(func=run_preview, usage_error=q.error)
 
 
 # ----------------------------------------------------------------------------- option types
@@ -186,6 +207,13 @@ def _error(e) -> None:
     print(f"rtval exr: {e}", file=sys.stderr)
 
 
+def _named(path: str, ext: str) -> bool:
+    """``path`` ends in ``ext``, or is a device or pipe (``/dev/null``: no name to check)."""
+    import os
+    return path.lower().endswith(ext) or (os.path.exists(path) and not os.path.isfile(path)
+                                          and not os.path.isdir(path))
+
+
 def run_info(args) -> int:
     from rt_core.exrio import ExrError
     from tools import exrtool
@@ -202,12 +230,14 @@ def run_info(args) -> int:
     for r in results:
         (x0, y0), (x1, y1) = r["data_window"] or ((0, 0), (r["width"] - 1, r["height"] - 1))
         print(f"file {r['file']}:")
+        print(f"  format          {r['format']}")
         print(f"  size            {r['width']} x {r['height']}")
         print(f"  data window     ({x0}, {y0}) - ({x1}, {y1})")
         if r["display_window"]:
             (dx0, dy0), (dx1, dy1) = r["display_window"]
             print(f"  display window  ({dx0}, {dy0}) - ({dx1}, {dy1})")
-        print(f"  compression     {r['compression']}")
+        if r["compression"] is not None:
+            print(f"  compression     {r['compression']}")
         print(f"  storage         {r['storage']}")
         if r["parts"]:
             print(f"  parts ({len(r['parts'])})       {', '.join(r['parts'])} "
@@ -215,11 +245,9 @@ def run_info(args) -> int:
         print(f"  channels ({len(r['channels'])}):")
         w = max(len(c["name"]) for c in r["channels"])
         for c in r["channels"]:
-            samp = ("" if (c["x_sampling"], c["y_sampling"]) == (1, 1)
-                    else f"  sampling {c['x_sampling']} x {c['y_sampling']}")
-            print(f"    {c['name']:<{w}}  {c['type']}{samp}")
-        print("  attributes:")
-        w = max(len(k) for k in r["attributes"])
+            print(f"    {c['name']:<{w}}  {c['type']}")
+        print("  attributes:" + ("" if r["attributes"] else " (none)"))
+        w = max((len(k) for k in r["attributes"]), default=0)
         for k, v in r["attributes"].items():
             print(f"    {k:<{w}}  {_fmt_attr(v)}")
     return code
@@ -254,12 +282,23 @@ def run_stats(args) -> int:
 
 def run_diff(args) -> int:
     from tools import exrtool
+    if args.metric == "idiff" and args.output and not _named(args.output, ".exr"):
+        args.usage_error(f"-o {args.output}: the difference image is an EXR; name it .exr "
+                         "(--metric flip writes its map as .exr or .png)")
+    if args.metric == "flip":
+        if args.fail_relative or args.warn_relative:
+            args.usage_error("--metric flip takes absolute limits only: a FLIP error is "
+                             "already relative (0 to 1); drop --fail-relative/--warn-relative")
+        chans = _channels(args)
+        if chans is not None and len(chans) != 3:
+            args.usage_error(f"--metric flip compares three colour channels; --channels "
+                             f"names {len(chans)} ({','.join(chans)})")
     th = exrtool.Thresholds(
         fail=args.fail, fail_relative=args.fail_relative, fail_percent=args.fail_percent,
         hard_fail=args.hard_fail, warn=args.warn, warn_relative=args.warn_relative,
         warn_percent=args.warn_percent, hard_warn=args.hard_warn,
         allow_failures=args.allow_failures)
-    r = exrtool.diff(args.a, args.b, _channels(args), th, args.output)
+    r = exrtool.diff(args.a, args.b, _channels(args), th, args.output, args.metric)
     if r["exit_code"] == exrtool.MISMATCH:
         _error(r["reason"])
         if args.json:
@@ -268,24 +307,35 @@ def run_diff(args) -> int:
     if args.json:
         _print_json(r)
         return r["exit_code"]
+    flip = args.metric == "flip"
     print(f'Comparing "{r["file_a"]}" and "{r["file_b"]}" '
-          f'({r["width"]} x {r["height"]}, {len(r["channels"])} channels)')
-    print(f"  Mean error = {_g(r['mean_error'])}")
-    print(f"  RMS error = {_g(r['rms_error'])}")
+          f'({r["width"]} x {r["height"]}, '
+          + (f'FLIP of {",".join(r["channels"])}, {r["flip"]["dynamic_range"]}, '
+             f'{r["flip"]["ppd"]:.4g} pixels per degree)' if flip
+             else f'{len(r["channels"])} channels)'))
     wst = r["worst"]
-    if wst:
-        print(f"  Max error  = {_g(r['max_error'])} @ ({wst['x']}, {wst['y']}, "
-              f"{wst['channel']})  values are {_distinct(wst['a'], wst['b'])}")
+    if flip:
+        print(f"  FLIP mean = {_g(r['flip_mean'])}")
+        print(f"  Max FLIP  = {_g(r['max_error'])}"
+              + (f" @ ({wst['x']}, {wst['y']})  colours are "
+                 f"{_triple(wst['a'])} vs {_triple(wst['b'])}" if wst else ""))
     else:
-        print("  Max error  = 0")
-    if r["nonfinite_mismatches"]:
-        print(f"  {r['nonfinite_mismatches']} values non-finite in one image only")
+        print(f"  Mean error = {_g(r['mean_error'])}")
+        print(f"  RMS error = {_g(r['rms_error'])}")
+        print(f"  Peak SNR = {_g(r['psnr'])}")
+        if wst:
+            print(f"  Max error  = {_g(r['max_error'])} @ ({wst['x']}, {wst['y']}, "
+                  f"{wst['channel']})  values are {_distinct(wst['a'], wst['b'])}")
+        else:
+            print("  Max error  = 0")
+        if r["nonfinite_mismatches"]:
+            print(f"  {r['nonfinite_mismatches']} values non-finite in one image only")
     th = r["thresholds"]
     print(f"  {r['warning_pixels']} pixels ({r['warning_percent']:.3g}%) over {_g(th['warn'])}"
           + (f" and relative {_g(th['warn_relative'])}" if th["warn_relative"] else ""))
     print(f"  {r['failing_pixels']} pixels ({r['failing_percent']:.3g}%) over {_g(th['fail'])}"
           + (f" and relative {_g(th['fail_relative'])}" if th["fail_relative"] else ""))
-    differing = {n: c for n, c in r["per_channel"].items() if c["max_error"] > 0}
+    differing = {n: c for n, c in r.get("per_channel", {}).items() if c["max_error"] > 0}
     if len(r["channels"]) > 1 and differing:
         w = max(len(n) for n in differing) + 2
         print(f"  {'channel':<{w}}{'max':>12}{'mean':>12}{'rms':>12}{'failing':>9}  worst")
@@ -297,14 +347,22 @@ def run_diff(args) -> int:
             print(f"  ({len(r['channels']) - len(differing)} other channels identical)")
     for reason in r["reasons"]:
         print(f"  {reason}")
-    if r["diff_image"]:
+    if r.get("diff_image"):
         print(f"  difference image: {r['diff_image']}")
+    if r.get("flip_map"):
+        print(f"  FLIP error map: {r['flip_map']}")
     print(r["status"])
     return r["exit_code"]
 
 
+def _triple(v) -> str:
+    return "(" + ", ".join(_g(x) for x in v) + ")"
+
+
 def run_preview(args) -> int:
     from tools import exrtool
+    if not _named(args.output, ".png"):
+        args.usage_error(f"-o {args.output}: the preview is a PNG; name it .png")
     r = exrtool.preview(args.file, args.output, args.channel)
     if args.json:
         _print_json(r)

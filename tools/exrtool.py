@@ -1,4 +1,13 @@
-"""Inspect and compare OpenEXR outputs the way exrinfo, ``oiiotool --stats`` and idiff do.
+"""Inspect and compare images the way iinfo, ``oiiotool --stats`` and idiff do, through
+OpenImageIO: any format it reads (EXR, PPM, PNG, TIFF, ...).
+
+OpenImageIO does the image work: reading (``rt_core.imageio.read_channels``), the statistics
+(``ImageBufAlgo.computePixelStats``), the comparison (``ImageBufAlgo.compare``: mean, RMS,
+PSNR, the worst value, failing and warning pixel counts) and the difference image
+(``ImageBufAlgo.absdiff``); NVIDIA FLIP (``flip_evaluator``) the perceptual comparison.  What
+stays here is rtval's policy around them: the channel selection, idiff's verdict, and
+non-finite values, which OpenImageIO's comparison lets pass (a NaN against a number, +Inf
+against -Inf) and rtval counts as failing pixels.
 
 Every function returns plain data (dicts of numbers, strings and lists) and raises
 :class:`rt_core.exrio.ExrError` for a file that cannot be read or written or a requested
@@ -13,8 +22,9 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from rt_core.exrio import ExrError, atomic_write, read_exr, write_exr
+from rt_core.exrio import ExrError, write_exr
 from rt_core.outputs import WriteError
+from tools.harness.flip import flip_colours, flip_map
 
 # idiff's process return codes
 PASS, WARN, FAIL, MISMATCH, FILE_ERROR = 0, 1, 2, 3, 4
@@ -22,26 +32,35 @@ STATUS_NAMES = {PASS: "PASS", WARN: "WARNING", FAIL: "FAILURE", MISMATCH: "MISMA
 
 HIT_MASK = "hit.mask"
 DIFF_KIND = "diff"          # value of the rtval.kind attribute of a difference image
-PIXEL_TYPES = {np.dtype(np.float16): "HALF", np.dtype(np.float32): "FLOAT",
-               np.dtype(np.uint32): "UINT"}
+FLIP_KIND = "flip"          # ... and of a FLIP error map
+METRICS = ("idiff", "flip")
+FLIP_CHANNELS = ("R", "G", "B")
+
+
+def _oiio():
+    import OpenImageIO
+    return OpenImageIO
 
 
 # ----------------------------------------------------------------------------- loading
 
 @dataclass
 class Image:
-    """One EXR file: ``channels`` {name: 2-D array}, sorted by name, and its header."""
+    """One image file: ``channels`` {name: 2-D array} and ``types`` {name: pixel type},
+    sorted by name, its header, and what OpenImageIO says of it (``data``)."""
     path: str
     channels: dict
     header: dict
+    types: dict
+    data: object = None          # rt_core.imageio.ImageData
 
     @property
     def height(self) -> int:
-        return next(iter(self.channels.values())).shape[0] if self.channels else 0
+        return self.data.height
 
     @property
     def width(self) -> int:
-        return next(iter(self.channels.values())).shape[1] if self.channels else 0
+        return self.data.width
 
     def hit(self) -> np.ndarray | None:
         """Boolean hit mask from ``hit.mask`` (> 0.5), or None if the file has none."""
@@ -50,14 +69,16 @@ class Image:
 
 
 def load(path, deep_ok: bool = False) -> Image:
-    """Read ``path``; ExrError (one line naming the file) if it is unreadable or empty.
-    Every part of a multi-part file is read (channels ``part.channel``); a deep file only
-    with ``deep_ok`` (``info``)."""
+    """Read ``path`` (any format OpenImageIO reads); ExrError (one line naming the file) if
+    it is unreadable or empty.  Every part of a multi-part file is read (channels
+    ``part.channel``); a deep file only with ``deep_ok`` (``info``: no pixels kept)."""
+    from rt_core.imageio import read_channels
     path = os.fspath(path)
-    chans, header = read_exr(path, deep_ok=deep_ok)
-    if not chans:
+    data = read_channels(path, deep_ok, "EXR", ExrError)
+    if not data.types:
         raise ExrError(f"{path}: the file has no channels")
-    return Image(path, {k: chans[k] for k in sorted(chans)}, header)
+    return Image(path, {k: data.channels[k] for k in sorted(data.channels)}, data.header,
+                 {k: data.types[k] for k in sorted(data.types)}, data)
 
 
 def select_channels(img: Image, requested=None) -> list[str]:
@@ -80,13 +101,26 @@ def select_channels(img: Image, requested=None) -> list[str]:
     return out
 
 
+def _buf(pixels: np.ndarray):
+    """A float ImageBuf of (rows, columns, channels) ``pixels``."""
+    oiio = _oiio()
+    a = np.ascontiguousarray(pixels, np.float32)
+    buf = oiio.ImageBuf(oiio.ImageSpec(a.shape[1], a.shape[0], a.shape[2], "float"))
+    buf.set_pixels(oiio.ROI(), a)
+    return buf
+
+
+def _stack(img: Image, names) -> np.ndarray:
+    """The channels as one (rows, columns, channels) float32 array (a UINT id as its value)."""
+    return np.stack([np.asarray(img.channels[n]).astype(np.float32, copy=False)
+                     for n in names], -1)
+
+
 # ----------------------------------------------------------------------------- info
 
 def _plain(value):
-    """A header value as JSON-ready data: enums by name, arrays as lists."""
-    if isinstance(value, (str, bool, int)) or value is None:
-        return value
-    if isinstance(value, float):
+    """A header value as JSON-ready data: tuples and arrays as lists."""
+    if isinstance(value, (str, bool, int, float)) or value is None:
         return value
     if isinstance(value, np.ndarray):
         return value.tolist()
@@ -94,66 +128,39 @@ def _plain(value):
         return value.item()
     if isinstance(value, (tuple, list)):
         return [_plain(v) for v in value]
-    if isinstance(value, dict):
-        return {str(k): _plain(v) for k, v in value.items()}
     if isinstance(value, bytes):
         return value.decode("utf-8", "replace")
-    name = getattr(value, "name", None)   # pybind11 enums: Compression.ZIP_COMPRESSION
-    if isinstance(name, str) and hasattr(value, "value"):
-        return name
     return str(value)
 
 
-def _window(value):
-    try:
-        (x0, y0), (x1, y1) = (tuple(int(v) for v in corner) for corner in value)
-        return [[x0, y0], [x1, y1]]
-    except (TypeError, ValueError):
-        return _plain(value)
+def _storage(data) -> str:
+    """The file's layout in OpenEXR's words (its part ``type``)."""
+    return ("deep" + ("tile" if data.tiled else "scanline") if data.deep
+            else ("tiledimage" if data.tiled else "scanlineimage"))
 
 
 def info(path) -> dict:
-    """Size, windows, compression, channels with pixel types, and every header attribute.
-
-    ``attributes`` holds all header attributes except the channel list (given as
-    ``channels``); ``provenance`` repeats the ``rtval.*`` ones.
-    """
+    """Format, size, windows, compression, channels with pixel types, and every header
+    attribute as OpenImageIO names it (``iinfo -v``); the pixels are read, so a truncated
+    file is an error.  ``provenance`` repeats the ``rtval.*`` attributes."""
     img = load(path, deep_ok=True)
-    hdr = img.header
-    attrs = {k: _plain(v) for k, v in sorted(hdr.items()) if k != "channels"}
-    for key in ("dataWindow", "displayWindow"):
-        if key in hdr:
-            attrs[key] = _window(hdr[key])
-    sampling = {getattr(c, "name", None): (getattr(c, "xSampling", 1), getattr(c, "ySampling", 1))
-                for c in hdr.get("channels", []) or []}
-    channels = []
-    for name, arr in img.channels.items():
-        xs, ys = sampling.get(name, (1, 1))
-        channels.append({"name": name, "type": _pixel_type(arr),
-                         "x_sampling": int(xs), "y_sampling": int(ys)})
+    d = img.data
+    attrs = {k: _plain(v) for k, v in sorted(img.header.items())}
     return {
         "file": img.path,
+        "format": d.format,
         "width": img.width,
         "height": img.height,
         "compression": attrs.get("compression"),
-        "data_window": attrs.get("dataWindow"),
-        "display_window": attrs.get("displayWindow"),
-        "channels": channels,
-        "parts": hdr.get("parts", []),
-        "storage": _plain(hdr.get("type", "scanlineimage")),
-        "layers": _layers(img.channels),
+        "data_window": d.data_window,
+        "display_window": d.display_window,
+        "channels": [{"name": n, "type": t} for n, t in img.types.items()],
+        "parts": d.parts,
+        "storage": _storage(d),
+        "layers": _layers(img.types),
         "attributes": attrs,
         "provenance": {k: v for k, v in attrs.items() if k.startswith("rtval.")},
     }
-
-
-def _pixel_type(arr) -> str:
-    """HALF/FLOAT/UINT; a deep channel (per-pixel sample arrays) as ``deep FLOAT``."""
-    if arr.dtype == object:
-        first = next((a for a in arr.flat if getattr(a, "size", 0)), None)
-        return "deep " + (PIXEL_TYPES.get(first.dtype, str(first.dtype)) if first is not None
-                          else "(no samples)")
-    return PIXEL_TYPES.get(arr.dtype, str(arr.dtype))
 
 
 def _layers(names) -> dict:
@@ -167,37 +174,42 @@ def _layers(names) -> dict:
 
 # ----------------------------------------------------------------------------- stats
 
-def _summary(values: np.ndarray) -> dict:
-    """min/max/mean/std over the finite values, and NaN/Inf/finite counts (oiiotool --stats)."""
-    v = np.asarray(values, dtype=np.float64).ravel()
-    nan = np.isnan(v)
-    inf = np.isinf(v)
-    fin = v[~(nan | inf)]
-    out = {"count": int(v.size), "finite": int(fin.size), "nan": int(nan.sum()),
-           "inf": int(inf.sum()), "min": None, "max": None, "mean": None, "std": None}
-    if fin.size:
-        mean = float(fin.mean())
-        out.update(min=float(fin.min()), max=float(fin.max()), mean=mean,
-                   std=float(np.sqrt(np.mean((fin - mean) ** 2))))
+def _pixel_stats(pixels: np.ndarray) -> list[dict]:
+    """OpenImageIO's computePixelStats of (rows, columns, channels) values: per channel
+    min/max/mean/std over the finite values (std: the population standard deviation;
+    float32, as ``oiiotool --stats`` prints them) and the NaN/Inf/finite counts."""
+    oiio = _oiio()
+    st = oiio.ImageBufAlgo.computePixelStats(_buf(pixels))
+    out = []
+    for c in range(pixels.shape[2]):
+        n = int(st.finitecount[c])
+        out.append({"count": n + int(st.nancount[c]) + int(st.infcount[c]), "finite": n,
+                    "nan": int(st.nancount[c]), "inf": int(st.infcount[c]),
+                    "min": float(st.min[c]) if n else None,
+                    "max": float(st.max[c]) if n else None,
+                    "mean": float(st.avg[c]) if n else None,
+                    "std": float(st.stddev[c]) if n else None})
     return out
+
+
+def _summary(values: np.ndarray) -> dict:
+    """The statistics of any set of values (a 1 x N image of them)."""
+    return _pixel_stats(np.asarray(values, np.float32).reshape(1, -1, 1))[0]
 
 
 def stats(path, channels=None) -> dict:
     """Per-channel statistics; ``depth.*`` channels also get ``hit`` stats over hit pixels.
 
-    std is the population standard deviation (as oiiotool reports it).  ``hit`` is None for
-    a depth channel when the file has no ``hit.mask``.
+    ``hit`` is None for a depth channel when the file has no ``hit.mask``.
     """
     img = load(path)
     names = select_channels(img, channels)
     hit = img.hit()
     result = {"file": img.path, "width": img.width, "height": img.height, "channels": {}}
-    for name in names:
-        arr = img.channels[name]
-        s = _summary(arr)
-        s["type"] = PIXEL_TYPES.get(arr.dtype, str(arr.dtype))
+    for name, s in zip(names, _pixel_stats(_stack(img, names))):
+        s["type"] = img.types[name]
         if name.split(".", 1)[0] == "depth":
-            s["hit"] = None if hit is None else _summary(np.asarray(arr)[hit])
+            s["hit"] = None if hit is None else _summary(np.asarray(img.channels[name])[hit])
         result["channels"][name] = s
     return result
 
@@ -207,12 +219,12 @@ def stats(path, channels=None) -> dict:
 @dataclass(frozen=True)
 class Thresholds:
     """idiff's limits.  A pixel *fails* when, in any channel, its error exceeds both ``fail``
-    (absolute) and ``fail_relative`` (error / mean of |a| and |b|); likewise for *warn*.
-    The comparison FAILS if any pixel's error exceeds ``hard_fail``, or if more pixels fail
-    than both ``allow_failures`` and ``fail_percent`` % of the pixels allow.  Failing pixels
-    within ``allow_failures`` are excused entirely; failing pixels within ``fail_percent``
-    still count as warnings.  Otherwise it WARNS if more than ``warn_percent`` % of pixels
-    warn or any error exceeds ``hard_warn``.
+    (absolute) and ``fail_relative`` times the mean of |a| and |b|; likewise it *warns*.
+    As idiff decides: the comparison PASSES when at most ``allow_failures`` pixels fail
+    (whatever the warnings and the hard limits); otherwise it FAILS if more pixels fail
+    than ``fail_percent`` % of the pixels or an error exceeds ``hard_fail``; otherwise it
+    WARNS if more than ``warn_percent`` % of the pixels warn or an error exceeds
+    ``hard_warn``; else it PASSES.
     """
     fail: float = 1e-6
     fail_relative: float = 0.0
@@ -231,6 +243,30 @@ class Thresholds:
         for k in ("fail_percent", "warn_percent"):
             if getattr(self, k) > 100:
                 raise ValueError(f"threshold {k} must be <= 100, got {getattr(self, k)}")
+
+
+def verdict(n_fail: int, n_warn: int, max_err: float, npix: int,
+            th: Thresholds) -> tuple[int, list[str]]:
+    """(PASS/WARN/FAIL, reasons) from the pixel counts, as idiff decides (Thresholds)."""
+    if n_fail <= th.allow_failures:
+        if n_fail:
+            return PASS, [f"{n_fail} failing pixels allowed (--allow-failures "
+                          f"{th.allow_failures})"]
+        return PASS, []
+    reasons = []
+    if n_fail > th.fail_percent / 100.0 * npix:
+        reasons.append(f"{n_fail} failing pixels > {th.allow_failures} allowed and > "
+                       f"{th.fail_percent:g}% of {npix}")
+    if max_err > th.hard_fail:
+        reasons.append(f"max error {max_err:g} exceeds the hard-fail limit {th.hard_fail:g}")
+    if reasons:
+        return FAIL, reasons
+    if n_warn > th.warn_percent / 100.0 * npix:
+        reasons.append(f"{n_warn} warning pixels > {th.warn_percent:g}% of {npix} "
+                       f"({n_fail} failing pixels within --fail-percent)")
+    if max_err > th.hard_warn:
+        reasons.append(f"max error {max_err:g} exceeds the hard-warn limit {th.hard_warn:g}")
+    return (WARN if reasons else PASS), reasons
 
 
 def _mismatch(a: Image, b: Image, names_a, names_b, requested) -> str | None:
@@ -254,137 +290,197 @@ def _scalar(x) -> float | int:
     return x.item() if isinstance(x, np.generic) else x
 
 
+def _compare(A, B, th: Thresholds, roi=None):
+    """OpenImageIO's CompareResults of two float ImageBufs (idiff's figures)."""
+    oiio = _oiio()
+    return oiio.ImageBufAlgo.compare(A, B, th.fail, th.warn, th.fail_relative,
+                                     th.warn_relative, oiio.ROI() if roi is None else roi)
+
+
 def diff(path_a, path_b, channels=None, thresholds: Thresholds | None = None,
-         diff_out=None) -> dict:
-    """Compare two EXRs channel by channel with idiff's semantics.
+         diff_out=None, metric: str = "idiff") -> dict:
+    """Compare two images channel by channel with idiff's semantics (``metric`` idiff) or
+    by NVIDIA FLIP (``metric`` flip: ``flip_diff``).
 
     Returns a dict with ``status`` (PASS, WARNING, FAILURE or MISMATCH) and ``exit_code``
-    (0, 1, 2, 3), the mean/RMS/max error over values finite in both files, the worst pixel
-    (x, y, channel and both values), failing/warning pixel counts and per-channel errors.
+    (0, 1, 2, 3), OpenImageIO's mean/RMS error and PSNR (over all values, a non-finite
+    one counting 0, as idiff reports them), the max error and the worst pixel (x, y,
+    channel and both values), failing/warning pixel counts and per-channel errors.
     NaN matches only NaN and Inf only the same-signed Inf; any other pairing with a
-    non-finite value is an infinite error, so that pixel fails and warns.  ``diff_out``
-    writes |A - B| per channel (0 where non-finite values match, Inf where they do not),
-    atomically, unless the images cannot be compared (MISMATCH).
+    non-finite value is an infinite error, so that pixel fails and warns (OpenImageIO's
+    comparison would let it pass).  ``diff_out`` writes |A - B| per channel (0 where
+    non-finite values match, Inf where they do not), atomically, unless the images cannot
+    be compared (MISMATCH).
     """
+    if metric not in METRICS:
+        raise ValueError(f"metric must be one of {METRICS}, got {metric!r}")
     th = thresholds or Thresholds()
     a, b = load(path_a), load(path_b)
+    if metric == "flip":
+        channels = channels or list(FLIP_CHANNELS)
     names_a, names_b = select_channels(a, channels), select_channels(b, channels)
     result = {"file_a": a.path, "file_b": b.path, "width": a.width, "height": a.height,
-              "thresholds": asdict(th)}
+              "metric": metric, "thresholds": asdict(th)}
     why = _mismatch(a, b, names_a, names_b, channels)
     if why:
         result.update(status=STATUS_NAMES[MISMATCH], exit_code=MISMATCH, reason=why,
                       channels_a=names_a, channels_b=names_b)
         return result
+    if metric == "flip":
+        return _flip_diff(a, b, names_a, th, diff_out, result)
     names = names_a
-    A = np.stack([np.asarray(a.channels[n], dtype=np.float64) for n in names], axis=-1)
-    B = np.stack([np.asarray(b.channels[n], dtype=np.float64) for n in names], axis=-1)
+    A, B = _stack(a, names), _stack(b, names)
     H, W, C = A.shape
     npix = H * W
 
-    # per-value error: |a-b| where both are finite, 0 / Inf where a non-finite value matches / not
+    # rtval's non-finite policy; every other value goes to OpenImageIO (non-finite ones as 0)
     finite = np.isfinite(A) & np.isfinite(B)
     same_nonfinite = (np.isnan(A) & np.isnan(B)) | (np.isinf(A) & (A == B))
     bad = ~finite & ~same_nonfinite
-    with np.errstate(invalid="ignore", over="ignore"):
-        err = np.where(finite, np.abs(A - B), 0.0)
-        meanabs = np.where(finite, 0.5 * (np.abs(A) + np.abs(B)), 0.0)
-        rel = np.divide(err, meanabs, out=np.zeros_like(err), where=meanabs > 0)
-    err[bad] = np.inf
-    rel[bad] = np.inf
-
-    chan_fail = ((err > th.fail) & (rel > th.fail_relative)) | bad
-    chan_warn = ((err > th.warn) & (rel > th.warn_relative)) | bad
-    pix_fail, pix_warn = chan_fail.any(axis=-1), chan_warn.any(axis=-1)
-    pix_err = err.max(axis=-1)
-    n_fail, n_warn = int(pix_fail.sum()), int(pix_warn.sum())
-
-    # idiff's summary numbers, over the values that are finite in both files
-    n_cmp = int(finite.sum())
-    fe = err[finite]
-    mean_err = float(fe.sum() / n_cmp) if n_cmp else 0.0
-    rms_err = float(np.sqrt((fe ** 2).sum() / n_cmp)) if n_cmp else 0.0
-    flat = int(np.argmax(err)) if err.size else 0
-    y, x, c = np.unravel_index(flat, err.shape) if err.size else (0, 0, 0)
-    max_err = float(err[y, x, c]) if err.size else 0.0
+    A0, B0 = _buf(np.where(finite, A, 0.0)), _buf(np.where(finite, B, 0.0))
+    cr = _compare(A0, B0, th)
+    n_fail, n_warn = cr.nfail, cr.nwarn
+    bad_pix = bad.any(-1)
+    if bad_pix.any():
+        # a pixel with a non-finite mismatch fails and warns; count the others without it
+        keep = ~bad_pix[..., None]
+        cr_rest = _compare(_buf(np.where(keep, np.where(finite, A, 0.0), 0.0)),
+                           _buf(np.where(keep, np.where(finite, B, 0.0), 0.0)), th)
+        n_bad = int(bad_pix.sum())
+        n_fail, n_warn = cr_rest.nfail + n_bad, cr_rest.nwarn + n_bad
+        y, x, c = np.unravel_index(int(np.argmax(bad)), bad.shape)   # first in scan order
+        max_err = math.inf
+    else:
+        x, y, c, max_err = cr.maxx, cr.maxy, cr.maxc, float(cr.maxerror)
     worst = None
     if max_err > 0:
+        va, vb = _scalar(a.channels[names[c]][y, x]), _scalar(b.channels[names[c]][y, x])
+        mean_abs = 0.5 * (abs(float(va)) + abs(float(vb)))
         worst = {"x": int(x), "y": int(y), "channel": names[c], "error": max_err,
-                 "relative_error": float(rel[y, x, c]),
-                 "a": _scalar(a.channels[names[c]][y, x]),
-                 "b": _scalar(b.channels[names[c]][y, x])}
+                 "relative_error": (max_err / mean_abs if mean_abs > 0 and
+                                    math.isfinite(mean_abs) else math.inf),
+                 "a": va, "b": vb}
 
-    # the verdict
-    reasons = []
-    fail_quota = th.fail_percent / 100.0 * npix
-    excused = 0 < n_fail <= th.allow_failures
-    if max_err > th.hard_fail:
-        status = FAIL
-        reasons.append(f"max error {max_err:g} exceeds the hard-fail limit {th.hard_fail:g}")
-    elif n_fail > th.allow_failures and n_fail > fail_quota:
-        status = FAIL
-        reasons.append(f"{n_fail} failing pixels > {th.allow_failures} allowed and > "
-                       f"{th.fail_percent:g}% of {npix}")
-    else:
-        if excused:
-            reasons.append(f"{n_fail} failing pixels excused (up to {th.allow_failures} "
-                           f"allowed)")
-        warn_mask = pix_warn & ~pix_fail if excused else pix_warn
-        n_warn_eff = int(warn_mask.sum())
-        rest = pix_err[~pix_fail] if excused else pix_err
-        max_rest = float(rest.max()) if rest.size else 0.0
-        status = PASS
-        if n_warn_eff > th.warn_percent / 100.0 * npix:
-            status = WARN
-            reasons.append(f"{n_warn_eff} warning pixels > {th.warn_percent:g}% of {npix}")
-        if max_rest > th.hard_warn:
-            status = WARN
-            reasons.append(f"max error {max_rest:g} exceeds the hard-warn limit {th.hard_warn:g}")
-
+    status, reasons = verdict(n_fail, n_warn, max_err, npix, th)
+    oiio = _oiio()
     per_channel = {}
     for i, n in enumerate(names):
-        e = err[..., i]
-        f = finite[..., i]
-        k = int(np.argmax(e))
-        cy, cx = divmod(k, W)
+        ci = _compare(A0, B0, th, oiio.ROI(0, W, 0, H, 0, 1, i, i + 1))
+        nb = bad[..., i]
+        if nb.any():
+            k = int(np.argmax(nb))
+            where, cmax = [k % W, k // W], math.inf
+        else:
+            cmax = float(ci.maxerror)
+            where = [int(ci.maxx), int(ci.maxy)] if cmax > 0 else None
         per_channel[n] = {
-            "max_error": float(e.max()),
-            "mean_error": float(e[f].mean()) if f.any() else 0.0,
-            "rms_error": float(np.sqrt((e[f] ** 2).mean())) if f.any() else 0.0,
-            "worst": [int(cx), int(cy)] if e.max() > 0 else None,
-            "failing_pixels": int(chan_fail[..., i].sum()),
-            "warning_pixels": int(chan_warn[..., i].sum()),
-            "nonfinite_mismatches": int(bad[..., i].sum()),
+            "max_error": cmax, "mean_error": float(ci.meanerror),
+            "rms_error": float(ci.rms_error), "worst": where,
+            "failing_pixels": int(ci.nfail + nb.sum()),
+            "warning_pixels": int(ci.nwarn + nb.sum()),
+            "nonfinite_mismatches": int(nb.sum()),
         }
 
     result.update({
         "status": STATUS_NAMES[status], "exit_code": status, "reasons": reasons,
         "channels": names, "pixels": npix,
-        "mean_error": mean_err, "rms_error": rms_err, "max_error": max_err, "worst": worst,
-        "compared_values": n_cmp, "nonfinite_mismatches": int(bad.sum()),
+        "mean_error": float(cr.meanerror), "rms_error": float(cr.rms_error),
+        "psnr": float(cr.PSNR), "max_error": max_err, "worst": worst,
+        "compared_values": int(finite.sum()), "nonfinite_mismatches": int(bad.sum()),
         "failing_pixels": n_fail, "failing_percent": 100.0 * n_fail / npix if npix else 0.0,
         "warning_pixels": n_warn, "warning_percent": 100.0 * n_warn / npix if npix else 0.0,
         "per_channel": per_channel, "diff_image": None,
     })
     if diff_out is not None:
-        out = os.fspath(diff_out)
+        err = oiio.ImageBufAlgo.absdiff(A0, B0).get_pixels(oiio.FLOAT)
+        err = np.asarray(err, np.float32).reshape(H, W, C)
+        err[bad] = np.inf
         attrs = {"rtval.kind": DIFF_KIND, "rtval.diff.a": a.path, "rtval.diff.b": b.path,
                  "rtval.diff.status": STATUS_NAMES[status]}
-        try:
-            write_exr(out, {n: err[..., i].astype(np.float32) for i, n in enumerate(names)}, attrs)
-        except ExrError:
-            raise
-        except WriteError as e:       # one line naming the target already; exr's code 4
-            raise ExrError(str(e)) from None
-        except Exception as e:
-            raise ExrError(f"{out}: cannot write the difference image ({_oneline(e)})") from None
-        result["diff_image"] = out
+        result["diff_image"] = _write_exr(diff_out, {n: err[..., i] for i, n in
+                                                     enumerate(names)}, attrs,
+                                          "the difference image")
     return result
+
+
+def _write_exr(out, channels: dict, attrs: dict, what: str) -> str:
+    """Write an EXR atomically; ExrError (exit 4) naming ``out`` if it cannot be."""
+    out = os.fspath(out)
+    try:
+        write_exr(out, channels, attrs)
+    except ExrError:
+        raise
+    except WriteError as e:       # one line naming the target already; exr's code 4
+        raise ExrError(str(e)) from None
+    except Exception as e:
+        raise ExrError(f"{out}: cannot write {what} ({_oneline(e)})") from None
+    return out
 
 
 def _oneline(e: BaseException) -> str:
     text = getattr(e, "strerror", None) or str(e) or type(e).__name__
     return text.splitlines()[0]
+
+
+# ----------------------------------------------------------------------------- FLIP
+
+def write_flip_map(out, err: np.ndarray, attrs: dict) -> str:
+    """The FLIP error map: an EXR (channel ``flip``: the raw per-pixel error) or, for any
+    other name, a magma-coloured PNG; atomically, with ``attrs`` as provenance."""
+    out = os.fspath(out)
+    if out.lower().endswith(".exr"):
+        return _write_exr(out, {"flip": err}, attrs, "the FLIP error map")
+    from rt_core.imageio import write_png
+    try:
+        write_png(out, flip_colours(err), attrs)
+    except WriteError as e:
+        raise ExrError(str(e)) from None
+    except Exception as e:
+        raise ExrError(f"{out}: cannot write the FLIP error map ({_oneline(e)})") from None
+    return out
+
+
+def _flip_diff(a: Image, b: Image, names, th: Thresholds, out, result: dict) -> dict:
+    """``diff`` with metric flip: A is the reference, B the test image; a pixel's error is
+    its FLIP value, judged by the same thresholds and verdict as idiff's errors."""
+    if len(names) != 3:
+        raise ValueError(f"FLIP compares three colour channels, got {len(names)}")
+    A, B = _stack(a, names), _stack(b, names)
+    for img, arr in ((a, A), (b, B)):
+        n_bad = int((~np.isfinite(arr)).sum())
+        if n_bad:
+            raise ExrError(f"{img.path}: FLIP needs finite colours; {n_bad} values of "
+                           f"{', '.join(names)} are NaN or Inf (compare with the default "
+                           "metric, which counts them)")
+        if arr.min() < 0:
+            raise ExrError(f"{img.path}: FLIP needs colours >= 0; the smallest of "
+                           f"{', '.join(names)} is {float(arr.min()):g}")
+    err, mean, params = flip_map(A, B)
+    H, W = err.shape
+    cr = _compare(_buf(err[..., None]), _buf(np.zeros((H, W, 1), np.float32)), th)
+    max_err = float(cr.maxerror)
+    status, reasons = verdict(cr.nfail, cr.nwarn, max_err, H * W, th)
+    worst = None
+    if max_err > 0:
+        worst = {"x": int(cr.maxx), "y": int(cr.maxy), "channel": "flip", "error": max_err,
+                 "a": [float(v) for v in A[cr.maxy, cr.maxx]],
+                 "b": [float(v) for v in B[cr.maxy, cr.maxx]]}
+    result.update({
+        "status": STATUS_NAMES[status], "exit_code": status, "reasons": reasons,
+        "channels": names, "pixels": H * W, "flip_mean": mean, "flip": params,
+        "mean_error": mean, "max_error": max_err, "worst": worst,
+        "failing_pixels": int(cr.nfail), "failing_percent": 100.0 * cr.nfail / (H * W),
+        "warning_pixels": int(cr.nwarn), "warning_percent": 100.0 * cr.nwarn / (H * W),
+        "flip_map": None,
+    })
+    if out is not None:
+        attrs = {"rtval.kind": FLIP_KIND, "rtval.flip.reference": a.path,
+                 "rtval.flip.test": b.path, "rtval.flip.mean": repr(mean),
+                 "rtval.flip.channels": ",".join(names),
+                 "rtval.flip.parameters": ", ".join(f"{k}={v}" for k, v in params.items()),
+                 "rtval.diff.status": STATUS_NAMES[status]}
+        result["flip_map"] = write_flip_map(out, err, attrs)
+    return result
 
 
 # ----------------------------------------------------------------------------- preview
@@ -552,7 +648,6 @@ def preview(path, out, channel: str | None = None) -> dict:
     PREVIEW_MIN_WIDTH pixels), with a LEGEND_HEIGHT-pixel legend strip below it.  The PNG
     is written atomically.
     """
-    from PIL import Image as PILImage
     img = load(path)
     if channel is None:
         channel = "depth.Z" if "depth.Z" in img.channels else next(iter(img.channels))
@@ -560,27 +655,22 @@ def preview(path, out, channel: str | None = None) -> dict:
         channel = select_channels(img, [channel])[0]      # a layer name, e.g. "normal"
     kind = preview_kind(img, channel)
     rgb, legend, ids = _render(img, channel, kind)
-    H, W = img.height, img.width
+    W = img.width
     scale = max(1, math.ceil(PREVIEW_MIN_WIDTH / W))
-    pic = PILImage.fromarray(rgb).resize((W * scale, H * scale), PILImage.NEAREST)
-    canvas = PILImage.new("RGB", (W * scale, H * scale + LEGEND_HEIGHT))
-    canvas.paste(pic, (0, 0))
-    canvas.paste(_legend_strip(W * scale, legend, ids), (0, H * scale))
+    pic = np.repeat(np.repeat(rgb, scale, 0), scale, 1)          # each pixel a scale² block
+    canvas = np.concatenate([pic, np.asarray(_legend_strip(W * scale, legend, ids))], 0)
     out = os.fspath(out)
+    # provenance: the source file and its own rtval.* header attributes
+    text = {"rtval.preview_of": f"{os.path.abspath(path)} channel {channel}"}
+    text.update({str(k): str(v) for k, v in img.header.items() if str(k).startswith("rtval.")})
+    from rt_core.imageio import write_png
     try:
-        # provenance: the source file and its own rtval.* header attributes
-        from PIL.PngImagePlugin import PngInfo
-        info = PngInfo()
-        info.add_text("rtval.preview_of", f"{os.path.abspath(path)} channel {channel}")
-        for k, v in img.header.items():
-            if str(k).startswith("rtval."):
-                info.add_text(str(k), str(v))
-        atomic_write(out, lambda tmp: canvas.save(tmp, format="PNG", pnginfo=info))
+        write_png(out, canvas, text)
     except WriteError as e:
         raise ExrError(str(e)) from None
     except Exception as e:
         raise ExrError(f"{out}: cannot write the PNG ({_oneline(e)})") from None
-    legend.update(file=img.path, output=out, width=canvas.width, height=canvas.height,
+    legend.update(file=img.path, output=out, width=canvas.shape[1], height=canvas.shape[0],
                   scale=scale)
     return legend
 

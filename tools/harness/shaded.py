@@ -14,6 +14,10 @@ Classes of a pixel (``SHADED_CLASSES``):
   the clip, the stand-in plane's extent, a grazing or parallel ray);
 * ``wrong``: anything else.  A wrong pixel fails the comparison.
 
+Beside the classes, NVIDIA FLIP (tools/harness/flip.py) says how visible the differences
+are: its mean over the image (0 when the images are identical), and its error map among the
+evidence.
+
 rt_core renders in float64 with exact decisions; Mitsuba's variant is float32, so the
 oracle's bounds are taken for float32 (``shade_oracle.flags(.., "f32")``).
 """
@@ -56,6 +60,8 @@ class ShadedComparison:
     rules: Rules = Rules()
     max_dist: float = DEFAULT_MAX_DIST
     worst: list = field(default_factory=list)   # a few wrong pixels: (x, y, ours, theirs)
+    flip_mean: float = 0.0            # NVIDIA FLIP, Mitsuba's image the reference
+    flip: np.ndarray | None = None    # FLIP's per-pixel error; None when the images are equal
 
     @property
     def ok(self) -> bool:
@@ -68,6 +74,7 @@ class ShadedComparison:
                 "columns": self.columns, "rows": self.rows,
                 "pixels": self.columns * self.rows, "classes": self.counts,
                 "wrong": self.counts.get("wrong", 0), "worst": self.worst,
+                "flip_mean": self.flip_mean,
                 "rt_core_ms": round(self.ms_ours, 3), "mitsuba_ms": round(self.ms_ref, 3),
                 "ok": self.ok}
 
@@ -144,8 +151,12 @@ def compare_shaded(scene: Scene, columns: int, rows: int | None = None,
     ys, xs = np.nonzero(classes == SHADED_CODE["wrong"])
     worst = [(int(x), int(y), ours[y, x].tolist(), theirs[y, x].tolist())
              for y, x in list(zip(ys, xs))[:5]]
+    flip, flip_mean = None, 0.0
+    if (ours != theirs).any():          # FLIP of identical images is 0: not computed
+        from tools.harness.flip import flip_map
+        flip, flip_mean, _ = flip_map(theirs / np.float32(255), ours / np.float32(255))
     return ShadedComparison(scene, cam.columns, cam.rows, ours, theirs, classes, counts,
-                            ms_ours, ms_ref, sampling, rules, max_dist, worst)
+                            ms_ours, ms_ref, sampling, rules, max_dist, worst, flip_mean, flip)
 
 
 def classes_rgb(classes: np.ndarray) -> np.ndarray:
@@ -155,9 +166,11 @@ def classes_rgb(classes: np.ndarray) -> np.ndarray:
 
 
 def write_shaded_evidence(cmp: ShadedComparison, outdir: str, stem: str) -> list[str]:
-    """PNGs of ours, Mitsuba's and the classes (named colours, legend in the PNG's text),
-    with provenance; returns the paths written."""
+    """PNGs of ours, Mitsuba's, the classes (named colours, legend in the PNG's text) and,
+    where they differ, FLIP's error map (magma), with provenance; returns the paths
+    written."""
     from rt_core.imageio import write_png
+    from tools.harness.flip import flip_colours
     os.makedirs(outdir, exist_ok=True)
     legend = ", ".join(f"{c}={SHADED_COLOUR_NAMES[c]} {'rgb(%d,%d,%d)' % SHADED_COLOURS[c]}"
                        for c in SHADED_CLASSES)
@@ -168,7 +181,12 @@ def write_shaded_evidence(cmp: ShadedComparison, outdir: str, stem: str) -> list
                              ("mitsuba", cmp.theirs,
                               {"rtval.image": "mitsuba course integrator, llvm_ad_rgb"}),
                              ("classes", classes_rgb(cmp.classes),
-                              {"rtval.image": "shaded classes", "rtval.classes": legend})):
+                              {"rtval.image": "shaded classes", "rtval.classes": legend}),
+                             *([("flip", flip_colours(cmp.flip),
+                                 {"rtval.image": "NVIDIA FLIP error map (magma, 0 black, 1 "
+                                                 "light yellow), Mitsuba the reference",
+                                  "rtval.flip.mean": repr(cmp.flip_mean)})]
+                               if cmp.flip is not None else [])):
         path = os.path.join(outdir, f"{stem}.shaded.{name}.png")
         write_png(path, img, {**text, **extra})
         paths.append(path)
