@@ -62,14 +62,25 @@ LAYOUT["tplane"] = LAYOUT["plane"]
 BOUNDED = ("sphere", "fplane")
 
 
-def configure(ks, unroll_max: int | None = None, bins: bool | None = None):
-    """Override UNROLL_MAX and the use of bins for one KernelScene (benchmarks, tests)."""
+def configure(ks, unroll_max: int | None = None, bins: bool | None = None,
+              bvh: bool | None = None):
+    """Override UNROLL_MAX, the use of bins (rays from the viewpoint) and of the BVH (other
+    rays, rt_core/bvh.py) for one KernelScene (benchmarks, tests)."""
     opts = ks.__dict__.setdefault("_accel_opts", {})
     if unroll_max is not None:
         opts["unroll_max"] = unroll_max
     if bins is not None:
         opts["bins"] = bins
+    if bvh is not None:
+        opts["bvh"] = bvh
     return ks
+
+
+def use_bvh(ks, kind: str, o) -> bool:
+    """Are rays with origins ``o`` traced through the kind's BVH (rt_core/bvh.py)?  Rays
+    that do not start at the viewpoint, against a looped bounded kind, unless turned off."""
+    return (o is not None and kind in BOUNDED
+            and ks.__dict__.get("_accel_opts", {}).get("bvh", True))
 
 
 def looped(ks, kind: str) -> bool:
@@ -370,6 +381,9 @@ def _range(ks, kind: str, d, o):
 def closest_kind(ks, kind: str, d, o, rules: Rules, skip, st, scale: float = 0.0):
     """Fold every object of ``kind`` into the running closest hit ``st`` (tracer.Best), with
     the same test, tie rule and certification as the unrolled code."""
+    if use_bvh(ks, kind, o):
+        from . import bvh
+        return bvh.closest_kind(ks, kind, d, o, rules, skip, st)
     T = ks.T
     vz = ks.scene.viewpoint[2]
     tab, start, end = _range(ks, kind, d, o)
@@ -396,7 +410,10 @@ def closest_kind(ks, kind: str, d, o, rules: Rules, skip, st, scale: float = 0.0
 
 def occluded_kind(ks, kind: str, d, o, maxt, rules: Rules, skip, blocked):
     """``blocked`` or any object of ``kind`` (other than ``skip``) hit at 0 < t < maxt; each
-    ray stops at its first blocker."""
+    ray stops at its first blocker (rays already ``blocked`` do nothing)."""
+    if use_bvh(ks, kind, o):
+        from . import bvh
+        return bvh.occluded_kind(ks, kind, d, o, maxt, rules, skip, blocked)
     T = ks.T
     vz = ks.scene.viewpoint[2]
     tab, start, end = _range(ks, kind, d, o)
