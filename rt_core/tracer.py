@@ -415,21 +415,32 @@ def position(ks: KernelScene, d, t, hit, o=None):
     return dr.select(hit, V + rel, dr.zeros(T.Array3, dr.width(d)))
 
 
-def occluded(ks: KernelScene, d, o, maxt, rules: Rules = Rules(), skip=None):
+def occluded(ks: KernelScene, d, o, maxt, rules: Rules = Rules(), skip=None, active=None):
     """Shadow-ray test: mask of the rays o + t·d that hit any object (other than ``skip``)
     at 0 < t < ``maxt``, with the same hit functions and rules as ``closest_hit``.  No t, no
-    id, no tie order: the first level of the intersection only."""
+    id, no tie order: the first level of the intersection only.
+
+    ``active``: the lanes that cast a shadow ray (the others answer False): a looped kind's
+    loop ends them at once, and a packet of lanes none of which is active skips the tests
+    (a symbolic ``dr.if_stmt``)."""
     T = ks.T
     assert isinstance(d, T.Array3), f"expected {T.Array3.__name__} directions"
     vz = ks.scene.viewpoint[2]
-    blocked = dr.zeros(T.Bool, dr.width(d))
-    for kind in ks.kinds:
-        if accel.looped(ks, kind):
-            blocked = accel.occluded_kind(ks, kind, d, o, maxt, rules, skip, blocked)
-            continue
-        for obj in ks.by_kind[kind]:
-            t, hit = object_t(d, o, obj, rules, vz)
-            if skip is not None:
-                hit &= dr.opaque(T.Int32, obj.id) != skip
-            blocked |= hit & (t < maxt)
-    return blocked
+
+    def search(blocked):
+        for kind in ks.kinds:
+            if accel.looped(ks, kind):
+                blocked = accel.occluded_kind(ks, kind, d, o, maxt, rules, skip, blocked)
+                continue
+            for obj in ks.by_kind[kind]:
+                t, hit = object_t(d, o, obj, rules, vz)
+                if skip is not None:
+                    hit &= dr.opaque(T.Int32, obj.id) != skip
+                blocked |= hit & (t < maxt)
+        return blocked
+
+    if active is None:
+        return search(dr.zeros(T.Bool, dr.width(d)))
+    # inactive lanes start 'blocked' (a loop's condition ends them), and answer False
+    return dr.if_stmt((~active,), active, lambda b: (search(b),), lambda b: (b,),
+                      label="occluded_active")[0] & active
