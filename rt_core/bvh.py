@@ -68,12 +68,17 @@ ROW = {"sphere": ("qx", "qy", "qz", "radius", "id"),
 
 @dataclass
 class Tree:
-    """One kind's hierarchy on the host: node rows (float64), the object order of the table
-    rows (positions in ``ks.by_kind[kind]``), and the largest coordinate S of any box."""
-    nodes: np.ndarray
+    """One kind's hierarchy on the host: node rows (float64) flattened once per ray octant
+    (``nodes[octant]``, each ``count`` rows), the object order of the table rows (positions
+    in ``ks.by_kind[kind]``), and the largest coordinate S of any box."""
+    nodes: np.ndarray            # (8, count, NODE)
     order: np.ndarray
     scale: float
     depth: int
+
+    @property
+    def count(self) -> int:
+        return self.nodes.shape[1]
 
 
 def object_boxes(kind: str, consts) -> tuple[np.ndarray, np.ndarray]:
@@ -100,12 +105,13 @@ def _area(lo, hi):
 
 
 def _split(lo, hi, idx):
-    """Positions of ``idx`` in two non-empty parts: the binned-SAH split of the centroids
-    (median along the widest axis when all centroids coincide along every axis)."""
+    """Positions of ``idx`` in two non-empty parts, the first the lower along the split
+    axis, and the axis: the binned-SAH split of the centroids (halves in id order when all
+    centroids coincide)."""
     c = 0.5 * (lo[idx] + hi[idx])
     cmin, cmax = c.min(0), c.max(0)
     ext = cmax - cmin
-    best = (math.inf, None)
+    best = (math.inf, None, 0)
     for ax in np.flatnonzero(ext > 0):
         b = np.minimum(((c[:, ax] - cmin[ax]) / ext[ax] * SAH_BINS).astype(np.int64),
                        SAH_BINS - 1)
@@ -123,39 +129,57 @@ def _split(lo, hi, idx):
         cost = np.where((lc[:-1] > 0) & (rc[1:] > 0), cost, np.inf)
         k = int(np.argmin(cost))
         if cost[k] < best[0]:
-            best = (cost[k], b <= k)
+            best = (cost[k], b <= k, int(ax))
     left = best[1]
     if left is None:                    # coincident centroids: halves in id order
-        left = np.arange(len(idx)) < len(idx) // 2
-    return idx[left], idx[~left]
+        return idx[: len(idx) // 2], idx[len(idx) // 2:], 0
+    return idx[left], idx[~left], best[2]
 
 
-def build(lo: np.ndarray, hi: np.ndarray, leaf_size: int = LEAF_SIZE) -> Tree:
-    """The hierarchy over boxes (lo, hi), depth-first, leaves of at most ``leaf_size``."""
+def build(lo: np.ndarray, hi: np.ndarray, leaf_size: int | None = None) -> Tree:
+    """The hierarchy over boxes (lo, hi), depth-first, leaves of at most ``leaf_size``
+    (default LEAF_SIZE)."""
+    leaf_size = LEAF_SIZE if leaf_size is None else leaf_size
     n = len(lo)
-    nodes, order = [], []
+    order = []
     depth = 0
 
     def rec(idx, level):
+        """(box, axis, children) of an inner node, (box, first row, count) of a leaf."""
         nonlocal depth
         depth = max(depth, level)
-        k = len(nodes)
-        nodes.append(None)
-        blo, bhi = lo[idx].min(0), hi[idx].max(0)
+        box = [*lo[idx].min(0), *hi[idx].max(0)]
         if len(idx) <= leaf_size:
-            nodes[k] = [*blo, *bhi, len(order), len(idx)]
+            first = len(order)
             order.extend(sorted(idx.tolist()))      # ascending id within a leaf
-            return
-        a, b = _split(lo, hi, idx)
-        rec(a, level + 1)
-        rec(b, level + 1)
-        nodes[k] = [*blo, *bhi, len(nodes), 0]      # skip link: the node after the subtree
+            return (box, first, len(idx))
+        a, b, axis = _split(lo, hi, idx)
+        return (box, axis, (rec(a, level + 1), rec(b, level + 1)))
 
+    def flatten(node, octant, out):
+        box, a, b = node
+        k = len(out)
+        out.append(None)
+        if isinstance(b, int):
+            out[k] = [*box, a, b]
+            return
+        # the child nearer the ray's origin first: the lower one along the split axis for a
+        # ray going up that axis (octant bit clear), the upper one otherwise
+        near, far = b if not octant >> a & 1 else b[::-1]
+        flatten(near, octant, out)
+        flatten(far, octant, out)
+        out[k] = [*box, len(out), 0]            # skip link: the node after the subtree
+
+    nodes = np.zeros((8, 0, NODE))
     if n:
-        rec(np.arange(n), 1)
+        root = rec(np.arange(n), 1)
+        flat = []
+        for octant in range(8):
+            flatten(root, octant, out := [])
+            flat.append(out)
+        nodes = np.array(flat, np.float64)
     scale = float(np.abs(np.concatenate([lo, hi])).max()) if n else 0.0
-    return Tree(np.array(nodes, np.float64).reshape(-1, NODE), np.array(order, np.int64),
-                scale, depth)
+    return Tree(nodes, np.array(order, np.int64), scale, depth)
 
 
 def outward(nodes: np.ndarray, precision: str) -> np.ndarray:
@@ -163,9 +187,9 @@ def outward(nodes: np.ndarray, precision: str) -> np.ndarray:
     if precision == "f64":
         return nodes
     f = nodes.astype(np.float32)
-    lo, hi = f[:, 0:3], f[:, 3:6]
-    lo[:] = np.where(lo > nodes[:, 0:3], np.nextafter(lo, np.float32(-np.inf)), lo)
-    hi[:] = np.where(hi < nodes[:, 3:6], np.nextafter(hi, np.float32(np.inf)), hi)
+    lo, hi = f[..., 0:3], f[..., 3:6]
+    lo[:] = np.where(lo > nodes[..., 0:3], np.nextafter(lo, np.float32(-np.inf)), lo)
+    hi[:] = np.where(hi < nodes[..., 3:6], np.nextafter(hi, np.float32(np.inf)), hi)
     return f
 
 
@@ -193,22 +217,24 @@ class KindBVH:
     tree: Tree
 
     def view(self, T, k, active=True):
-        """Row k's constants (per ray), as shapes.object_t reads them for rays with an
-        origin: one packet gather."""
-        w = _width(self.kind)
-        g = dr.gather(_arrayx(T), self.rows, k, active, shape=(w, dr.width(k)))
-        v = dict(zip(ROW[self.kind], g))
-        A3 = T.Array3
-        out = SimpleNamespace(kind=self.kind, id=T.Int32(v["id"]),
-                              q=A3(v["qx"], v["qy"], v["qz"]))
-        if self.kind == "sphere":
-            out.radius = v["radius"]
-        else:
-            out.n, out.g = A3(v["nx"], v["ny"], v["nz"]), v["g"]
-            out.xdir = A3(v["xx"], v["xy"], v["xz"])
-            out.ydir = A3(v["yx"], v["yy"], v["yz"])
-            out.size = (v["w"], v["h"])
-        return out
+        return row_view(T, self.kind, self.rows, k, active)
+
+
+def row_view(T, kind: str, rows, k, active=True):
+    """Row k of a table of ``rows(kind, ...)`` (per ray), as shapes.object_t reads an
+    object's constants for rays with an origin: one packet gather."""
+    g = dr.gather(_arrayx(T), rows, k, active, shape=(_width(kind), dr.width(k)))
+    v = dict(zip(ROW[kind], g))
+    A3 = T.Array3
+    out = SimpleNamespace(kind=kind, id=T.Int32(v["id"]), q=A3(v["qx"], v["qy"], v["qz"]))
+    if kind == "sphere":
+        out.radius = v["radius"]
+    else:
+        out.n, out.g = A3(v["nx"], v["ny"], v["nz"]), v["g"]
+        out.xdir = A3(v["xx"], v["xy"], v["xz"])
+        out.ydir = A3(v["yx"], v["yy"], v["yz"])
+        out.size = (v["w"], v["h"])
+    return out
 
 
 def trees(ks) -> dict:
@@ -225,7 +251,7 @@ def trees(ks) -> dict:
             T = ks.T
             flat = _upload(T, rows(kind, consts, tree.order))
             nodes = _upload(T, outward(tree.nodes, T.precision))
-            cache["bvh"][kind] = KindBVH(kind, flat, nodes, len(tree.nodes), tree.scale, tree)
+            cache["bvh"][kind] = KindBVH(kind, flat, nodes, tree.count, tree.scale, tree)
     return cache["bvh"]
 
 
@@ -244,11 +270,15 @@ def _upload(T, a: np.ndarray):
 # --- the kernel -------------------------------------------------------------------------------
 
 class _Rays:
-    """Per-ray constants of the slab test: 1/d (±BIG for components below 1/BIG) and the
-    origin moved by ±e, e = PAD·(|o|∞ + S)."""
+    """Per-ray constants of the walk: the first row of the ray's octant's node order, and of
+    the slab test: 1/d (±BIG for components below 1/BIG) and the origin moved by ±e,
+    e = PAD·(|o|∞ + S)."""
 
-    def __init__(self, T, d, o, scale: float):
-        F = T.Float
+    def __init__(self, T, d, o, scale: float, count: int):
+        F, U = T.Float, T.UInt32
+        octant = (dr.select(d.x < 0, U(1), U(0)) | dr.select(d.y < 0, U(2), U(0))
+                  | dr.select(d.z < 0, U(4), U(0)))
+        self.base = octant * dr.opaque(U, count)
         big = BIG[T.precision]
         self.inv = [dr.select(dr.abs(c) > 1 / big, 1 / c, dr.mulsign(dr.opaque(F, big), c))
                     for c in (d.x, d.y, d.z)]
@@ -265,7 +295,8 @@ def visit(T, rays: _Rays, nodes, node, limit, active):
     """(enter, a, b) for each ray at ``node``: whether the widened box holds a point of the
     ray with 0 <= t <= limit, and the node's link fields."""
     U = T.UInt32
-    g = dr.gather(_arrayx(T), nodes, node, active, shape=(NODE, dr.width(node)))
+    g = dr.gather(_arrayx(T), nodes, rays.base + node, active,
+                  shape=(NODE, dr.width(node)))
     tn, tf = dr.zeros(T.Float, 1), limit
     for i in range(3):
         t1 = (g[i] - rays.oa[i]) * rays.inv[i]
@@ -294,7 +325,7 @@ def closest_kind(ks, kind: str, d, o, rules, skip, st):
     U = T.UInt32
     bvh = trees(ks)[kind]
     vz = ks.scene.viewpoint[2]
-    rays = _Rays(T, d, o, bvh.scale)
+    rays = _Rays(T, d, o, bvh.scale, bvh.count)
     n = dr.width(d)
     nn = dr.opaque(U, bvh.count)
     grow = dr.opaque(T.Float, 1 + KAPPA)
@@ -331,7 +362,7 @@ def occluded_kind(ks, kind: str, d, o, maxt, rules, skip, blocked):
     U = T.UInt32
     bvh = trees(ks)[kind]
     vz = ks.scene.viewpoint[2]
-    rays = _Rays(T, d, o, bvh.scale)
+    rays = _Rays(T, d, o, bvh.scale, bvh.count)
     n = dr.width(d)
     nn = dr.opaque(U, bvh.count)
     limit = maxt * dr.opaque(T.Float, 1 + KAPPA)

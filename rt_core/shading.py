@@ -134,7 +134,8 @@ def material(ks: KernelScene, tables: dict, oid, hit, u, v, rules: Rules = Rules
             odd = (_odd_floor((u + off) / w) + _odd_floor((v + off) / h)) == 1
         else:
             odd = (_odd_floor(u / w) + _odd_floor(v / h)) == 1
-        idx = dr.select(tiled & ~odd, idx + len(ks.scene.objects), idx)
+        # (the count as data: scenes of other sizes share the kernel)
+        idx = dr.select(tiled & ~odd, idx + dr.opaque(T.UInt32, len(ks.scene.objects)), idx)
     return tuple(dr.gather(T.Array3, tables[k], idx, hit)
                  for k in ("ambient", "diffuse", "specular"))
 
@@ -163,8 +164,9 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
         return ShadeResult(image)
     tables = _material_tables(ks, rules)
     # light centres relative to the viewpoint (host float64, then one rounding) and emissivity
-    lights = [(opaque3(T.Array3, sub(L.center, scene.viewpoint)), opaque3(T.Array3, L.emissivity),
-               _spot(T, L)) for L in scene.lights]
+    centres = [sub(L.center, scene.viewpoint) for L in scene.lights]
+    lights = [(opaque3(T.Array3, c), opaque3(T.Array3, L.emissivity), _spot(T, L))
+              for c, L in zip(centres, scene.lights)]
     reflect = any_specular(scene) and max_dist > 0
     max_d = dr.opaque(F, max_dist)
     out = ShadeResult(image)
@@ -198,7 +200,7 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
             if spot is not None:            # a spotlight lights H only inside its cone:
                 axis, cos_theta = spot      # unit(H − centre)·axis = −L·axis > cos θ
                 cast &= -dr.dot(L, axis) > cos_theta
-            blocked = occluded(ks, L, H, ld, rules, oid, cast)
+            blocked = occluded(ks, L, H, ld, rules, oid, cast, centres[j])
             I = I + dr.select(cast & ~blocked, dif * E * (c / ld), 0)
             if rec is not None:
                 rec.update({f"L{j}.dir": L, f"L{j}.dist": ld, f"L{j}.cast": cast,

@@ -153,7 +153,7 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, c
     # file order is id order within one kind: then no tie term is needed for 'first'
     single_kind = len(ks.kinds) == 1
     for kind in ks.kinds:
-        if accel.looped(ks, kind):          # many objects: one loop, constants as data
+        if accel.looped(ks, kind, o is not None):   # many objects: one loop, constants as data
             st = accel.closest_kind(ks, kind, d, o, rules, skip, st, scale)
             continue
         for obj in ks.by_kind[kind]:
@@ -415,14 +415,19 @@ def position(ks: KernelScene, d, t, hit, o=None):
     return dr.select(hit, V + rel, dr.zeros(T.Array3, dr.width(d)))
 
 
-def occluded(ks: KernelScene, d, o, maxt, rules: Rules = Rules(), skip=None, active=None):
+def occluded(ks: KernelScene, d, o, maxt, rules: Rules = Rules(), skip=None, active=None,
+             toward=None):
     """Shadow-ray test: mask of the rays o + t·d that hit any object (other than ``skip``)
     at 0 < t < ``maxt``, with the same hit functions and rules as ``closest_hit``.  No t, no
     id, no tie order: the first level of the intersection only.
 
     ``active``: the lanes that cast a shadow ray (the others answer False): a looped kind's
     loop ends them at once, and a packet of lanes none of which is active skips the tests
-    (a symbolic ``dr.if_stmt``)."""
+    (a symbolic ``dr.if_stmt``).
+    ``toward``: the point light the rays go to (host, relative to the viewpoint), for rays
+    made as the shading makes them (d = unit(C − o) and maxt = |C − o| in the kernel's
+    precision, C ``toward`` rounded to it): many objects are then searched through bins of
+    directions around the light (rt_core/lightbins.py)."""
     T = ks.T
     assert isinstance(d, T.Array3), f"expected {T.Array3.__name__} directions"
     vz = ks.scene.viewpoint[2]
@@ -430,7 +435,8 @@ def occluded(ks: KernelScene, d, o, maxt, rules: Rules = Rules(), skip=None, act
     def search(blocked):
         for kind in ks.kinds:
             if accel.looped(ks, kind):
-                blocked = accel.occluded_kind(ks, kind, d, o, maxt, rules, skip, blocked)
+                blocked = accel.occluded_kind(ks, kind, d, o, maxt, rules, skip, blocked,
+                                              toward)
                 continue
             for obj in ks.by_kind[kind]:
                 t, hit = object_t(d, o, obj, rules, vz)
