@@ -157,11 +157,20 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, c
             st = accel.closest_kind(ks, kind, d, o, rules, skip, st, scale)
             continue
         for obj in ks.by_kind[kind]:
-            res = object_t(d, o, obj, rules, vz, scale)
             oid = dr.opaque(T.Int32, obj.id)
-            hit = res[1]
             if skip is not None:
-                hit &= oid != skip
+                # (rays with an origin: no certification) a packet whose lanes all leave
+                # this object skips its test
+                def test(*state, obj=obj, oid=oid):
+                    t, hit = object_t(d, o, obj, rules, vz)
+                    s = st.set(state)
+                    s.fold(t, hit, oid, rules, single_kind)
+                    return s.state()
+                st.set(dr.if_stmt(st.state(), oid != skip, test, lambda *s: s,
+                                  label="closest_object"))
+                continue
+            res = object_t(d, o, obj, rules, vz, scale)
+            hit = res[1]
             # (one object: no ties, so no t bound to carry)
             st.fold(res[0], hit, oid, rules, single_kind,
                     *((res[2], res[3] if len(ks.consts) > 1 else None,
@@ -439,10 +448,15 @@ def occluded(ks: KernelScene, d, o, maxt, rules: Rules = Rules(), skip=None, act
                                               toward)
                 continue
             for obj in ks.by_kind[kind]:
-                t, hit = object_t(d, o, obj, rules, vz)
-                if skip is not None:
-                    hit &= dr.opaque(T.Int32, obj.id) != skip
-                blocked |= hit & (t < maxt)
+                def test(b, obj=obj):
+                    t, hit = object_t(d, o, obj, rules, vz)
+                    return (b | (hit & (t < maxt)),)
+                if skip is None:
+                    blocked = test(blocked)[0]
+                    continue
+                # a packet whose lanes all leave this object skips its test
+                blocked = dr.if_stmt((blocked,), dr.opaque(T.Int32, obj.id) != skip, test,
+                                     lambda b: (b,), label="occluded_object")[0]
         return blocked
 
     if active is None:
