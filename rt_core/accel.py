@@ -44,6 +44,11 @@ from .shapes import BOUND_FIELDS, TAME, object_t
 # More (bounded) objects than this: the symbolic loop instead of unrolled code.  Measured
 # crossover (bench, f32): unrolled wins up to ~8-12 objects, the binned loop above.
 UNROLL_MAX = 8
+# Closest hits of rays with an origin (reflections) loop only above SECONDARY_FACTOR times
+# that: their loop walks a BVH (rt_core/bvh.py), ~10-20 steps a ray at 16-48 objects, each
+# costing about three unrolled hit tests (measured: unrolled is faster up to ~24 finite
+# planes, ~48 spheres).
+SECONDARY_FACTOR = 3
 # Bins per looped object (bounded kinds), at most one per RAYS_PER_BIN rays of the first
 # batch traced, and at most MAX_BINS.
 BINS_PER_OBJECT = 32
@@ -62,22 +67,36 @@ LAYOUT["tplane"] = LAYOUT["plane"]
 BOUNDED = ("sphere", "fplane")
 
 
-def configure(ks, unroll_max: int | None = None, bins: bool | None = None):
-    """Override UNROLL_MAX and the use of bins for one KernelScene (benchmarks, tests)."""
+def configure(ks, unroll_max: int | None = None, bins: bool | None = None,
+              bvh: bool | None = None):
+    """Override UNROLL_MAX, the use of bins (rays from the viewpoint) and of the BVH (other
+    rays, rt_core/bvh.py) for one KernelScene (benchmarks, tests)."""
     opts = ks.__dict__.setdefault("_accel_opts", {})
     if unroll_max is not None:
         opts["unroll_max"] = unroll_max
     if bins is not None:
         opts["bins"] = bins
+    if bvh is not None:
+        opts["bvh"] = bvh
     return ks
 
 
-def looped(ks, kind: str) -> bool:
+def use_bvh(ks, kind: str, o) -> bool:
+    """Are rays with origins ``o`` traced through the kind's BVH (rt_core/bvh.py)?  Rays
+    that do not start at the viewpoint, against a looped bounded kind, unless turned off."""
+    return (o is not None and kind in BOUNDED
+            and ks.__dict__.get("_accel_opts", {}).get("bvh", True))
+
+
+def looped(ks, kind: str, reflections: bool = False) -> bool:
     """Is ``kind`` traced by a loop rather than unrolled?  Bounded kinds (spheres, finite
     planes) loop when there are more than UNROLL_MAX of them together; the unbounded ones
     (planes, tiled planes: every bin lists them) when there are more than UNROLL_MAX of the
-    kind."""
+    kind.  ``reflections``: for the closest hits of rays with an origin, above
+    SECONDARY_FACTOR times that."""
     limit = ks.__dict__.get("_accel_opts", {}).get("unroll_max", UNROLL_MAX)
+    if reflections:
+        limit *= SECONDARY_FACTOR
     if kind in BOUNDED:
         return sum(len(ks.by_kind.get(k, ())) for k in BOUNDED) > limit
     return len(ks.by_kind.get(kind, ())) > limit
@@ -373,6 +392,9 @@ def _range(ks, kind: str, d, o):
 def closest_kind(ks, kind: str, d, o, rules: Rules, skip, st, scale: float = 0.0):
     """Fold every object of ``kind`` into the running closest hit ``st`` (tracer.Best), with
     the same test, tie rule and certification as the unrolled code."""
+    if use_bvh(ks, kind, o):
+        from . import bvh
+        return bvh.closest_kind(ks, kind, d, o, rules, skip, st)
     T = ks.T
     vz = ks.scene.viewpoint[2]
     tab, start, end = _range(ks, kind, d, o)
@@ -397,9 +419,17 @@ def closest_kind(ks, kind: str, d, o, rules: Rules, skip, st, scale: float = 0.0
     return st.set(out[1:])
 
 
-def occluded_kind(ks, kind: str, d, o, maxt, rules: Rules, skip, blocked):
+def occluded_kind(ks, kind: str, d, o, maxt, rules: Rules, skip, blocked, toward=None):
     """``blocked`` or any object of ``kind`` (other than ``skip``) hit at 0 < t < maxt; each
-    ray stops at its first blocker."""
+    ray stops at its first blocker (rays already ``blocked`` do nothing).  ``toward``: the
+    light the rays go to (host, relative to the viewpoint; the rays as the shading makes
+    them): its direction bins (rt_core/lightbins.py)."""
+    if toward is not None and use_bvh(ks, kind, o):
+        from . import lightbins
+        return lightbins.occluded_kind(ks, kind, d, o, maxt, rules, skip, blocked, toward)
+    if use_bvh(ks, kind, o):
+        from . import bvh
+        return bvh.occluded_kind(ks, kind, d, o, maxt, rules, skip, blocked)
     T = ks.T
     vz = ks.scene.viewpoint[2]
     tab, start, end = _range(ks, kind, d, o)

@@ -18,8 +18,8 @@ import drjit as dr
 @dataclass
 class PassRecord:
     """The launches of one pass of a render."""
-    name: str               # 'hit', 'shadow L0', 'shade', ...
-    group: str              # 'primary' or 'reflection' (hit passes), 'shadow', 'shade'
+    name: str               # 'hit' (geometry only), 'bounce' (hit, shadows, shading)
+    group: str              # 'primary' or 'reflection'
     bounce: int             # 0 for the primary rays, k for the k-th reflection
     rays: int
     kernels: int = 0        # JIT kernels launched

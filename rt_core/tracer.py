@@ -147,15 +147,24 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, c
     # file order is id order within one kind: then no tie term is needed for 'first'
     single_kind = len(ks.kinds) == 1
     for kind in ks.kinds:
-        if accel.looped(ks, kind):          # many objects: one loop, constants as data
+        if accel.looped(ks, kind, o is not None):   # many objects: one loop, constants as data
             st = accel.closest_kind(ks, kind, d, o, rules, skip, st, scale)
             continue
         for obj in ks.by_kind[kind]:
-            res = object_t(d, o, obj, rules, vz, scale)
             oid = dr.opaque(T.Int32, obj.id)
-            hit = res[1]
             if skip is not None:
-                hit &= oid != skip
+                # (rays with an origin: no certification) a packet whose lanes all leave
+                # this object skips its test
+                def test(*state, obj=obj, oid=oid):
+                    t, hit = object_t(d, o, obj, rules, vz)
+                    s = st.set(state)
+                    s.fold(t, hit, oid, rules, single_kind)
+                    return s.state()
+                st.set(dr.if_stmt(st.state(), oid != skip, test, lambda *s: s,
+                                  label="closest_object"))
+                continue
+            res = object_t(d, o, obj, rules, vz, scale)
+            hit = res[1]
             # (one object: no ties, so no t bound to carry)
             st.fold(res[0], hit, oid, rules, single_kind,
                     *((res[2], res[3] if len(ks.consts) > 1 else None,
@@ -416,21 +425,43 @@ def position(ks: KernelScene, d, t, hit, o=None):
     return dr.select(hit, V + rel, dr.zeros(T.Array3, dr.width(d)))
 
 
-def occluded(ks: KernelScene, d, o, maxt, rules: Rules = Rules(), skip=None):
+def occluded(ks: KernelScene, d, o, maxt, rules: Rules = Rules(), skip=None, active=None,
+             toward=None):
     """Shadow-ray test: mask of the rays o + t·d that hit any object (other than ``skip``)
     at 0 < t < ``maxt``, with the same hit functions and rules as ``closest_hit``.  No t, no
-    id, no tie order: the first level of the intersection only."""
+    id, no tie order: the first level of the intersection only.
+
+    ``active``: the lanes that cast a shadow ray (the others answer False): a looped kind's
+    loop ends them at once, and a packet of lanes none of which is active skips the tests
+    (a symbolic ``dr.if_stmt``).
+    ``toward``: the point light the rays go to (host, relative to the viewpoint), for rays
+    made as the shading makes them (d = unit(C − o) and maxt = |C − o| in the kernel's
+    precision, C ``toward`` rounded to it): many objects are then searched through bins of
+    directions around the light (rt_core/lightbins.py)."""
     T = ks.T
     assert isinstance(d, T.Array3), f"expected {T.Array3.__name__} directions"
     vz = ks.scene.viewpoint[2]
-    blocked = dr.zeros(T.Bool, dr.width(d))
-    for kind in ks.kinds:
-        if accel.looped(ks, kind):
-            blocked = accel.occluded_kind(ks, kind, d, o, maxt, rules, skip, blocked)
-            continue
-        for obj in ks.by_kind[kind]:
-            t, hit = object_t(d, o, obj, rules, vz)
-            if skip is not None:
-                hit &= dr.opaque(T.Int32, obj.id) != skip
-            blocked |= hit & (t < maxt)
-    return blocked
+
+    def search(blocked):
+        for kind in ks.kinds:
+            if accel.looped(ks, kind):
+                blocked = accel.occluded_kind(ks, kind, d, o, maxt, rules, skip, blocked,
+                                              toward)
+                continue
+            for obj in ks.by_kind[kind]:
+                def test(b, obj=obj):
+                    t, hit = object_t(d, o, obj, rules, vz)
+                    return (b | (hit & (t < maxt)),)
+                if skip is None:
+                    blocked = test(blocked)[0]
+                    continue
+                # a packet whose lanes all leave this object skips its test
+                blocked = dr.if_stmt((blocked,), dr.opaque(T.Int32, obj.id) != skip, test,
+                                     lambda b: (b,), label="occluded_object")[0]
+        return blocked
+
+    if active is None:
+        return search(dr.zeros(T.Bool, dr.width(d)))
+    # inactive lanes start 'blocked' (a loop's condition ends them), and answer False
+    return dr.if_stmt((~active,), active, lambda b: (search(b),), lambda b: (b,),
+                      label="occluded_active")[0] & active

@@ -65,7 +65,7 @@ def test02_exr_alone_is_geometry_only(tmp_path):
     assert r.returncode == 0, r.stderr
     ch, hdr = read_exr(tmp_path / "g.exr")
     assert not {"R", "G", "B"} & set(ch) and hdr["rtval.shading"] == "off"
-    assert "shading: off" in r.stderr and "shadow L" not in r.stderr
+    assert "shading: off" in r.stderr and "primary  bounce" not in r.stderr
     r = rtval("render", "scenes/mixed.txt", "--columns", 32, "-o", tmp_path / "s.exr",
               "--shade")
     assert r.returncode == 0, r.stderr
@@ -79,15 +79,16 @@ def test03_explain_names_passes_and_kernels(tmp_path):
     lines = [ln for ln in r.stderr.splitlines() if "explain:" in ln]
     text = "\n".join(lines)
     assert "sphere 1, plane 1, fplane 1, tplane 1" in text and "2 lights" in text
-    for row in ("primary  hit", "primary  shadow L0", "primary  shadow L1", "primary  shade",
-                "1        hit"):
+    # one kernel per bounce (hit, shadows, shading): the primary one and a reflection
+    for row in ("primary  bounce", "1        bounce"):
         assert row in text, text
+    assert "up to 2 shadow rays per hit" in text
     assert "launched" in text and "compiled" in text
-    # a scene without specular: no reflection pass; a scene with one light: one shadow pass
+    # a scene without specular: no reflection pass; a scene with one light: one shadow ray
     r = rtval("render", "scenes/sphere.txt", "--columns", 32, "--png", tmp_path / "s.png",
               "--explain")
-    assert "no reflection pass" in r.stderr and "shadow L1" not in r.stderr
-    assert "1        hit" not in r.stderr
+    assert "no reflection pass" in r.stderr and "up to 1 shadow ray per hit" in r.stderr
+    assert "1        bounce" not in r.stderr
 
 
 def test04_usage_errors(tmp_path):

@@ -12,6 +12,10 @@ from .options import positive_int
 # Dr.Jit, which must see DRJIT_CACHE_DIR first; tests/test_report.py checks they agree)
 DEFAULT_OBJECTS = (1, 16, 64, 256, 1024)
 SCENES = ("fplanes", "spheres", "mixed")
+# tools.harness.bench_shaded's SHADED_OBJECTS, DEFAULT_LIGHTS and TRACERS (same reason)
+SHADED_OBJECTS = (1, 16, 256, 4096)
+DEFAULT_LIGHTS = 4
+SHADED_TRACERS = ("rt_core-f32", "rt_core-f64", "mitsuba")
 
 
 def add_parser(sub) -> None:
@@ -22,14 +26,16 @@ def add_parser(sub) -> None:
                                    "one process: Mrays/s, first call (compilation), scene "
                                    "preparation, peak memory, and the ratio rt_core/Mitsuba. "
                                    "Compare ratios, not absolute times, on a shared machine.")
-    p.add_argument("--objects", type=positive_int, nargs="+", default=list(DEFAULT_OBJECTS),
-                   metavar="N", help="object counts (default: %(default)s)")
+    p.add_argument("--objects", type=positive_int, nargs="+", default=None,
+                   metavar="N", help=f"object counts (default: {' '.join(map(str, DEFAULT_OBJECTS))}; "
+                                     f"--shaded: {' '.join(map(str, SHADED_OBJECTS))})")
     p.add_argument("--scenes", nargs="+", choices=SCENES, default=list(SCENES),
                    help="scene kinds (default: all)")
     p.add_argument("--columns", type=positive_int, default=1920,
                    help="rays per row; rows follow the 16:9 window (default 1920 -> 1080)")
-    p.add_argument("--reps", type=positive_int, default=9,
-                   help="timed calls per tracer, round-robin (default 9); the median counts")
+    p.add_argument("--reps", type=positive_int, default=None,
+                   help="timed calls per tracer, round-robin (default 9; --shaded 5); the "
+                        "median counts")
     p.add_argument("--threads", type=positive_int, default=None,
                    help="Dr.Jit worker threads (default: Dr.Jit's, one per core)")
     p.add_argument("--brute", action="store_true",
@@ -38,6 +44,17 @@ def add_parser(sub) -> None:
     p.add_argument("--keep-cache", action="store_true",
                    help="use Dr.Jit's on-disk kernel cache (default: an empty one, so that "
                         "first calls show compilation)")
+    p.add_argument("--shaded", action="store_true",
+                   help="time the course's whole shading instead (primary hit, one shadow ray "
+                        "per light per hit, one reflection bounce with its shadows) against "
+                        "Mitsuba casting the same rays (ray_intersect_preliminary, ray_test) on "
+                        "the scenes with reflective objects and --lights lights")
+    p.add_argument("--lights", type=positive_int, default=DEFAULT_LIGHTS,
+                   help=f"--shaded: point lights (default {DEFAULT_LIGHTS})")
+    p.add_argument("--tracers", nargs="+", choices=SHADED_TRACERS,
+                   default=list(SHADED_TRACERS),
+                   help="--shaded: which sides to time (default: all; mitsuba is needed for "
+                        "the ratios)")
     p.add_argument("--command", action="store_true", dest="whole_command",
                    help="time whole `rtval render` runs instead (a new process each), split "
                         "into start-up, import, parse, kernel and write")
@@ -49,7 +66,7 @@ def add_parser(sub) -> None:
                    help="--command: runs per case, interleaved (default 3)")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
     p.add_argument("-o", "--output", metavar="FILE.json", help="also write the JSON here")
-    p.set_defaults(func=run, before_import=lambda args: fresh_kernel_cache(args.keep_cache))
+    p.set_defaults(func=run, usage_error=p.error, before_import=lambda args: fresh_kernel_cache(args.keep_cache))
 
 
 def fresh_kernel_cache(keep: bool) -> None:
@@ -64,22 +81,41 @@ def fresh_kernel_cache(keep: bool) -> None:
 
 
 def run(args) -> int:
+    if args.shaded and (args.whole_command or args.brute):
+        args.usage_error(f"--shaded and {'--command' if args.whole_command else '--brute'} "
+                         "do not go together (--shaded is a mode of its own)")
     if args.whole_command:      # (not args.command: that is the subcommand's name)
         return run_command(args)
-    from tools.harness.bench import run_bench, table
     if args.threads:
         import drjit as dr
         dr.set_thread_count(args.threads)
+    if args.shaded:
+        return run_shaded(args)
+    from tools.harness.bench import run_bench, table
 
     def progress(case):
         f32 = case["tracers"].get("rt_core-f32", {})
         print(f"bench: {case['scene']} N={case['objects']}: rt_core f32 "
               f"{f32.get('mrays_per_s', 0):.0f} Mrays/s, "
               f"{case.get('ratio_f32_vs_mitsuba', 0):.2f}x Mitsuba", file=sys.stderr)
-    objects = list(dict.fromkeys(args.objects))          # each count once
-    result = run_bench(objects, args.scenes, args.columns, args.reps, args.brute,
+    objects = list(dict.fromkeys(args.objects or DEFAULT_OBJECTS))      # each count once
+    result = run_bench(objects, args.scenes, args.columns, args.reps or 9, args.brute,
                        progress=progress)
     return _emit(args, result, table)
+
+
+def run_shaded(args) -> int:
+    from tools.harness.bench_shaded import run_shaded as bench, shaded_table
+
+    def progress(case):
+        f32 = case["tracers"].get("rt_core-f32", {})
+        print(f"bench --shaded: {case['scene']} N={case['objects']}: rt_core f32 "
+              f"{f32.get('median_ms', 0):.0f} ms, "
+              f"{case.get('ratio_f32_vs_mitsuba', 0):.2f}x Mitsuba", file=sys.stderr)
+    objects = list(dict.fromkeys(args.objects or SHADED_OBJECTS))
+    result = bench(objects, args.scenes, args.columns, args.reps or 5, args.lights,
+                   list(dict.fromkeys(args.tracers)), progress=progress)
+    return _emit(args, result, shaded_table)
 
 
 def run_command(args) -> int:

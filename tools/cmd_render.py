@@ -307,8 +307,9 @@ def explain_lines(scene, log, res, max_dist: float) -> list[str]:
         stop = ("no ray left" if not res.capped else
                 f"SAFETY CAP reached with {res.left_active} rays active")
         n = len(scene.lights)
-        lines.append("shading: " + (f"{_n(n, 'shadow pass')} per bounce" if n else
-                                    "no lights: no shadow pass") + "; "
+        lines.append("shading: one kernel per bounce (hit, shadow rays, shading); "
+                     + (f"up to {_n(n, 'shadow ray')} per hit (one per light it faces)" if n else
+                        "no lights: no shadow rays") + "; "
                      + (f"{_n(res.bounces, 'reflection bounce')} (max-dist {max_dist:g}; "
                         f"stopped: {stop})" if any_specular(scene) and max_dist > 0
                         else "no reflection pass"))

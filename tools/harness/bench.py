@@ -62,28 +62,28 @@ def _cells(n: int, rng: random.Random):
             for i in range(n)]
 
 
-def _fplane(rng, wx, wy, cw, ch):
+def _fplane(rng, wx, wy, cw, ch, mat=GREY):
     z = -rng.uniform(2.0, 30.0)
     s = (VIEWPOINT[2] - z) / VIEWPOINT[2]           # window -> depth z magnification
     w, h = 1.5 * cw * s, 1.5 * ch * s
     normal = (rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), 1.0)
     orient = (1.0, rng.uniform(-0.3, 0.3), 0.0)
-    f = make_fplane(GREY, normal, (0, 0, 0), orient, (w, h))
+    f = make_fplane(mat, normal, (0, 0, 0), orient, (w, h))
     # the corner that puts the panel's centre on the view ray through (wx, wy)
     c = (wx * s, wy * s, z)
     p = tuple(c[i] - 0.5 * w * f.xdir[i] - 0.5 * h * f.ydir[i] for i in range(3))
-    return make_fplane(GREY, normal, p, orient, (w, h))
+    return make_fplane(mat, normal, p, orient, (w, h))
 
 
-def _sphere(rng, wx, wy, cw, ch):
+def _sphere(rng, wx, wy, cw, ch, mat=GREY):
     z = -rng.uniform(2.0, 30.0)
     s = (VIEWPOINT[2] - z) / VIEWPOINT[2]
-    return make_sphere(GREY, (wx * s, wy * s, z), 0.6 * min(cw, ch) * s)
+    return make_sphere(mat, (wx * s, wy * s, z), 0.6 * min(cw, ch) * s)
 
 
-def bench_scene(kind: str, n: int, seed: int = 1) -> Scene:
-    """The benchmark scene ``kind`` (one of SCENES) with n objects (plus, for 'mixed', a back
-    wall and a tiled floor)."""
+def bench_scene(kind: str, n: int, seed: int = 1, material: Material = GREY) -> Scene:
+    """The benchmark scene ``kind`` (one of SCENES) with n objects of ``material`` (plus, for
+    'mixed', a back wall and a tiled floor, GREY)."""
     if kind not in SCENES:
         raise ValueError(f"bench scene must be one of {', '.join(SCENES)}, not {kind!r}")
     rng = random.Random(seed * 7919 + n)
@@ -92,7 +92,7 @@ def bench_scene(kind: str, n: int, seed: int = 1) -> Scene:
         make = {"fplanes": _fplane, "spheres": _sphere}.get(kind)
         if make is None:
             make = _sphere if i % 2 == 0 else _fplane
-        objs.append(make(rng, *cell))
+        objs.append(make(rng, *cell, material))
     if kind == "mixed":
         objs.append(make_plane(GREY, (0, 0, 1), (0, 0, -40)))
         objs.append(make_tplane(GREY, (0, 1, 0), (0, -WINDOW[1] / 2 - 0.1, 0), (1, 0, 0),
