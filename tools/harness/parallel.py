@@ -148,7 +148,8 @@ def _count_kernels() -> None:
     for e in dr.kernel_history():
         if e["type"] != dr.KernelType.JIT:
             continue
-        how = "memory" if e["cache_hit"] else "disk" if e["cache_disk"] else "compiled"
+        # (a kernel read from the disk cache has cache_hit set too)
+        how = "disk" if e["cache_disk"] else "memory" if e["cache_hit"] else "compiled"
         _STATE["kernels"][how] += 1
         if how != "memory":
             _STATE["loaded"][e["hash"]] += 1
