@@ -19,6 +19,8 @@ import glob
 import json
 import math
 import os
+import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -35,6 +37,7 @@ from rt_core.outputs import WriteError
 from rt_core.parser import parse_scene
 from rt_core.usererror import InputError
 from tools.harness import parallel as P
+from tools.harness.check import check_run
 from tools.harness import stability as S
 from tools.harness.validate import validate
 
@@ -273,3 +276,33 @@ def test08_a_signal_while_the_cluster_starts_waits_until_it_can_be_closed(monkey
     assert len(started) == 2
     _, alive = psutil.wait_procs(started, timeout=10)
     assert not alive, alive
+
+
+def test09_check_run_on_a_cluster_equals_serial(cluster, tmp_path):
+    """check --run's checks on a cluster: scene, image and hit dump sent as data; a pass, a
+    fail (the tracer without shadows), a refused scene and a failed run, in order."""
+    if not shutil.which("cc"):
+        pytest.skip("no C compiler (cc): the C course tracer cannot be built")
+    ct = tmp_path
+    for name, flags in (("course", []), ("course_no_shadows", ["-DNO_SHADOWS"])):
+        subprocess.run(["cc", "-std=c99", "-O1", *flags, "-o", str(ct / name),
+                        str(REPO / "tests" / "ctracer" / "course.c"), "-lm"], check=True)
+    bad = tmp_path / "bad.txt"
+    bad.write_text("1 1\n0 0 1\nspline\n")
+    scenes = [str(REPO / "scenes" / n) for n in ("seed_fplane.txt", "shade_shadows.txt")]
+    runs = {}
+    for name, plan in (("serial", P.SERIAL), ("dask", P.Plan(scheduler=cluster))):
+        out = []
+        for binary, todo in (("course", [scenes[0], str(bad)]),
+                             ("course_no_shadows", scenes[1:])):
+            tpl = f"{ct / binary} {{columns}} {{rows}} --hits {{hits}} < {{scene}} > {{out}}"
+            out += check_run(tpl, todo, 16, None, plan=plan)
+        out += check_run("exit 3 # {scene} {out}", scenes[:1], 16, None, plan=plan)
+        for r in out:               # the tracer's temporary directory differs from run to run
+            r.reason = re.sub(r"/rtval-check-[^/]+/", "/TMP/", r.reason)
+        runs[name] = [({k: v for k, v in r.summary().items() if k != "seconds"},
+                       [None if a is None else a.tolist() for a in (r.classes, r.ours, r.theirs)])
+                      for r in out]
+    assert [r[0]["status"] for r in runs["serial"]] == ["pass", "refused", "fail", "error"]
+    assert runs["serial"][0][0]["hits"]["pixels"] > 0
+    assert same(runs["dask"], runs["serial"]) == []
