@@ -139,19 +139,34 @@ def _rows_and_evidence(out: Path, rows) -> tuple:
 
 
 def test03_validate_on_a_local_cluster_equals_serial(tmp_path):
+    """Rows and evidence EXRs equal; the local cluster's scratch directory goes, and so does
+    one a killed run left (its PID gone), while a running one's stays."""
     scenes = [parse_scene(REPO / "scenes" / "fplane_tilted.txt")]
-    before = scratch_dirs()
+    # a killed run's scratch directory (its process gone) and a running one's
+    from rt_core.outputs import _SPACE
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    base = Path(tempfile.gettempdir())
+    stale = base / f"rtval-dask-{_SPACE}-{dead.pid}-test"
+    live = base / f"rtval-dask-{_SPACE}-{os.getppid()}-test"
+    stale.mkdir()
+    live.mkdir(exist_ok=True)
+    before = scratch_dirs() - {str(stale)}
     runs = {}
-    for name, plan in (("serial", P.SERIAL), ("dask", P.Plan(workers=2))):
-        out = tmp_path / name
-        seen = []
-        rows = validate(scenes, 24, ("f32", "f64"), ("rays", "camera"), str(out),
-                        progress=seen.append, evidence="all", shaded_columns=12, plan=plan)
-        assert len(seen) == len(rows) == 5
-        runs[name] = _rows_and_evidence(out, rows)
+    try:
+        for name, plan in (("serial", P.SERIAL), ("dask", P.Plan(workers=2))):
+            out = tmp_path / name
+            seen = []
+            rows = validate(scenes, 24, ("f32", "f64"), ("rays", "camera"), str(out),
+                            progress=seen.append, evidence="all", shaded_columns=12, plan=plan)
+            assert len(seen) == len(rows) == 5
+            runs[name] = _rows_and_evidence(out, rows)
+        assert live.exists()
+    finally:
+        live.rmdir()
     assert runs["serial"][1], "no evidence EXR written"
     assert same(runs["dask"], runs["serial"]) == []
-    assert scratch_dirs() <= before
+    assert scratch_dirs() <= before and not stale.exists()
 
 
 def boom(x: int) -> int:
