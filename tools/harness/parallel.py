@@ -4,18 +4,20 @@ this process or on Dask workers, with the results in the cases' order.
 * In this process (``Plan.in_process``: ``--serial``, ``--workers 0`` or ``1``): a plain loop,
   no Dask.
 * A local cluster (the default): ``distributed.LocalCluster`` of one worker process per core,
-  one Dask thread each (Dr.Jit's LLVM backend runs its own thread pool inside a worker, sized
-  ``cores // workers`` so the workers do not oversubscribe the cores).  Its scratch directory
-  is a temporary one, removed when the run ends, however it ends (Ctrl-C, SIGTERM, an error).
+  one Dask thread each.  Its scratch directory is a temporary one, removed when the run
+  ends, however it ends (Ctrl-C, SIGTERM, an error).
 * An existing cluster (``--scheduler ADDRESS``): its workers must run the same rtval, Dr.Jit
   and Mitsuba (checked before any case is sent).
 
 Every case runs through ``_call`` on a worker: the first one in a worker process sets it up
-(imports, Dr.Jit's backend, Mitsuba's variant; ``worker_setup``), so a worker keeps its
-compiled kernels (Dr.Jit caches them per process) from one case to the next.  A case's
-exception comes back as a value and is raised here as the serial run would raise it: the one
-of the earliest case, with the same one-line message; a worker that dies is one line too.
-Workers never write files: what a case produces comes back to this process, which writes.
+(imports, Dr.Jit's backend and its thread count, Mitsuba's variant; ``worker_setup``), so a
+worker keeps its compiled kernels (Dr.Jit caches them per process) from one case to the next.
+Dr.Jit's LLVM backend runs its own thread pool in each worker: it gets the worker's share of
+its machine's cores (``drjit_threads``), so that the workers do not oversubscribe them.  A
+case's exception comes back as a value and is raised here as the serial run would raise it:
+the one of the earliest case, with the same one-line message; a worker that dies is one line
+too.  Workers never write files: what a case produces comes back to this process, which
+writes.
 """
 from __future__ import annotations
 
@@ -118,22 +120,23 @@ MIN_DRJIT_THREADS = 2
 
 
 def drjit_threads(cores: int, workers: int) -> int:
-    """Dr.Jit threads per worker of a local cluster: the cores shared out, at least
-    MIN_DRJIT_THREADS."""
+    """Dr.Jit threads of a worker: its machine's cores shared out among the workers there,
+    at least MIN_DRJIT_THREADS."""
     return max(MIN_DRJIT_THREADS, cores // max(workers, 1))
 
 
-def worker_setup(drjit_threads: int | None = None) -> None:
+def worker_setup(threads: int | None = None) -> None:
     """Once per process: import the tracer and the references, check Dr.Jit's LLVM backend,
-    set its thread count, select Mitsuba's variant.  Later calls return at once."""
+    set its thread count to ``threads`` (None: Dr.Jit's default), select Mitsuba's variant.
+    Later calls return at once."""
     if _STATE["setups"]:
         return
     _STATE["setups"] += 1
     import drjit as dr
     from rt_core import backend
     backend.require("llvm")
-    if drjit_threads:
-        dr.set_thread_count(drjit_threads)
+    if threads:
+        dr.set_thread_count(threads)
     from mitsuba_ref.convert import mitsuba
     mitsuba()
     import tools.harness.check  # noqa: F401  (the cases' modules: imported once, here)
@@ -158,7 +161,7 @@ def _count_kernels() -> None:
 def _call(fn, item, config: dict):
     """Run one case on a worker: ("ok", result) or ("raised", exception)."""
     with _LOCK:
-        worker_setup(config.get("drjit_threads") or _worker_threads())
+        worker_setup(_threads_here(config.get("workers_per_host", {})))
         _STATE["cases"] += 1
         count = config.get("count_kernels", False)
         if count:
@@ -174,14 +177,18 @@ def _call(fn, item, config: dict):
                 dr.set_flag(dr.JitFlag.KernelHistory, False)
 
 
-def _worker_threads() -> int | None:
-    """On an existing cluster: Dr.Jit gets the Dask threads of this worker (``dask worker
-    --nthreads``), since its cases run one at a time."""
+def _threads_here(workers_per_host: dict) -> int | None:
+    """This worker's Dr.Jit threads: ``drjit_threads`` of the cores here and the number of
+    workers on this host (``workers_per_host``, from the scheduler when the run began; for
+    a worker that joined later, as many as its Dask threads fit in the cores)."""
     try:
         from distributed import get_worker
-        return max(MIN_DRJIT_THREADS, get_worker().state.nthreads)
+        from distributed.comm import get_address_host
+        w = get_worker()
+        n = workers_per_host.get(get_address_host(w.address))
     except (ImportError, ValueError, AttributeError):
         return None
+    return drjit_threads(cores(), n or max(1, cores() // max(w.state.nthreads, 1)))
 
 
 def _portable(exc: Exception) -> Exception:
@@ -191,7 +198,8 @@ def _portable(exc: Exception) -> Exception:
     from rt_core.errors import USER_ERRORS
     user = isinstance(exc, USER_ERRORS)
     if not user:
-        exc.add_note("on a Dask worker:\n" + "".join(traceback.format_exception(exc)).rstrip())
+        note = "on a Dask worker:\n" + "".join(traceback.format_exception(exc)).rstrip()
+        exc.__notes__ = [*getattr(exc, "__notes__", []), note]    # add_note, in 3.10 too
     try:
         back = pickle.loads(pickle.dumps(exc))
         if type(back) is type(exc) and str(back) == str(exc):
@@ -201,7 +209,8 @@ def _portable(exc: Exception) -> Exception:
     if user:
         return CaseError(str(exc).splitlines()[0] if str(exc) else type(exc).__name__,
                          getattr(exc, "exit_code", 2))
-    return RuntimeError(f"{type(exc).__name__}: {exc}\n" + "".join(getattr(exc, "__notes__", [])))
+    return RuntimeError(f"{type(exc).__name__}: {exc}\n"
+                        + "".join(getattr(exc, "__notes__", [])))
 
 
 def worker_stats() -> dict:
@@ -323,15 +332,13 @@ def session(plan: Plan, count_kernels: bool = False):
                               "distributed.admin.tick.limit": "1h"}):
             if plan.scheduler:
                 client = _connect(plan.scheduler)
-                config = {"drjit_threads": None, "count_kernels": count_kernels}
             else:
                 with _signals_deferred():
                     cluster = _local_cluster(plan, scratch)
                 client = Client(cluster)
-                config = {"drjit_threads": drjit_threads(cores(), plan.local_workers),
-                          "count_kernels": count_kernels}
             _check_workers(client, plan)
-            yield client, config
+            hosts = Counter(w["host"] for w in client.scheduler_info()["workers"].values())
+            yield client, {"workers_per_host": dict(hosts), "count_kernels": count_kernels}
     finally:
         with contextlib.suppress(Exception):
             if client is not None:
