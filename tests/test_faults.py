@@ -349,6 +349,10 @@ def test15b_sigterm_during_validate_leaves_no_temporary(tmp_path):
     _, err = p.communicate(timeout=120)
     assert p.returncode == 128 + signal.SIGTERM and "Traceback" not in err, err
     assert not [f for _, _, fs in os.walk(tmp_path) for f in fs if f.startswith(TMP_PREFIX)]
+    # its 10 comparisons ran on a local Dask cluster, whose scratch directory went too
+    import glob
+    import tempfile
+    assert not glob.glob(os.path.join(tempfile.gettempdir(), f"rtval-dask-*-{p.pid}-*"))
 
 
 def test15c_sigterm_stops_check_runs_queued_and_running(tmp_path):

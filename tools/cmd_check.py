@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import sys
 
-from .options import add_max_dist, add_rules, nonneg_float, positive_int
+from .options import add_max_dist, add_parallel, add_rules, nonneg_float, positive_int
 
 
 def add_parser(sub) -> None:
@@ -38,6 +38,7 @@ def add_parser(sub) -> None:
                         "failures first, rt_core's image, yours and the classes side by side")
     p.add_argument("--junit", metavar="FILE", help="write JUnit XML (one test case per scene)")
     p.add_argument("--json", action="store_true", help="print the results as JSON on stdout")
+    add_parallel(p, "checks of --run's images (the tracer itself runs here)")
     p.set_defaults(func=run)
 
 
@@ -59,8 +60,13 @@ def run(args) -> int:
         if args.hits:
             raise InputError("--hits is for a given image; with --run put {hits} in the "
                              "command")
-        results = check_run(args.run, args.inputs, args.columns, args.rows, args.timeout, **kw)
+        from tools.harness.parallel import plan_of
+        results = check_run(args.run, args.inputs, args.columns, args.rows, args.timeout,
+                            plan_of(args), **kw)
     else:
+        if args.scheduler or (args.workers or 0) > 1:
+            raise InputError("--workers/--scheduler: only with --run (one image is checked "
+                             "in this process)")
         if len(args.inputs) != 2:
             raise InputError(f"expected SCENE IMAGE, got {len(args.inputs)} argument(s); to run "
                              "a tracer on several scenes use --run")

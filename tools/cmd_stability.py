@@ -6,7 +6,7 @@ import contextlib
 import os
 import sys
 
-from .options import positive_int
+from .options import add_parallel, positive_int
 
 FAMILY_HELP = ("grazing distance size window offset far_square orient normal edges viewpoint "
                "ties tangent tiny_sphere straddle parallel")
@@ -40,6 +40,7 @@ def add_parser(sub) -> None:
                         "for each case that misses the bar")
     p.add_argument("-o", "--output", metavar="DIR", default="out/stability",
                    help="where stability.png goes (default out/stability)")
+    add_parallel(p, "cases")
     p.set_defaults(func=run)
 
 
@@ -48,6 +49,7 @@ def run(args) -> int:
     from rt_core.errors import InputError
     from rt_core.render import versions
     from tools.harness import stability as S
+    from tools.harness.parallel import plan_of
 
     fams = args.families or list(S.FAMILIES)
     unknown = [f for f in fams if f not in S.FAMILIES]
@@ -56,9 +58,10 @@ def run(args) -> int:
                          f"{', '.join(unknown)}; expected some of {', '.join(S.FAMILIES)}")
     mode = "quick" if args.quick else "full"
     seeds = tuple(range(args.seeds))
-    total = sum(1 for _ in S.cases(mode, fams, seeds))
+    total = len(S.case_specs(mode, fams, seeds))
+    plan = plan_of(args).resolve(total)
     bar = tqdm(total=total, file=sys.stderr, unit="case", disable=None)
-    results = S.run_suite(mode, fams, seeds, progress=lambda r: bar.update(1))
+    results = S.run_suite(mode, fams, seeds, progress=lambda r: bar.update(1), plan=plan)
     bar.close()
     to_json = args.json == "-"      # stdout is the JSON's; the tables go to stderr
     tables = contextlib.redirect_stdout(sys.stderr) if to_json else contextlib.nullcontext()
@@ -84,7 +87,7 @@ def run(args) -> int:
                 print(f"  D = {row['distance']:<8g} exact hits {row['exact_hits']:4d}:  "
                       + "  ".join(f"{k} {row[k]:.1%}" for k in S.TRACERS if k in row))
     meta = dict(mode=mode, seeds=list(seeds), backend="llvm", precisions="f32 f64",
-                reference="mitsuba llvm_ad_rgb", **versions())
+                reference="mitsuba llvm_ad_rgb", **versions(), ran=plan.describe())
     plot = os.path.join(args.output, "stability.png")
     S.write_plot(results, plot, {f"rtval.{k}": v for k, v in meta.items()})
     print(f"plot: {plot}", file=sys.stderr)

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import sys
 
-from .options import positive_int
+from .options import add_parallel, positive_int
 
 
 def add_parser(sub) -> None:
@@ -36,6 +36,7 @@ def add_parser(sub) -> None:
     p.add_argument("--evidence", choices=("failures", "all"), default="failures",
                    help="EXRs of the failing comparisons only (default), or also ours and "
                         "Mitsuba's of every passing one (under DIR/exr)")
+    add_parallel(p, "comparisons")
     p.set_defaults(func=run)
 
 
@@ -58,6 +59,7 @@ def _log_progress(total: int):
 def run(args) -> int:
     from tqdm import tqdm
     from rt_core.render import versions
+    from tools.harness.parallel import plan_of
     from tools.harness.validate import (default_scene_paths, load_supported, skip_counts,
                                         stem_of, validate, write_report)
 
@@ -71,6 +73,7 @@ def run(args) -> int:
     for s in skipped:
         print(f"skipped ({s.category}): {s.reason}", file=sys.stderr)
     total = len(scenes) * (len(precisions) * len(modes) + (args.shaded_columns > 0))
+    plan = plan_of(args).resolve(total)
     if sys.stderr.isatty():
         bar = tqdm(total=total, file=sys.stderr, unit="cmp")
         progress, done = (lambda row: bar.update(1)), bar.close
@@ -82,10 +85,11 @@ def run(args) -> int:
                          "at least 2")
     results = validate(scenes, args.columns, precisions, modes, args.output,
                        progress=progress, evidence=args.evidence,
-                       shaded_columns=args.shaded_columns, pictures=bool(args.report))
+                       shaded_columns=args.shaded_columns, pictures=bool(args.report),
+                       plan=plan)
     done()
     meta = dict(columns=args.columns, backend="llvm", reference="mitsuba llvm_ad_rgb",
-                **versions())
+                **versions(), ran=plan.describe())
     md, js = write_report(results, skipped, args.output, meta)
     if args.junit:
         from tools.harness.junit import write_junit

@@ -92,3 +92,22 @@ def add_rules(p: argparse.ArgumentParser, help: str = RULES_HELP) -> None:
 def add_max_dist(p: argparse.ArgumentParser, help: str) -> None:
     """--max-dist D: the notes' MAX_DIST, where reflections stop (None: the default, 1000)."""
     p.add_argument("--max-dist", type=nonneg_float, default=None, metavar="D", help=help)
+
+
+def add_parallel(p: argparse.ArgumentParser, what: str) -> None:
+    """--workers N | --serial | --scheduler ADDRESS, and --verbose: where ``what`` run
+    (tools/harness/parallel.py; ``parallel.plan_of(args)`` reads them)."""
+    g = p.add_argument_group("where the work runs (Dask)")
+    x = g.add_mutually_exclusive_group()
+    x.add_argument("--workers", type=count, default=None, metavar="N",
+                   help=f"run the {what} on a local Dask cluster of N worker processes "
+                        "(default: one per core, for runs of 8 or more); 0 or 1: in this "
+                        "process")
+    x.add_argument("--serial", action="store_true",
+                   help=f"run the {what} in this process, without Dask (= --workers 0)")
+    x.add_argument("--scheduler", metavar="ADDRESS",
+                   help=f"run the {what} on the Dask cluster at ADDRESS (e.g. "
+                        "tcp://HOST:8786, started with `dask scheduler` and `dask worker "
+                        "ADDRESS`; its workers need the same rtval, Dr.Jit and Mitsuba)")
+    g.add_argument("--verbose", action="store_true",
+                   help="show Dask's log, and each worker's cases, set-ups and kernels")

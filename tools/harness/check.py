@@ -330,8 +330,12 @@ def _value(rules, md, name):
 
 def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
                 rows: int | None = None, rules=None, max_dist: float | None = None,
-                hits_path: str | None = None, theirs: np.ndarray | None = None) -> SceneCheck:
-    """Check one image of one scene.  ``rules``/``max_dist`` given: no inference of those."""
+                hits_path=None, theirs: np.ndarray | None = None,
+                scene=None) -> SceneCheck:
+    """Check one image of one scene.  ``rules``/``max_dist`` given: no inference of those.
+    ``theirs``, ``scene``: the image and the parsed scene, already read (``check_run`` on a
+    Dask worker, which need not see the files); ``hits_path``: a hit dump's path, or what
+    ``read_hits`` made of it (arrays, or the exception it raised)."""
     from rt_core.imageio import ImageError, read_image
     from rt_core.memory import check_bytes, guard
     from rt_core.parser import parse_scene
@@ -341,7 +345,7 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
     t0 = time.perf_counter()
     res = SceneCheck(str(scene_path), str(image_path) if image_path else None, "error")
     try:
-        scene = parse_scene(scene_path)
+        scene = scene if scene is not None else parse_scene(scene_path)
     except SceneError as exc:
         res.status, res.reason = "refused", str(exc)
         return res
@@ -391,7 +395,7 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
         except (OSError, ValueError, InputError) as exc:
             res.status = "error"
             res.reason = str(exc) if isinstance(exc, (ValueError, InputError)) else \
-                f"{hits_path}: {(exc.strerror or str(exc)).lower()}"
+                f"{exc.filename or hits_path}: {(exc.strerror or str(exc)).lower()}"
             return res
     wrong = res.classes == CLASSES.index("wrong")
     res.status = "pass" if not wrong.any() and not res.hits.get("wrong") else "fail"
@@ -522,11 +526,15 @@ def read_hits(path: str, W: int, H: int):
     return ids, ts
 
 
-def check_hits(r: Renderer, rules, path: str) -> dict:
+def check_hits(r: Renderer, rules, path) -> dict:
     """Object id by id and depth by depth against rt_core f64 (exact decisions): ids must be
-    equal; depth within 1e-9 relative."""
+    equal; depth within 1e-9 relative.  ``path``: the dump, or what ``read_hits`` made of it
+    (its arrays, or the exception it raised)."""
     W, H = r.cam.columns, r.cam.rows
-    theirs, tt = read_hits(path, W, H)      # OSError, ValueError: the caller reports them
+    if isinstance(path, BaseException):
+        raise path
+    # OSError, ValueError: the caller reports them
+    theirs, tt = path if isinstance(path, tuple) else read_hits(path, W, H)
     ids, t = r.ids(rules)
     listed = theirs != -2
     id_wrong = listed & (theirs != ids)
@@ -599,16 +607,21 @@ def run_tracer(template: str, scene: str, columns: int, rows: int, workdir: str,
 
 
 def check_run(template: str, scenes, columns: int, rows: int | None, timeout: float = 60.0,
-              **kw) -> list:
+              plan=None, **kw) -> list:
     """Run the user's tracer on each scene, then check its image.  The runs go ahead of the
-    checks in a background thread (one run at a time), so the tracer's time and rtval's
-    overlap."""
+    checks in a background thread (one run at a time, in this process: the tracer is the
+    user's program on this machine), so the tracer's time and rtval's overlap; the checks
+    run where ``plan`` says (default in this process; tools/harness/parallel.py), each
+    sent with its scene and image as data as soon as the tracer has written it."""
     from concurrent.futures import ThreadPoolExecutor
-    results = []
+    from tools.harness.parallel import SERIAL, run_cases
+    scenes = list(scenes)
     with tempfile.TemporaryDirectory(prefix="rtval-check-") as work:
         pool = ThreadPoolExecutor(max_workers=1)
         try:
-            _check_runs(pool, work, template, scenes, columns, rows, timeout, results, kw)
+            results = run_cases(_check_job, _check_runs(pool, work, template, scenes, columns,
+                                                        rows, timeout, kw),
+                                plan or SERIAL, count=len(scenes))
         except BaseException:
             pool.shutdown(wait=False, cancel_futures=True)      # no queued run starts
             _stop_running()
@@ -618,10 +631,13 @@ def check_run(template: str, scenes, columns: int, rows: int | None, timeout: fl
     return results
 
 
-def _check_runs(pool, work, template, scenes, columns, rows, timeout, results, kw) -> None:
-    """check_run's body: the runs submitted to ``pool``, then each image checked in turn."""
+def _check_runs(pool, work, template, scenes, columns, rows, timeout, kw):
+    """check_run's jobs: the runs submitted to ``pool``, then, as each finishes, a job for
+    ``_check_job`` (a finished SceneCheck when the scene or the run failed)."""
+    from rt_core.imageio import ImageError, read_image
     from rt_core.parser import parse_scene
     from rt_core.scene import SceneError
+    from rt_core.usererror import InputError
     jobs = []
     for k, s in enumerate(scenes):
         try:
@@ -636,18 +652,40 @@ def _check_runs(pool, work, template, scenes, columns, rows, timeout, results, k
         h = rows if rows is not None else sc.default_rows(columns)
         sub = os.path.join(work, str(k))
         os.mkdir(sub)
-        jobs.append((s, h, pool.submit(run_tracer, template, s, columns, h, sub, timeout)))
-    for s, h, job in jobs:
-        if h is None:
-            results.append(job)
+        jobs.append((s, (sc, h), pool.submit(run_tracer, template, s, columns, h, sub,
+                                             timeout)))
+    for s, parsed, job in jobs:
+        if parsed is None:
+            yield job
             continue
+        sc, h = parsed
         img, hits, why = job.result()
         if why:
-            results.append(SceneCheck(str(s), None, "error", why, columns, h))
+            yield SceneCheck(str(s), None, "error", why, columns, h)
             continue
-        res = check_image(s, img, columns=columns, rows=h, hits_path=hits, **kw)
-        res.image = "(--run)"
-        results.append(res)
+        # the image and the hit dump as data: a worker elsewhere cannot read them
+        try:
+            theirs = read_image(img)
+        except ImageError as exc:
+            yield SceneCheck(str(s), "(--run)", "error", str(exc))
+            continue
+        if hits is not None:
+            try:
+                hits = read_hits(hits, columns, h)
+            except (OSError, ValueError, InputError) as exc:
+                hits = exc
+        yield (str(s), img, sc, theirs, columns, h, hits, kw)
+
+
+def _check_job(job) -> SceneCheck:
+    """One of check_run's checks (in this process or on a Dask worker)."""
+    if isinstance(job, SceneCheck):
+        return job
+    scene_path, image_path, scene, theirs, columns, rows, hits, kw = job
+    res = check_image(scene_path, image_path, columns=columns, rows=rows, hits_path=hits,
+                      theirs=theirs, scene=scene, **kw)
+    res.image = "(--run)"
+    return res
 
 
 # --- outputs --------------------------------------------------------------------------------------

@@ -524,15 +524,25 @@ def make_case(family: str, param: float, size=SIZES["test"], seed: int = 0) -> C
     return dataclasses.replace(case, seed=seed)
 
 
-def cases(mode: str = "test", families=None, seeds=(0,)):
-    """Every case of a run: ``mode`` 'quick' (first, middle and last parameter, 24×18 rays),
-    'test' (every parameter, 32×24) or 'full' (every parameter, 64×48)."""
+def case_specs(mode: str = "test", families=None, seeds=(0,)) -> list:
+    """(family, param, size, seed) of every case of a run, in report order: ``mode`` 'quick'
+    (first, middle and last parameter, 24×18 rays), 'test' (every parameter, 32×24) or
+    'full' (every parameter, 64×48).  Small: a sweep of 100,000 cases is sent to Dask
+    workers as these, and each worker generates its cases (``run_spec``)."""
     size = SIZES[mode]
+    out = []
     for seed in ([seeds] if isinstance(seeds, int) else seeds):
         for fam in families or FAMILIES:
             values = FAMILIES[fam][1]
             for p in (quick_params(values) if mode == "quick" else values):
-                yield make_case(fam, p, size, seed)
+                out.append((fam, p, size, seed))
+    return out
+
+
+def cases(mode: str = "test", families=None, seeds=(0,)):
+    """Every case of a run (``case_specs``), generated."""
+    for spec in case_specs(mode, families, seeds):
+        yield make_case(*spec)
 
 
 # --- tracers -------------------------------------------------------------------------------------
@@ -720,15 +730,22 @@ def run_case(case: Case, tracers=TRACERS, rules: Rules = Rules()) -> CaseResult:
                       case.seed)
 
 
-def run_suite(mode: str = "test", families=None, seeds=(0,), progress=None):
-    """run_case over ``cases(mode, families, seeds)``; ``progress(result)`` after each."""
-    results = []
-    for case in cases(mode, families, seeds):
-        res = run_case(case)
-        results.append(res)
+def run_spec(spec) -> CaseResult:
+    """run_case on the case of a (family, param, size, seed) spec."""
+    return run_case(make_case(*spec))
+
+
+def run_suite(mode: str = "test", families=None, seeds=(0,), progress=None, plan=None):
+    """run_case over ``cases(mode, families, seeds)``, where ``plan`` says (default in this
+    process; tools/harness/parallel.py); the results in the cases' order, ``progress(result)``
+    as each completes."""
+    from tools.harness.parallel import SERIAL, run_cases
+
+    def each(i, res):
         if progress:
             progress(res)
-    return results
+        return res
+    return run_cases(run_spec, case_specs(mode, families, seeds), plan or SERIAL, each)
 
 
 # --- report --------------------------------------------------------------------------------------

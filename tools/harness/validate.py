@@ -63,57 +63,93 @@ def stem_of(path: str) -> str:
     return f"{p.parent.name}__{p.stem}" if p.parent.name in ("keyword", "numeric") else p.stem
 
 
+@dataclass(frozen=True)
+class Job:
+    """One comparison of a validation run: ``mode`` rays, camera (at ``precision``) or
+    shaded (the course image at ``columns``); ``keep_all``: its evidence is written even when
+    it passes (``--evidence all``, first precision)."""
+    scene: object
+    mode: str
+    precision: str
+    columns: int
+    keep_all: bool = False
+    pictures: bool = False       # the row gets its PNGs for the HTML report
+
+
+def jobs(scenes, columns: int, precisions, modes, evidence: str = "failures",
+         shaded_columns: int = 0, pictures: bool = False) -> list:
+    """The run's comparisons in report order: per scene, every mode and precision, then the
+    shaded course image."""
+    out = []
+    for scene in scenes:
+        for mode in modes:
+            for precision in precisions:
+                out.append(Job(scene, mode, precision, columns,
+                               evidence == "all" and precision == precisions[0], pictures))
+        if shaded_columns:
+            out.append(Job(scene, "shaded", "f64", shaded_columns, pictures=pictures))
+    return out
+
+
+def run_job(job: Job):
+    """One comparison (in this process or on a Dask worker): its report row, and the
+    comparison itself when its evidence is to be written (it failed, or ``keep_all``);
+    evidence is written by the caller, never on a worker."""
+    if job.mode == "shaded":
+        from tools.harness.shaded import compare_shaded
+        cmp = compare_shaded(job.scene, job.columns)
+    else:
+        cmp = compare(job.scene, job.columns, None, job.precision, job.mode)
+    row = cmp.summary()
+    if job.pictures:
+        from .html_report import comparison_pictures
+        row["pictures"] = comparison_pictures(cmp)
+    return row, (cmp if not cmp.ok or job.keep_all else None)
+
+
 def validate(scenes, columns: int, precisions, modes, outdir: str, progress=None,
-             evidence: str = "failures", shaded_columns: int = 0, pictures: bool = False):
-    """Run every comparison; write the evidence EXRs under ``outdir``: of every failing
-    comparison (ours, Mitsuba, difference, classes, in ``failures/``) and, with
-    ``evidence="all"``, ours and Mitsuba's of the passing ones too (in ``exr/``).
+             evidence: str = "failures", shaded_columns: int = 0, plan=None,
+             pictures: bool = False):
+    """Run every comparison (``plan``: where, tools/harness/parallel.py; default in this
+    process); write the evidence EXRs under ``outdir``: of every failing comparison (ours,
+    Mitsuba, difference, classes, in ``failures/``) and, with ``evidence="all"``, ours and
+    Mitsuba's of the passing ones too (in ``exr/``).  The rows come in the same order
+    however the comparisons ran; ``progress(row)`` as each one completes.
 
     ``shaded_columns`` > 0: each scene's course image is also compared with Mitsuba's
     (``rtval compare --shaded``, tools/harness/shaded.py) at that width; the evidence PNGs of
     a failing one go to ``failures/`` too.
 
     ``pictures``: each row also gets "pictures", its PNGs for the HTML report
-    (tools/harness/html_report.py; ``public`` drops them from what is written as JSON).
+    (tools/harness/html_report.py, made where the comparison ran; ``public`` drops them
+    from what is written as JSON).
 
     Evidence of an earlier run in ``outdir/failures`` and ``outdir/exr`` is removed first,
     so what is there belongs to this run."""
-    if pictures:
-        from .html_report import comparison_pictures
+    from tools.harness.parallel import SERIAL, run_cases
     for sub in ("failures", "exr"):
         for old in [*Path(outdir, sub).glob("*.exr"), *Path(outdir, sub).glob("*.png")]:
             old.unlink()
-    results = []
-    for scene in scenes:
-        for mode in modes:
-            for precision in precisions:
-                cmp = compare(scene, columns, None, precision, mode)
-                row = cmp.summary()
-                stem = f"{stem_of(scene.path)}.{mode}.{precision}"
-                # ours and the reference for every comparison; full evidence when it fails
-                if not cmp.ok:
-                    row["evidence"] = write_evidence(cmp, os.path.join(outdir, "failures"), stem)
-                elif evidence == "all" and precision == precisions[0]:
-                    row["evidence"] = write_evidence(cmp, os.path.join(outdir, "exr"), stem,
-                                                     ("ours", "mitsuba"))
-                if pictures:
-                    row["pictures"] = comparison_pictures(cmp)
-                results.append(row)
-                if progress:
-                    progress(row)
-        if shaded_columns:
-            from tools.harness.shaded import compare_shaded, write_shaded_evidence
-            cmp = compare_shaded(scene, shaded_columns)
-            row = cmp.summary()
-            if not cmp.ok:
+    todo = jobs(scenes, columns, precisions, modes, evidence, shaded_columns, pictures)
+
+    def each(i, out):
+        row, cmp = out
+        job = todo[i]
+        if job.mode == "shaded":
+            if cmp is not None:
+                from tools.harness.shaded import write_shaded_evidence
                 row["evidence"] = write_shaded_evidence(cmp, os.path.join(outdir, "failures"),
-                                                        stem_of(scene.path))
-            if pictures:
-                row["pictures"] = comparison_pictures(cmp)
-            results.append(row)
-            if progress:
-                progress(row)
-    return results
+                                                        stem_of(job.scene.path))
+        elif cmp is not None:
+            stem = f"{stem_of(job.scene.path)}.{job.mode}.{job.precision}"
+            row["evidence"] = (write_evidence(cmp, os.path.join(outdir, "failures"), stem)
+                               if not cmp.ok else
+                               write_evidence(cmp, os.path.join(outdir, "exr"), stem,
+                                              ("ours", "mitsuba")))
+        if progress:
+            progress(row)
+        return row
+    return run_cases(run_job, todo, plan or SERIAL, each)
 
 
 def public(row: dict) -> dict:
