@@ -53,8 +53,9 @@ def run(args) -> int:
     from tqdm import tqdm
     from rt_core.render import versions
     from tools.harness.parallel import plan_of
-    from tools.harness.validate import (default_scene_paths, load_supported, skip_counts,
-                                        stem_of, validate, write_report)
+    from tools.harness.validate import (default_scene_paths, load_supported,
+                                        seconds_per_comparison, skip_counts, stem_of,
+                                        validate, write_report)
 
     paths = args.scenes or default_scene_paths()
     scenes, skipped = load_supported(paths, explicit=bool(args.scenes))
@@ -63,7 +64,7 @@ def run(args) -> int:
     for s in skipped:
         print(f"skipped ({s.category}): {s.reason}", file=sys.stderr)
     total = len(scenes) * (len(precisions) * len(modes) + (args.shaded_columns > 0))
-    plan = plan_of(args).resolve(total)
+    plan = plan_of(args).resolve(total, seconds_per_comparison(args.columns))
     if sys.stderr.isatty():
         bar = tqdm(total=total, file=sys.stderr, unit="cmp")
         progress, done = (lambda row: bar.update(1)), bar.close
