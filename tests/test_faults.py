@@ -335,11 +335,12 @@ def test15_a_killed_runs_temporary_is_removed_by_the_next_run(tmp_path):
     assert os.listdir(tmp_path) == ["small.exr"]
 
 
-def test15b_sigterm_during_validate_leaves_no_temporary(tmp_path):
+@pytest.mark.parametrize("where", [["--serial"], ["--workers", "2"]], ids=["serial", "dask"])
+def test15b_sigterm_during_validate_leaves_no_temporary(tmp_path, where):
     out = tmp_path / "v"
     p = subprocess.Popen([sys.executable, "-m", "tools.cli", "validate", str(SEED),
                           str(REPO / "scenes" / "mixed.txt"), "--columns", "300", "-o", str(out),
-                          "--evidence", "all"],
+                          "--evidence", "all", *where],
                          cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     t0 = time.monotonic()
     while not (out / "exr").exists():                      # it has begun writing
@@ -349,7 +350,7 @@ def test15b_sigterm_during_validate_leaves_no_temporary(tmp_path):
     _, err = p.communicate(timeout=120)
     assert p.returncode == 128 + signal.SIGTERM and "Traceback" not in err, err
     assert not [f for _, _, fs in os.walk(tmp_path) for f in fs if f.startswith(TMP_PREFIX)]
-    # its 10 comparisons ran on a local Dask cluster, whose scratch directory went too
+    # with --workers 2, the local Dask cluster's scratch directory went too
     import glob
     import tempfile
     assert not glob.glob(os.path.join(tempfile.gettempdir(), f"rtval-dask-*-{p.pid}-*"))

@@ -5,8 +5,8 @@
   field (timing left out), the ``edges`` family included (its Mitsuba answers depend on
   Dr.Jit's thread count); each worker sets up once, however many cases and runs it gets,
   and loads no kernel twice.
-* ``validate`` on a local cluster (the default for a run of 8 or more comparisons) equals
-  the serial run, evidence EXRs included, and leaves no scratch directory.
+* ``validate`` on a local cluster equals the serial run, evidence EXRs included, and leaves
+  no scratch directory.  By default a run uses one when it would take 30 s or more here.
 * A case's error is the serial run's error (the earliest case's, the same line and type);
   a bug keeps the worker's traceback.
 * The CLI: ``--scheduler`` runs a sweep there; an unreachable one is one line, exit 2;
@@ -321,3 +321,20 @@ def test09_check_run_on_a_cluster_equals_serial(cluster, tmp_path):
     assert [r[0]["status"] for r in runs["serial"]] == ["pass", "refused", "fail", "error"]
     assert runs["serial"][0][0]["hits"]["pixels"] > 0
     assert same(runs["dask"], runs["serial"]) == []
+
+
+def test10_by_default_only_a_long_run_starts_a_local_cluster():
+    from tools.harness.validate import seconds_per_comparison
+    auto = P.Plan()
+    # validate: 1 scene (5 comparisons) stays here; the default 670 comparisons do not
+    assert auto.resolve(5, seconds_per_comparison(160)).in_process
+    assert not auto.resolve(670, seconds_per_comparison(160)).in_process
+    assert not auto.resolve(50, seconds_per_comparison(640)).in_process    # 16x the pixels
+    # stability: --quick (45 cases) here, the full sweep (80) on the cluster
+    assert auto.resolve(45, S.SECONDS_PER_CASE["quick"]).in_process
+    assert not auto.resolve(80, S.SECONDS_PER_CASE["full"]).in_process
+    assert auto.resolve(1, 1e6).in_process                     # one case: nothing to share
+    # what the user asked for is what runs
+    assert not P.Plan(workers=2).resolve(2, 0.0).in_process
+    assert not P.Plan(scheduler="tcp://h:8786").resolve(1, 0.0).in_process
+    assert P.Plan(workers=1).resolve(10**6).in_process

@@ -101,8 +101,8 @@ def add_parallel(p: argparse.ArgumentParser, what: str) -> None:
     x = g.add_mutually_exclusive_group()
     x.add_argument("--workers", type=count, default=None, metavar="N",
                    help=f"run the {what} on a local Dask cluster of N worker processes "
-                        "(default: one per core, for runs of 8 or more); 0 or 1: in this "
-                        "process")
+                        "(default: one per core when the run would take 30 s or more in "
+                        "this process); 0 or 1: in this process")
     x.add_argument("--serial", action="store_true",
                    help=f"run the {what} in this process, without Dask (= --workers 0)")
     x.add_argument("--scheduler", metavar="ADDRESS",

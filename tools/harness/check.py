@@ -606,6 +606,12 @@ def run_tracer(template: str, scene: str, columns: int, rows: int, workdir: str,
     return out, (hits if "{hits}" in template and os.path.exists(hits) else None), ""
 
 
+def seconds_per_check(columns: int) -> float:
+    """Rough serial seconds of one check at ``columns`` (the rule inference renders the
+    scene several times): whether ``check_run`` is worth a local cluster (parallel.Plan)."""
+    return 1.0 * max(1.0, (columns / 64) ** 2)
+
+
 def check_run(template: str, scenes, columns: int, rows: int | None, timeout: float = 60.0,
               plan=None, **kw) -> list:
     """Run the user's tracer on each scene, then check its image.  The runs go ahead of the
@@ -621,7 +627,8 @@ def check_run(template: str, scenes, columns: int, rows: int | None, timeout: fl
         try:
             results = run_cases(_check_job, _check_runs(pool, work, template, scenes, columns,
                                                         rows, timeout, kw),
-                                plan or SERIAL, count=len(scenes))
+                                plan or SERIAL, count=len(scenes),
+                                seconds_per_case=seconds_per_check(columns))
         except BaseException:
             pool.shutdown(wait=False, cancel_futures=True)      # no queued run starts
             _stop_running()

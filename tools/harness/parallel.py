@@ -78,11 +78,13 @@ class Plan:
     def in_process(self) -> bool:
         return self.scheduler is None and self.local_workers <= 1
 
-    def resolve(self, n: int | None) -> "Plan":
+    def resolve(self, n: int | None, seconds_per_case: float = 1.0) -> "Plan":
         """The plan a run of ``n`` cases uses: by default (``workers`` None, no scheduler)
-        fewer than AUTO_MIN_CASES stay in this process."""
+        a run that would take less than AUTO_MIN_SECONDS in this process
+        (``seconds_per_case``: the command's rough estimate), or has a single case, stays
+        in this process."""
         if self.workers is None and self.scheduler is None and n is not None and \
-                n < AUTO_MIN_CASES:
+                (n < 2 or n * seconds_per_case < AUTO_MIN_SECONDS):
             return Plan(0, None, self.verbose)
         return self
 
@@ -95,9 +97,10 @@ class Plan:
 
 
 SERIAL = Plan(workers=0)
-# by default a run of fewer cases stays in this process: starting a local cluster (worker
-# processes importing Dr.Jit and Mitsuba) costs more than a few cases take
-AUTO_MIN_CASES = 8
+# by default a shorter run stays in this process: a local cluster of 2 workers costs about
+# 3 s before its first result and 5 CPU seconds (each worker imports Dask, Dr.Jit and
+# Mitsuba), more than a short run gains on 2 cores (benchmarks/parallel_speedup.py)
+AUTO_MIN_SECONDS = 30.0
 
 
 def plan_of(args) -> Plan:
@@ -224,19 +227,19 @@ def worker_stats() -> dict:
 # --- here -----------------------------------------------------------------------------------
 
 def run_cases(fn, items, plan: Plan = SERIAL, each=None, stats: dict | None = None,
-              count: int | None = None) -> list:
+              count: int | None = None, seconds_per_case: float = 1.0) -> list:
     """``fn(item)`` for every item, where ``plan`` says.  As each result arrives,
     ``each(index, result)`` is called and what it returns is kept (default: the result);
     returns the kept values in the items' order.
 
     ``items`` may be a generator: it is drawn as the cases are sent (``check --run`` yields
     each image as the user's tracer writes it).  ``count``: how many it will yield, when
-    ``items`` has no len(); by default (``plan.workers`` None) a run of fewer than
-    AUTO_MIN_CASES cases stays in this process.  ``stats``: filled with each worker's
+    ``items`` has no len(); with ``seconds_per_case`` it decides whether a default plan
+    uses a local cluster (``Plan.resolve``).  ``stats``: filled with each worker's
     ``worker_stats()`` (Dask only)."""
     each = each or (lambda i, r: r)
     n = len(items) if hasattr(items, "__len__") else count
-    plan = plan.resolve(n)
+    plan = plan.resolve(n, seconds_per_case)
     if plan.in_process or n == 0:
         return [each(i, fn(x)) for i, x in enumerate(items)]
     with session(plan, count_kernels=stats is not None or plan.verbose) as (client, config):

@@ -735,6 +735,11 @@ def run_spec(spec) -> CaseResult:
     return run_case(make_case(*spec))
 
 
+# rough serial seconds of one case, per mode (measured on 2 cores: the full sweep's 80
+# cases take 44 s of case time): whether a run is worth a local cluster (parallel.Plan)
+SECONDS_PER_CASE = {"quick": 0.2, "test": 0.3, "full": 0.6}
+
+
 def run_suite(mode: str = "test", families=None, seeds=(0,), progress=None, plan=None):
     """run_case over ``cases(mode, families, seeds)``, where ``plan`` says (default in this
     process; tools/harness/parallel.py); the results in the cases' order, ``progress(result)``
@@ -745,7 +750,8 @@ def run_suite(mode: str = "test", families=None, seeds=(0,), progress=None, plan
         if progress:
             progress(res)
         return res
-    return run_cases(run_spec, case_specs(mode, families, seeds), plan or SERIAL, each)
+    return run_cases(run_spec, case_specs(mode, families, seeds), plan or SERIAL, each,
+                     seconds_per_case=SECONDS_PER_CASE[mode])
 
 
 # --- report --------------------------------------------------------------------------------------
