@@ -198,7 +198,9 @@ class Best:
     def certify(self, T, n, shared: bool = True):
         self.cert = True
         self.shared = shared
-        self.lf = dr.full(T.Float, 1.0, n)        # the winner's lower factor (shapes.py)
+        # the winner's lower bound t·lf (lf: its lower factor, shapes.py), carried as a
+        # product so that the loop multiplies once per object
+        self.tl = dr.full(T.Float, dr.inf, n)
         self.grp = dr.full(T.Int32, -1, n) if shared else None
         # the least lower bound of the other hits; −inf marks a ray to decide exactly
         self.lo2 = dr.full(T.Float, dr.inf, n)
@@ -206,7 +208,7 @@ class Best:
     def names(self):
         if not self.cert:
             return ("t", "id")
-        return ("t", "id", "lf", "lo2") + (("grp",) if self.shared else ())
+        return ("t", "id", "tl", "lo2") + (("grp",) if self.shared else ())
 
     def state(self):
         return tuple(getattr(self, k) for k in self.names())
@@ -236,32 +238,31 @@ class Best:
             # ``grp`` is None when no two objects share a plane or sphere)
             # an unsure object (possible, not certain) sets lo2 = −inf: the ray is flagged
             unsure = dr.select(possible, type(t)(-dr.inf), type(t)(dr.inf))
+            tl = t * lf if lf is not None else t
             if self.fresh:
                 # the first object: no other hit yet
                 self.fresh = False
-                if lf is not None:
-                    self.lf = dr.select(upd, lf, self.lf)
+                self.tl = dr.select(upd, tl, self.tl)
                 self.lo2 = dr.select(hit, self.lo2, unsure)
                 if grp is not None:
                     self.grp = dr.select(upd, grp, self.grp)
             elif grp is None:
-                # the displaced winner, or this hit, joins the others (inf·1 before a hit)
-                lo = dr.select(upd, self.t * self.lf, dr.select(hit, t * lf, unsure))
+                # the displaced winner, or this hit, joins the others (inf before a hit)
+                lo = dr.select(upd, self.tl, dr.select(hit, tl, unsure))
                 # (lo is never NaN: a winner's or a certain hit's t·lf, inf or −inf; a
                 # select, not dr.minimum: see shapes.least)
                 self.lo2 = _least(self.lo2, lo)
-                self.lf = dr.select(upd, lf, self.lf)
+                self.tl = dr.select(upd, tl, self.tl)
             else:
                 uns = possible & ~hit
                 # (NaN only on lanes the selects drop: see above)
                 old = dr.select((self.id >= 0) & (self.grp != grp),
-                                _least(self.lo2, self.t * self.lf), self.lo2)
-                new = dr.select(hit & (grp != self.grp), _least(self.lo2, t * lf),
-                                self.lo2)
+                                _least(self.lo2, self.tl), self.lo2)
+                new = dr.select(hit & (grp != self.grp), _least(self.lo2, tl), self.lo2)
                 self.grp = dr.select(upd, grp, self.grp)
             if old is not None:
                 self.lo2 = dr.select(uns, -dr.inf, dr.select(upd, old, new))
-                self.lf = dr.select(upd, lf, self.lf)
+                self.tl = dr.select(upd, tl, self.tl)
         self.t = dr.select(upd, t, self.t)
         self.id = dr.select(upd, oid, self.id)
 
@@ -293,10 +294,10 @@ def _flagged(T, oid, nflag: int) -> np.ndarray:
 def _decide_flagged(ks: KernelScene, cam, rules: Rules, st: Best, d):
     """Replace the flagged rays' answers by the exact ones (rt_core/decide.py)."""
     T = ks.T
-    # [t·lf, t·(2 − lf)] holds the exact t with room to spare (KB is twice the rounding
-    # count), so intervals that merely touch are apart; a miss has t·(2 − lf) = inf, flagged
+    # [t·lf, t + (t − t·lf)] holds the exact t with room to spare (KB is twice the rounding
+    # count), so intervals that merely touch are apart; a miss's upper end is inf, flagged
     # only at −inf
-    flag = st.t * (2 - st.lf) > st.lo2
+    flag = dr.select(st.id >= 0, st.t + (st.t - st.tl), dr.inf) > st.lo2
     t = dr.select(st.id >= 0, st.t, 0)
     # flagged rays carry id −2: one int output instead of two masks (Dr.Jit's LLVM kernels
     # write several mask outputs slowly)
