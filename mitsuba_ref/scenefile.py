@@ -21,7 +21,8 @@ from decimal import Decimal
 from fractions import Fraction
 
 from rt_core.inputfile import read_input
-from rt_core.kinds import HEADER_FLAGS, KEYWORDS, KINDS, LIGHTS, form_of_code, form_of_keyword
+from rt_core.kinds import (FORMS, GEOMETRY_FIRST, HEADER_FLAGS, KEYWORDS, KINDS, LIGHTS, form_of_code,
+                           form_of_keyword)
 
 # number groups after the type token: (field, count); None = not geometry (materials)
 LAYOUT = {
@@ -65,12 +66,13 @@ class File:
     objects: tuple
     dialect: str
     flags: tuple = ()           # cd's header flags
+    table: str = ""             # numeric: the code table when not the notes' one
 
     def floats(self) -> "File":
         """The same scene with the header as floats (what a float reference reads)."""
         return File(tuple(float(c) for c in self.window),
                     tuple(float(c) for c in self.viewpoint), self.lights, self.objects,
-                    self.dialect, self.flags)
+                    self.dialect, self.flags, self.table)
 
     def default_rows(self, columns: int) -> int:
         """rows = int(world_h / world_w · columns), the keyword programs' rule."""
@@ -98,7 +100,12 @@ def read_text(text: str) -> File:
     if after is not None and after.lower() in KEYWORDS:
         return _keyword(lines)
     if got >= 5 and k < len(lines) and _NUM.match(lines[k][1][0]):
-        return _numeric(lines)
+        try:
+            return _numeric(lines)
+        except ValueError:
+            # another course year's code table (rt_core.kinds.GEOMETRY_FIRST), if it reads
+            # the whole file
+            return _numeric(lines, GEOMETRY_FIRST)
     return _keyword(lines)
 
 
@@ -120,18 +127,22 @@ def _make(form, values, line, nobj, extras=()):
                 "" if form.name == kind else form.name, tuple(extras))
 
 
-def _read_item(form, take, word, flags=(), extras=()):
+def _read_item(form, take, word, flags=(), extras=(), order=None):
     """The groups of one object: the kind's (with the flags' numbers after each MAT), then
-    the form's extra fields."""
-    values, extras = [], list(extras)
-    for name, n in LAYOUT[form.kind]:
-        values.append(take(n))
+    the form's extra fields.  ``order``: the groups' names in the file's order when not the
+    kind's (a name the kind lacks is one number, kept as an extra)."""
+    spec = dict(LAYOUT[form.kind])
+    got, extras = {}, list(extras)
+    for name in order or spec:
+        got[name] = take(spec.get(name, 1))
+        if name not in spec:
+            extras.append((name, got[name][0]))
         if name.endswith("specular"):
             side = "background " if name.startswith("bg_") else ""
             extras += [(side + HEADER_FLAGS[fl], take(1)[0]) for fl in flags]
     for name, n in form.extra:
         extras.append((name, word() if n == 0 else take(1)[0] if n == 1 else take(n)))
-    return values, extras
+    return [got[name] for name in spec], extras
 
 
 def _keyword(lines) -> File:
@@ -165,7 +176,9 @@ def _keyword(lines) -> File:
     return File(window, viewpoint, tuple(lights), tuple(objects), "keyword")
 
 
-def _numeric(lines) -> File:
+def _numeric(lines, table: dict | None = None) -> File:
+    """The numeric dialect with the notes' code table, or ``table`` (code -> (kind, the
+    groups' order))."""
     idx = 0
 
     def group(n):
@@ -199,14 +212,20 @@ def _numeric(lines) -> File:
         if code in HEADER_FLAGS:
             flags.append(code)
             continue
-        form = form_of_code(code)
+        if table is not None:
+            if code not in table:
+                raise ValueError(f"line {line}: code {code} is not in the table")
+            form, order = FORMS[table[code][0]], table[code][1]
+        else:
+            form, order = form_of_code(code), None
         extras = []
         if len(toks) > 1 and _NUM.match(toks[1]):        # nw's refraction index
             extras.append(("refraction index", _exact(toks[1])))
-        values, extras = _read_item(form, group, word, flags, extras)
+        values, extras = _read_item(form, group, word, flags, extras, order)
         item = _make(form, values, line, len(objects), extras)
         (lights if form.kind in LIGHTS else objects).append(item)
-    return File(window, viewpoint, tuple(lights), tuple(objects), "numeric", tuple(flags))
+    return File(window, viewpoint, tuple(lights), tuple(objects), "numeric", tuple(flags),
+                "geometry-first" if table is not None else "")
 
 
 assert set(LAYOUT) == set(KINDS) | set(LIGHTS), "scenefile.LAYOUT must cover every kind"

@@ -66,7 +66,25 @@ FORMS = {f.name: f for f in (
     Form("sphere_pixmap", "sphere", None, "sphere_pixmap",
          (("brightness", 1), ("forward", 3), ("texture", 0)),
          f"texture-mapped sphere: its texture is not applied, {_MAT_ONLY}"),
+    # nw's displacement sphere (dispsphere.c): a sphere whose hit distance nw shortens by
+    # 0.1·(r + g + b) of the map's pixel at the hit; the map is not in the course corpus
+    Form("dispsphere", "sphere", 28, None, (("displacement map", 0),),
+         "displacement sphere: traced as its undisplaced sphere (nw subtracts 0.1·(r+g+b) of "
+         f"the map's pixel from t; the map is not applied), {_MAT_ONLY}"),
 )}
+# An earlier code table, nw__a3t7.txt's (an assignment file that nw's final program, whose
+# table is CODES, no longer reads): each kind's geometry before its MAT, and lights with a
+# radius after the centre (read, not used: point lights).  A numeric file that CODES cannot
+# read is read with it when it reads the whole file; the scene records which table read it.
+GEOMETRY_FIRST = {
+    10: ("pointlight", ("center", "radius", "emissivity")),
+    11: ("sphere", ("center", "radius", "ambient", "diffuse", "specular")),
+    12: ("plane", ("normal", "point", "ambient", "diffuse", "specular")),
+    16: ("spotlight", ("center", "radius", "emissivity", "aim", "theta")),
+}
+TABLE_NOTE = ("read with the geometry-first code table (10 light, 11 sphere, 12 plane, "
+              "16 spotlight; geometry before the MAT; a light's radius is not used), which "
+              "the notes' table could not read")
 # cd's header flags (numeric dialect, after the viewpoint): each adds one number after every
 # MAT (ambient, diffuse, specular), in the order the flags are given
 HEADER_FLAGS = {9000: "transparency", 9001: "refraction index"}

@@ -52,7 +52,7 @@ import math
 import re
 from dataclasses import dataclass
 from .inputfile import read_input
-from .kinds import CODES, FORMS, HEADER_FLAGS, KEYWORDS, LIGHTS, Form
+from .kinds import CODES, FORMS, GEOMETRY_FIRST, HEADER_FLAGS, KEYWORDS, LIGHTS, Form
 from .scene import (GeometryError, Material, Num, PointLight, Scene, SceneError, SpotLight,
                     make_fplane, make_plane, make_sphere, make_tplane)
 
@@ -86,7 +86,8 @@ SUPPORTED_KEYWORDS = KEYWORDS
 SUPPORTED_CODES = dict(CODES)
 _CODE_WORDS = {10: "point light", 11: "spotlight", 13: "sphere", 14: "plane",
                15: "finite plane", 16: "tiled plane", 17: "textured plane",
-               19: "procedural sphere", 20: "procedural plane", 26: "textured sphere"}
+               19: "procedural sphere", 20: "procedural plane", 26: "textured sphere",
+               28: "displacement sphere"}
 _CODE_LIST = ", ".join(f"{c} {_CODE_WORDS[c]}" for c in sorted(CODES))
 
 # kinds the course used that this project does not implement
@@ -118,7 +119,6 @@ _UNSUPPORTED_CODES = {
     24: "hyperboloid",
     25: "torus in nw, lens in cd",
     27: "triangle; disk in an older nw file",
-    28: "displacement sphere",
     29: "disk",
 }
 
@@ -290,23 +290,30 @@ def _read_header(ctx: _Ctx, group):
 
 
 def _read_object(ctx: _Ctx, form: Form, start: _Tok, group, word, lights: list,
-                 objects: list, flags=(), extras=()):
+                 objects: list, flags=(), extras=(), order=None):
     """Read the groups of one object or light written in ``form`` with the dialect's
     ``group`` (numbers) and ``word`` (a file name) readers, build it and append it to
     ``lights`` or ``objects``.  ``flags``: cd's header flags, one number after every MAT
-    each; ``extras``: fields already read (nw's refraction index on the code line)."""
+    each; ``extras``: fields already read (nw's refraction index on the code line);
+    ``order``: the groups' names in the file's order when not the kind's (another code
+    table: kinds.GEOMETRY_FIRST); a name the kind lacks is one number, recorded."""
     kind = form.kind
-    values, where, extras = [], [], list(extras)
-    for name, n, desc in _GROUPS[kind]:
+    spec = {name: (n, desc) for name, n, desc in _GROUPS[kind]}
+    got, extras = {}, list(extras)
+    for name in order or spec:
+        n, desc = spec.get(name, (1, "a number"))
         v, locs = group(form.name, name, n, desc)
-        values.append(v)
-        where.append(locs)
+        if name not in spec:
+            extras.append((name, v[0]))
+        got[name] = (v, locs)
         if name.endswith("specular"):                  # the end of a MAT: the flags' fields
             prefix = name[:-len("specular")]
             for f in flags:
                 field = prefix + HEADER_FLAGS[f]
                 fv, _ = group(form.name, f"{field} (header flag {f})", 1, "a number")
                 extras.append((field, fv[0]))
+    values = [got[name][0] for name in spec]
+    where = [got[name][1] for name in spec]
     for name, n in form.extra:                         # the form's own fields, recorded
         if n == 0:
             extras.append((name, word(form.name, name)))
@@ -376,7 +383,9 @@ def _no_word(ctx: _Ctx, what: str, name: str) -> SceneError:
 
 # --- numeric dialect ----------------------------------------------------------------------
 
-def _parse_numeric(ctx: _Ctx):
+def _parse_numeric(ctx: _Ctx, table: dict | None = None):
+    """The numeric dialect with the notes' code table, or with ``table`` (code -> (kind,
+    the groups' order), kinds.GEOMETRY_FIRST)."""
     content = [toks for toks in ctx.lines if toks]
     idx = 0
 
@@ -435,6 +444,15 @@ def _parse_numeric(ctx: _Ctx):
             flags.append(code)
             idx += 1
             continue
+        if table is not None:
+            if code not in table:
+                raise ctx.error(f"code {code} is not in the geometry-first table", start)
+            kind, order = table[code]
+            if lead_count(toks) > 1:
+                raise ctx.error("expected the code alone on its line", toks[1])
+            idx += 1
+            _read_object(ctx, FORMS[kind], start, group, word, lights, objects, order=order)
+            continue
         if code not in SUPPORTED_CODES:
             if code in _UNSUPPORTED_CODES:
                 raise _unsupported_code(ctx, code, start)
@@ -459,12 +477,24 @@ def _parse(text: str, path: str, sha: str) -> Scene:
     if not any(ctx.lines):
         raise ctx.error("empty scene file: expected the world window (w h), the viewpoint "
                         "(x y z), then objects", (1, 1))
-    dialect = _detect(ctx)
-    parse = _parse_keyword if dialect == "keyword" else _parse_numeric
-    window, viewpoint, lights, objects = parse(ctx)
+    dialect, table = _detect(ctx), ""
+    if dialect == "keyword":
+        window, viewpoint, lights, objects = _parse_keyword(ctx)
+    else:
+        try:
+            window, viewpoint, lights, objects = _parse_numeric(ctx)
+        except SceneError as first:
+            # another course year's code table, if it reads the whole file; else the
+            # notes' table's error stands
+            try:
+                ctx = _Ctx(text, path)
+                window, viewpoint, lights, objects = _parse_numeric(ctx, GEOMETRY_FIRST)
+            except SceneError:
+                raise first from None
+            table = "geometry-first"
     return Scene(window=tuple(window), viewpoint=tuple(viewpoint), lights=tuple(lights),
                  objects=tuple(objects), path=path, dialect=dialect, sha256=sha,
-                 header_at=ctx.header_at, flags=ctx.flags)
+                 header_at=ctx.header_at, flags=ctx.flags, table=table)
 
 
 def parse_text(text: str | bytes, path: str = "<string>") -> Scene:

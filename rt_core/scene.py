@@ -231,12 +231,14 @@ class Scene:
     sha256: str = ""
     header_at: tuple = field(default=(), compare=False, repr=False)  # (line, col) of w h x y z
     flags: tuple = ()                    # cd's header flags (9000, 9001) as given
+    table: str = ""                      # numeric: the code table when not the notes' one
 
     def stand_ins(self) -> list[str]:
         """What this scene has that rtval traces but shades with a stand-in (kinds.FORMS),
         one line each: recorded in every output's provenance."""
-        from .kinds import FLAG_STAND_IN, FORMS, HEADER_FLAGS
-        out = [f"line {o.line}: {FORMS[o.form].stand_in}" for o in self.objects
+        from .kinds import FLAG_STAND_IN, FORMS, HEADER_FLAGS, TABLE_NOTE
+        out = [TABLE_NOTE] if self.table else []
+        out += [f"line {o.line}: {FORMS[o.form].stand_in}" for o in self.objects
                if o.form and FORMS[o.form].stand_in]
         out += [FLAG_STAND_IN.format(f"header flag {f} ({HEADER_FLAGS[f]} after every MAT)")
                 for f in self.flags]
