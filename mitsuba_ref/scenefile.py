@@ -21,7 +21,7 @@ from decimal import Decimal
 from fractions import Fraction
 
 from rt_core.inputfile import read_input
-from rt_core.kinds import (FORMS, GEOMETRY_FIRST, HEADER_FLAGS, KEYWORDS, KINDS, LIGHTS, form_of_code,
+from rt_core.kinds import (CODE_TABLES, FORMS, HEADER_FLAGS, KEYWORDS, KINDS, LIGHTS, form_of_code,
                            form_of_keyword)
 
 # number groups after the type token: (field, count); None = not geometry (materials)
@@ -102,10 +102,15 @@ def read_text(text: str) -> File:
     if got >= 5 and k < len(lines) and _NUM.match(lines[k][1][0]):
         try:
             return _numeric(lines)
-        except ValueError:
-            # another course year's code table (rt_core.kinds.GEOMETRY_FIRST), if it reads
-            # the whole file
-            return _numeric(lines, GEOMETRY_FIRST)
+        except ValueError as first:
+            # another course year's code table (rt_core.kinds.CODE_TABLES): the first that
+            # reads the whole file
+            for name, table in CODE_TABLES.items():
+                try:
+                    return _numeric(lines, table, name)
+                except ValueError:
+                    continue
+            raise first
     return _keyword(lines)
 
 
@@ -176,9 +181,9 @@ def _keyword(lines) -> File:
     return File(window, viewpoint, tuple(lights), tuple(objects), "keyword")
 
 
-def _numeric(lines, table: dict | None = None) -> File:
-    """The numeric dialect with the notes' code table, or ``table`` (code -> (kind, the
-    groups' order))."""
+def _numeric(lines, table: dict | None = None, name: str = "") -> File:
+    """The numeric dialect with the notes' code table, or ``table`` (code -> (form, the
+    groups' order)) named ``name``."""
     idx = 0
 
     def group(n):
@@ -225,7 +230,7 @@ def _numeric(lines, table: dict | None = None) -> File:
         item = _make(form, values, line, len(objects), extras)
         (lights if form.kind in LIGHTS else objects).append(item)
     return File(window, viewpoint, tuple(lights), tuple(objects), "numeric", tuple(flags),
-                "geometry-first" if table is not None else "")
+                name)
 
 
 assert set(LAYOUT) == set(KINDS) | set(LIGHTS), "scenefile.LAYOUT must cover every kind"

@@ -72,19 +72,25 @@ FORMS = {f.name: f for f in (
          "displacement sphere: traced as its undisplaced sphere (nw subtracts 0.1·(r+g+b) of "
          f"the map's pixel from t; the map is not applied), {_MAT_ONLY}"),
 )}
-# An earlier code table, nw__a3t7.txt's (an assignment file that nw's final program, whose
-# table is CODES, no longer reads): each kind's geometry before its MAT, and lights with a
-# radius after the centre (read, not used: point lights).  A numeric file that CODES cannot
-# read is read with it when it reads the whole file; the scene records which table read it.
-GEOMETRY_FIRST = {
-    10: ("pointlight", ("center", "radius", "emissivity")),
-    11: ("sphere", ("center", "radius", "ambient", "diffuse", "specular")),
-    12: ("plane", ("normal", "point", "ambient", "diffuse", "specular")),
-    16: ("spotlight", ("center", "radius", "emissivity", "aim", "theta")),
+# Other course years' code tables: code -> (form, the groups' names in the file's order; a
+# name the kind lacks is one number, recorded).  A numeric file that CODES cannot read is read
+# with the first of these that reads the whole file; the scene records which, and every output
+# says so (TABLE_NOTES).
+CODE_TABLES = {
+    # nw__a3t7.txt's (an assignment file that nw's final program, whose table is CODES, no
+    # longer reads): each kind's geometry before its MAT, lights with a radius after the centre
+    "geometry-first": {
+        10: ("pointlight", ("center", "radius", "emissivity")),
+        11: ("sphere", ("center", "radius", "ambient", "diffuse", "specular")),
+        12: ("plane", ("normal", "point", "ambient", "diffuse", "specular")),
+        16: ("spotlight", ("center", "radius", "emissivity", "aim", "theta")),
+    },
 }
-TABLE_NOTE = ("read with the geometry-first code table (10 light, 11 sphere, 12 plane, "
-              "16 spotlight; geometry before the MAT; a light's radius is not used), which "
-              "the notes' table could not read")
+TABLE_NOTES = {
+    "geometry-first": "read with the geometry-first code table (10 light, 11 sphere, 12 plane, "
+                      "16 spotlight; geometry before the MAT; a light's radius is not used), "
+                      "which the notes' table could not read",
+}
 # cd's header flags (numeric dialect, after the viewpoint): each adds one number after every
 # MAT (ambient, diffuse, specular), in the order the flags are given
 HEADER_FLAGS = {9000: "transparency", 9001: "refraction index"}

@@ -52,7 +52,7 @@ import math
 import re
 from dataclasses import dataclass
 from .inputfile import read_input
-from .kinds import CODES, FORMS, GEOMETRY_FIRST, HEADER_FLAGS, KEYWORDS, LIGHTS, Form
+from .kinds import CODE_TABLES, CODES, FORMS, HEADER_FLAGS, KEYWORDS, LIGHTS, Form
 from .scene import (GeometryError, Material, Num, PointLight, Scene, SceneError, SpotLight,
                     make_fplane, make_plane, make_sphere, make_tplane)
 
@@ -296,7 +296,7 @@ def _read_object(ctx: _Ctx, form: Form, start: _Tok, group, word, lights: list,
     ``lights`` or ``objects``.  ``flags``: cd's header flags, one number after every MAT
     each; ``extras``: fields already read (nw's refraction index on the code line);
     ``order``: the groups' names in the file's order when not the kind's (another code
-    table: kinds.GEOMETRY_FIRST); a name the kind lacks is one number, recorded."""
+    table: kinds.CODE_TABLES); a name the kind lacks is one number, recorded."""
     kind = form.kind
     spec = {name: (n, desc) for name, n, desc in _GROUPS[kind]}
     got, extras = {}, list(extras)
@@ -384,8 +384,8 @@ def _no_word(ctx: _Ctx, what: str, name: str) -> SceneError:
 # --- numeric dialect ----------------------------------------------------------------------
 
 def _parse_numeric(ctx: _Ctx, table: dict | None = None):
-    """The numeric dialect with the notes' code table, or with ``table`` (code -> (kind,
-    the groups' order), kinds.GEOMETRY_FIRST)."""
+    """The numeric dialect with the notes' code table, or with ``table`` (code -> (form,
+    the groups' order), one of kinds.CODE_TABLES)."""
     content = [toks for toks in ctx.lines if toks]
     idx = 0
 
@@ -446,12 +446,12 @@ def _parse_numeric(ctx: _Ctx, table: dict | None = None):
             continue
         if table is not None:
             if code not in table:
-                raise ctx.error(f"code {code} is not in the geometry-first table", start)
-            kind, order = table[code]
+                raise ctx.error(f"code {code} is not in this code table", start)
+            name, order = table[code]
             if lead_count(toks) > 1:
                 raise ctx.error("expected the code alone on its line", toks[1])
             idx += 1
-            _read_object(ctx, FORMS[kind], start, group, word, lights, objects, order=order)
+            _read_object(ctx, FORMS[name], start, group, word, lights, objects, order=order)
             continue
         if code not in SUPPORTED_CODES:
             if code in _UNSUPPORTED_CODES:
@@ -484,14 +484,17 @@ def _parse(text: str, path: str, sha: str) -> Scene:
         try:
             window, viewpoint, lights, objects = _parse_numeric(ctx)
         except SceneError as first:
-            # another course year's code table, if it reads the whole file; else the
-            # notes' table's error stands
-            try:
-                ctx = _Ctx(text, path)
-                window, viewpoint, lights, objects = _parse_numeric(ctx, GEOMETRY_FIRST)
-            except SceneError:
+            # another course year's code table, the first that reads the whole file; else
+            # the notes' table's error stands
+            for table, codes in CODE_TABLES.items():
+                try:
+                    ctx = _Ctx(text, path)
+                    window, viewpoint, lights, objects = _parse_numeric(ctx, codes)
+                    break
+                except SceneError:
+                    continue
+            else:
                 raise first from None
-            table = "geometry-first"
     return Scene(window=tuple(window), viewpoint=tuple(viewpoint), lights=tuple(lights),
                  objects=tuple(objects), path=path, dialect=dialect, sha256=sha,
                  header_at=ctx.header_at, flags=ctx.flags, table=table)

@@ -236,8 +236,8 @@ class Scene:
     def stand_ins(self) -> list[str]:
         """What this scene has that rtval traces but shades with a stand-in (kinds.FORMS),
         one line each: recorded in every output's provenance."""
-        from .kinds import FLAG_STAND_IN, FORMS, HEADER_FLAGS, TABLE_NOTE
-        out = [TABLE_NOTE] if self.table else []
+        from .kinds import FLAG_STAND_IN, FORMS, HEADER_FLAGS, TABLE_NOTES
+        out = [TABLE_NOTES[self.table]] if self.table else []
         out += [f"line {o.line}: {FORMS[o.form].stand_in}" for o in self.objects
                if o.form and FORMS[o.form].stand_in]
         out += [FLAG_STAND_IN.format(f"header flag {f} ({HEADER_FLAGS[f]} after every MAT)")
