@@ -598,7 +598,7 @@ def test42_fuzz_never_crashes_long():
 # "ok", objects, lights: parses to that many objects and lights.
 # "unsupported: <kind>", line: SceneError "... is not supported" naming the kind, at that line.
 # "error: <message>", line: a broken file (not a scene, or a different code table).
-# nw__a3t7 uses another course year's code table, read as kinds.GEOMETRY_FIRST; nw__cone-sphere
+# nw__a3t7 uses another course year's code table, read with kinds.CODE_TABLES["geometry-first"]; nw__cone-sphere
 # a third one (10 light with emissivity, centre, radius; 11 sphere; 13 cylinder; 17 cone) that
 # rtval does not read (no course program's source for it is in the corpus): it fails at once.
 
