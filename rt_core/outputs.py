@@ -13,10 +13,13 @@ import errno
 import json
 import math
 import os
+import signal
 import stat
 import struct
 import sys
 import tempfile
+import threading
+from contextlib import contextmanager
 from pathlib import Path
 
 TMP_PREFIX = ".tmp-rtval-"
@@ -108,6 +111,35 @@ def remove_stale(directory: str) -> list[str]:
               f"killed run ({', '.join(sorted(removed)[:3])}{', ...' if len(removed) > 3 else ''})",
               file=sys.stderr)
     return removed
+
+
+_HOLD = {"depth": 0, "pending": []}
+
+
+@contextmanager
+def signals_held():
+    """A block during which a signal handler that asks ``held`` defers itself (tools/cli.py's
+    SIGTERM, SIGHUP and SIGINT handlers): a temporary is created and registered in _LIVE
+    with no handler raising in between, where the file would exist under a name nobody
+    knows.  The deferred signal is raised again when the block ends."""
+    _HOLD["depth"] += 1
+    try:
+        yield
+    finally:
+        _HOLD["depth"] -= 1
+        if not _HOLD["depth"] and _HOLD["pending"]:
+            signum = _HOLD["pending"][0]
+            _HOLD["pending"].clear()
+            signal.raise_signal(signum)
+
+
+def held(signum: int) -> bool:
+    """For a signal handler: True while a ``signals_held`` block runs (the signal is then
+    raised again at its end), else False."""
+    if _HOLD["depth"] and threading.current_thread() is threading.main_thread():
+        _HOLD["pending"].append(signum)
+        return True
+    return False
 
 
 def cleanup() -> None:
@@ -202,14 +234,15 @@ def atomic_write(path: str, write, verify=None) -> None:
         umask = os.umask(0)
         os.umask(umask)
         mode = 0o666 & ~umask
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f"{TMP_PREFIX}{_SPACE}-{os.getpid()}-", suffix=ext,
-                                   dir=directory)
-    except OSError as exc:
-        _remove_dirs(created)
-        reason, hint = _reason(exc, "", shown)
-        raise WriteError(shown, reason, hint) from None
-    _LIVE.add(tmp)
+    with signals_held():
+        try:
+            fd, tmp = tempfile.mkstemp(prefix=f"{TMP_PREFIX}{_SPACE}-{os.getpid()}-",
+                                       suffix=ext, dir=directory)
+        except OSError as exc:
+            _remove_dirs(created)
+            reason, hint = _reason(exc, "", shown)
+            raise WriteError(shown, reason, hint) from None
+        _LIVE.add(tmp)
     os.close(fd)
     done = False
     try:

@@ -356,6 +356,42 @@ def test15b_sigterm_during_validate_leaves_no_temporary(tmp_path, where):
     assert not glob.glob(os.path.join(tempfile.gettempdir(), f"rtval-dask-*-{p.pid}-*"))
 
 
+@pytest.mark.parametrize("where", ["file", "report"])
+def test15e_sigterm_between_creating_and_registering_a_temporary(tmp_path, monkeypatch, where):
+    """A SIGTERM whose handler would run right after tempfile created the temporary (before
+    rtval knows its name) is held until the name is registered: the run unwinds and leaves
+    nothing.  (test15b's rare leftover under Dask: the signal landed in that window.)"""
+    import tempfile
+
+    from rt_core import outputs
+    from tools import cli
+    from tools.harness import html_report
+
+    real = {"mkstemp": tempfile.mkstemp, "mkdtemp": tempfile.mkdtemp}
+
+    def late(name):
+        def make(*a, **k):
+            out = real[name](*a, **k)              # the file or directory exists now
+            os.kill(os.getpid(), signal.SIGTERM)   # handled before make() returns
+            return out
+        return make
+
+    old = signal.signal(signal.SIGTERM, cli._terminate)
+    try:
+        if where == "file":
+            monkeypatch.setattr(tempfile, "mkstemp", late("mkstemp"))
+            with pytest.raises(cli.Terminated):
+                atomic_write(str(tmp_path / "out.bin"), lambda p: Path(p).write_bytes(b"x"))
+        else:
+            monkeypatch.setattr(tempfile, "mkdtemp", late("mkdtemp"))
+            with pytest.raises(cli.Terminated):
+                html_report.write_report(str(tmp_path / "rep"), "t", [], [], "cmd", {})
+    finally:
+        signal.signal(signal.SIGTERM, old)
+        outputs.cleanup()                          # what rtval's main() does on SIGTERM
+    assert sorted(os.listdir(tmp_path)) == []
+
+
 def test15c_sigterm_stops_check_runs_queued_and_running(tmp_path):
     """The signal reaches rtval's main thread only; the tracer runs in a worker thread: it
     must be killed and the queued runs must not start."""

@@ -28,7 +28,17 @@ class Terminated(BaseException):
 
 
 def _terminate(signum, frame):
+    from rt_core.outputs import held
+    if held(signum):                # a temporary being created: raised again right after
+        return
     raise Terminated(signum)
+
+
+def _interrupt(signum, frame):
+    from rt_core.outputs import held
+    if held(signum):
+        return
+    raise KeyboardInterrupt
 
 
 class Parser(argparse.ArgumentParser):
@@ -113,6 +123,8 @@ def main(argv=None) -> int:
     from rt_core.outputs import cleanup
     for sig in (signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, _terminate)
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, _interrupt)
     try:
         return int(args.func(args) or 0)
     except Terminated as e:

@@ -555,7 +555,7 @@ def write_report(directory: str, title: str, rows: list, skipped: list = (),
                  command: str | None = None, meta: dict | None = None) -> str:
     """Write the report into ``directory`` (new, empty or an earlier report); returns the
     path of its index.html.  On any failure nothing is left: no directory, no temporary."""
-    from rt_core.outputs import _SPACE, TMP_PREFIX, WriteError, _reason
+    from rt_core.outputs import _SPACE, TMP_PREFIX, WriteError, _reason, signals_held
     check_target(directory)
     final = os.path.realpath(directory)
     parent = os.path.dirname(final)
@@ -567,7 +567,8 @@ def write_report(directory: str, title: str, rows: list, skipped: list = (),
     try:
         os.makedirs(parent, exist_ok=True)
         _remove_stale_dirs(parent)
-        stage = tempfile.mkdtemp(prefix=f"{TMP_PREFIX}{_SPACE}-{os.getpid()}-", dir=parent)
+        with signals_held():             # no handler between mkdtemp's mkdir and `stage =`
+            stage = tempfile.mkdtemp(prefix=f"{TMP_PREFIX}{_SPACE}-{os.getpid()}-", dir=parent)
         html, files = page(title, rows, skipped, final, command, meta)
         for name, data in files.items():
             _write(os.path.join(stage, name), data)
@@ -576,7 +577,8 @@ def write_report(directory: str, title: str, rows: list, skipped: list = (),
         os.umask(umask)
         os.chmod(stage, 0o777 & ~umask)
         if os.path.isdir(final):             # an earlier report or an empty directory
-            old = tempfile.mkdtemp(prefix=f"{TMP_PREFIX}{_SPACE}-{os.getpid()}-", dir=parent)
+            with signals_held():
+                old = tempfile.mkdtemp(prefix=f"{TMP_PREFIX}{_SPACE}-{os.getpid()}-", dir=parent)
             os.rename(final, os.path.join(old, "report"))
             try:
                 os.rename(stage, final)
