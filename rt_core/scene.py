@@ -238,6 +238,7 @@ class Scene:
         from .kinds import FLAG_STAND_IN, FORMS, HEADER_FLAGS
         out = [f"line {o.line}: {FORMS[o.form].stand_in}" for o in self.objects
                if o.form and FORMS[o.form].stand_in]
+        out += [f"line {o.line}: {o.note}" for o in self.objects if getattr(o, "note", "")]
         out += [FLAG_STAND_IN.format(f"header flag {f} ({HEADER_FLAGS[f]} after every MAT)")
                 for f in self.flags]
         out += [f"line {o.line}: " + FLAG_STAND_IN.format(f"{o.kind}'s refraction index")
