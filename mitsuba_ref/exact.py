@@ -564,7 +564,9 @@ def trace_exact(xs: XScene, d: np.ndarray, rules: Rules = Rules(), rays=None) ->
             valid[i] = all(tests[k][0] for k in names)
         ov = ObjectVerdicts(p.kind, valid, t, tq, passed, margin)
         ov.cond = _conditions(p.obj, V, d.astype(np.float64), rules)
-        ov.representable = {u: _representable(xs, p.obj, u) for u in U.values()}
+        # (a quadric's decisions take square roots: exact inputs do not make them exact)
+        ov.representable = {u: _representable(xs, p.obj, u) and p.kind not in quadric.KINDS
+                            for u in U.values()}
         verdicts.append(ov)
     hit = np.zeros(n, bool)
     ids = np.full(n, -1, np.int64)

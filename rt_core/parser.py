@@ -277,7 +277,7 @@ def _geometry_location(kind: str, msg: str, start: _Tok, g: list, where: list):
     if msg.startswith(("size", "tile size")):
         return where[6][0] if not g[3][0] > 0 else where[6][1]
     if msg.startswith(("radius and height", "semi-axes")):   # quadrics: their last group
-        return where[-1][0] if "semi" in msg or g[-1][0] <= 0 else where[-1][1]
+        return where[-1][next(i for i, c in enumerate(g[-1]) if not c > 0)]
     if msg.startswith("radius"):
         return where[4][0]
     return start
