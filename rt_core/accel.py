@@ -41,7 +41,7 @@ from .rules import Rules
 from .kinds import PLANE_KINDS
 from .shapes import BOUND_FIELDS, TAME, object_t
 from .quadrics import KINDS as QUADRICS
-from .shapes_quadric import ROW_SLOTS, row_view as quadric_row_view
+from .shapes_quadric import ROW_SLOTS, quadric_boxes, row_view as quadric_row_view
 
 # More (bounded) objects than this: the symbolic loop instead of unrolled code.  Measured
 # crossover (bench, f32): unrolled wins up to ~8-12 objects, the binned loop above.
@@ -67,7 +67,7 @@ LAYOUT = {"sphere": ("qx", "qy", "qz", "radius", "c", "id", "grp", "bo", "bs"),
                      "yx", "yy", "yz", "id", "grp", "bz", "bm")}
 LAYOUT["tplane"] = LAYOUT["plane"]
 LAYOUT.update({k: ROW_SLOTS for k in QUADRICS})     # rt_core/shapes_quadric.py
-BOUNDED = ("sphere", "fplane")
+BOUNDED = ("sphere", "fplane") + QUADRICS
 
 
 def configure(ks, unroll_max: int | None = None, bins: bool | None = None,
@@ -279,6 +279,10 @@ def _corners(kind: str, consts) -> np.ndarray:
         q = np.array([c.q for c in consts], np.float64)
         r = np.array([c.radius for c in consts], np.float64) * (1 + MARGIN)
         return q[:, None, :] + r[:, None, None] * s[None]
+    if kind in QUADRICS:                              # the corners of their boxes
+        lo, hi = quadric_boxes(consts)
+        s = np.array([(i, j, k) for i in (0, 1) for j in (0, 1) for k in (0, 1)], bool)
+        return np.where(s[None], hi[:, None, :], lo[:, None, :])
     return None                                       # unbounded: every bin
 
 

@@ -231,3 +231,30 @@ def quadric_code(kind_code):
     for c in codes[1:]:
         m |= kind_code == c
     return m
+
+
+def quadric_boxes(consts, pad: float = 2.0 ** -20) -> tuple:
+    """(lo, hi) float64 (count, 3): axis-aligned boxes of quadrics relative to the viewpoint,
+    from their host constants, enlarged by ``pad`` of their size (the constants' rounding is
+    ~1e-16 of it): the ellipsoid's centre ± semi-axes; an open cylinder's or cone's two end
+    discs (a disc of radius ρ and unit normal â reaches ρ·√(1 − â_i²) along axis i; the
+    cone's apex is a disc of radius 0)."""
+    import numpy as np
+    lo, hi = [], []
+    for c in consts:
+        q = np.array(c.q, np.float64)
+        if c.kind == "ellipsoid":
+            ext = np.array([1.0 / c.g0[0], 1.0 / c.g1[1], 1.0 / c.g2[2]])
+            a, b = q - ext, q + ext
+        else:
+            ax = np.array(c.g2, np.float64)
+            top = q + c.hgt * ax
+            rho = math.sqrt(c.e) if c.kind == "cylinder" else math.sqrt(-c.w2) * c.hgt
+            reach = rho * np.sqrt(np.maximum(1.0 - ax * ax, 0.0))
+            r0 = reach if c.kind == "cylinder" else 0.0 * reach
+            a = np.minimum(q - r0, top - reach)
+            b = np.maximum(q + r0, top + reach)
+        m = pad * (np.abs(b - a).max() + np.abs(q).max())
+        lo.append(a - m)
+        hi.append(b + m)
+    return np.array(lo).reshape(-1, 3), np.array(hi).reshape(-1, 3)
