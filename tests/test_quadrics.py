@@ -170,3 +170,18 @@ def test07_loops_bins_and_bvh_match_unrolled(precision, monkeypatch):
     assert np.array_equal(np.array(g["depth.Z"]), np.array(g_loop["depth.Z"]))
     ks, _ = assert_identical(sc, precision, monkeypatch, columns=24)
     assert used(ks) == {"bvh", "lightbins"}
+
+
+def test08_mitsuba_cylinder_and_the_oracle_only_kinds(tmp_path):
+    """The cylinder converts to Mitsuba's (open) ``cylinder`` and agrees with rt_core under
+    the classifier; the cone (no Mitsuba shape) is left out of the comparison, saying so."""
+    from mitsuba_ref.convert import scene_xml
+    from tools.harness.compare import compare
+    sc = parse_text(OWN, "own.txt")
+    cmp = compare(sc, 40, 30, "f32", "rays")
+    assert cmp.ok, (cmp.counts, cmp.depth)
+    assert "line 10 cone" in cmp.note and "oracles only" in cmp.note
+    assert (cmp.ref["object.id"] == 0).sum() > 100          # Mitsuba hits its cylinder
+    assert cmp.counts["agree"] == 40 * 30 - cmp.explained
+    xml = scene_xml(sc, 40)
+    assert 'type="cylinder"' in xml and "cone has no Mitsuba shape" in xml
