@@ -145,12 +145,19 @@ def mitsuba_subset(scene: Scene, keep=lambda kind: True):
     return dataclasses.replace(scene, objects=kept), note
 
 
-def oracle_only(scene: Scene) -> list:
-    """One line per object that has no Mitsuba equivalent (compared against the oracles
-    only), for the converter's output and the comparisons' notes."""
-    return [f"line {o.line}: {o.kind} has no Mitsuba shape; left out of the Mitsuba scene "
-            "(checked against rtval's oracles only)" for o in scene.objects
-            if dispatch(_SHAPES, o.kind)(o, scene.viewpoint, 1.0, lambda m: m) is None]
+def oracle_only(scene: Scene, shading: bool = False) -> list:
+    """One line per object left out of the Mitsuba scene: no Mitsuba equivalent (compared
+    against the oracles only), or, with ``shading``, a quadric (the ``course`` integrator
+    shades plane kinds and spheres only)."""
+    out = []
+    for o in scene.objects:
+        if dispatch(_SHAPES, o.kind)(o, scene.viewpoint, 1.0, lambda m: m) is None:
+            out.append(f"line {o.line}: {o.kind} has no Mitsuba shape; left out of the "
+                       "Mitsuba scene (checked against rtval's oracles only)")
+        elif shading and o.kind in quadric.KINDS:
+            out.append(f"line {o.line}: {o.kind}: the course integrator does not shade it; "
+                       "left out of the Mitsuba scene (checked against rtval's oracles only)")
+    return out
 
 
 def stand_in_frame(obj, viewpoint):
@@ -348,7 +355,7 @@ def scene_dict(scene: Scene, columns: int, rows: int | None = None, sampling: st
             continue
         sid = shape_id(oid, o.kind)
         shape = dispatch(_SHAPES, o.kind)(o, scene.viewpoint, R, T)
-        if shape is None:               # no Mitsuba equivalent: oracle_only() says so
+        if shape is None or (shading and o.kind in quadric.KINDS):   # oracle_only() says so
             continue
         shape["id"] = sid
         if shading:
@@ -442,11 +449,11 @@ def _xml_value(name: str, v, indent: str) -> list:
     raise TypeError(f"cannot write {name}={v!r} as Mitsuba XML")
 
 
-TAGS = {"rectangle": "shape", "sphere": "shape", "perspective": "sensor", "stratified":
+TAGS = {"rectangle": "shape", "sphere": "shape", "cylinder": "shape", "perspective": "sensor", "stratified":
         "sampler", "hdrfilm": "film", "box": "rfilter", "aov": "integrator", "path": "integrator",
         "course": "integrator", "course_material": "bsdf", "diffuse": "bsdf", "point": "emitter",
         "spot": "emitter", "rgb": "rgb"}
-POINTS = ("center", "position", "viewpoint", "point")
+POINTS = ("center", "position", "viewpoint", "point", "p0", "p1")
 
 
 def _xml_object(d: dict, indent: str, name: str | None = None) -> list:
@@ -487,7 +494,7 @@ def scene_xml(scene: Scene, columns: int, rows: int | None = None, sampling: str
                      " mitsuba_ref.convert.mitsuba()) -->")
     if s.note:
         lines.append(f"<!-- WARNING: {s.note} -->")
-    lines += [f"<!-- {note} -->" for note in oracle_only(scene)]
+    lines += [f"<!-- {note} -->" for note in oracle_only(scene, shading or aovs)]
     lines.append('<scene version="3.0.0">')
     for k, v in d.items():
         if k != "type":

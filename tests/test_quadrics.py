@@ -185,3 +185,13 @@ def test08_mitsuba_cylinder_and_the_oracle_only_kinds(tmp_path):
     assert cmp.counts["agree"] == 40 * 30 - cmp.explained
     xml = scene_xml(sc, 40)
     assert 'type="cylinder"' in xml and "cone has no Mitsuba shape" in xml
+    assert '<point name="p1" value="0.0, 1.0, -4.0"/>' in xml
+    # the XML loads in Mitsuba, and its cylinder is where rt_core's is
+    from mitsuba_ref.convert import mitsuba
+    mi = mitsuba()
+    path = tmp_path / "own.xml"
+    path.write_text(xml)
+    shapes = mi.load_file(str(path)).shapes()
+    assert [s.id() for s in shapes] == ["obj0_cylinder", "obj2_sphere"]
+    box = shapes[0].bbox()
+    assert np.allclose([box.min.y, box.max.y], [-1, 1], atol=1e-5)
