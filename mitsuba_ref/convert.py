@@ -25,6 +25,7 @@ from rt_core.rules import Rules
 
 DEFAULT_MAX_DIST = 1000.0       # the notes' MAX_DIST, as ``rtval render``'s default
 
+from . import quadric
 from .geometry import corners, cross, dot, frame, normal, sub, unit
 
 VARIANT = "llvm_ad_rgb"
@@ -63,6 +64,10 @@ def scene_scale(scene: Scene) -> float:
     for o in scene.objects:
         if o.kind == "sphere":
             r = max(r, math.sqrt(dot(sub(o.center, v), sub(o.center, v))) + o.radius)
+        elif o.kind in quadric.KINDS:      # the centre, and the object's largest extent
+            f = quadric.fields(o)
+            size = max(f[1]) if o.kind == "ellipsoid" else float(f[2]) + float(f[3])
+            r = max(r, math.sqrt(dot(sub(f[0], v), sub(f[0], v))) + float(size))
         elif o.kind == "fplane":
             for c in corners(o):
                 r = max(r, math.sqrt(dot(sub(c, v), sub(c, v))))
@@ -109,7 +114,50 @@ _SHAPES = {   # Mitsuba shape dict per kind
     "fplane": lambda o, v, R, T: {"type": "rectangle", "to_world": T(rectangle_matrix(o))},
     "plane": lambda o, v, R, T: {"type": "rectangle", "to_world": T(infinite_matrix(o, v, R))},
     "tplane": lambda o, v, R, T: {"type": "rectangle", "to_world": T(infinite_matrix(o, v, R))},
+    "cylinder": lambda o, v, R, T: cylinder_shape(o),
+    # no Mitsuba shape (its sphere forbids non-uniform scale): checked against the oracles only
+    "cone": lambda o, v, R, T: None,
+    "ellipsoid": lambda o, v, R, T: None,
 }
+
+
+def cylinder_shape(o) -> dict:
+    """Mitsuba's ``cylinder`` (open, as the course's): p0 the base centre, p1 = p0 + h·â."""
+    p0, axis, r, h = quadric.fields(o)
+    a = unit(tuple(float(c) for c in axis))
+    p0 = [float(c) for c in p0]
+    return {"type": "cylinder", "p0": p0, "p1": [c + float(h) * x for c, x in zip(p0, a)],
+            "radius": float(r)}
+
+
+def mitsuba_subset(scene: Scene, keep=lambda kind: True):
+    """(scene, note): the scene without the objects Mitsuba has no shape for (``oracle_only``)
+    and the kinds ``keep`` refuses, for a comparison with Mitsuba; the note names what was
+    left out ("" when nothing was)."""
+    import dataclasses
+    gone = [o for o in scene.objects if not keep(o.kind)
+            or dispatch(_SHAPES, o.kind)(o, scene.viewpoint, 1.0, lambda m: m) is None]
+    if not gone:
+        return scene, ""
+    kept = tuple(o for o in scene.objects if all(o is not g for g in gone))
+    note = ("left out of this Mitsuba comparison (checked against rtval's oracles only): "
+            + ", ".join(f"line {o.line} {o.kind}" for o in gone))
+    return dataclasses.replace(scene, objects=kept), note
+
+
+def oracle_only(scene: Scene, shading: bool = False) -> list:
+    """One line per object left out of the Mitsuba scene: no Mitsuba equivalent (compared
+    against the oracles only), or, with ``shading``, a quadric (the ``course`` integrator
+    shades plane kinds and spheres only)."""
+    out = []
+    for o in scene.objects:
+        if dispatch(_SHAPES, o.kind)(o, scene.viewpoint, 1.0, lambda m: m) is None:
+            out.append(f"line {o.line}: {o.kind} has no Mitsuba shape; left out of the "
+                       "Mitsuba scene (checked against rtval's oracles only)")
+        elif shading and o.kind in quadric.KINDS:
+            out.append(f"line {o.line}: {o.kind}: the course integrator does not shade it; "
+                       "left out of the Mitsuba scene (checked against rtval's oracles only)")
+    return out
 
 
 def stand_in_frame(obj, viewpoint):
@@ -307,6 +355,8 @@ def scene_dict(scene: Scene, columns: int, rows: int | None = None, sampling: st
             continue
         sid = shape_id(oid, o.kind)
         shape = dispatch(_SHAPES, o.kind)(o, scene.viewpoint, R, T)
+        if shape is None or (shading and o.kind in quadric.KINDS):   # oracle_only() says so
+            continue
         shape["id"] = sid
         if shading:
             shape["bsdf"] = course_material(o, oid, rules)
@@ -399,11 +449,11 @@ def _xml_value(name: str, v, indent: str) -> list:
     raise TypeError(f"cannot write {name}={v!r} as Mitsuba XML")
 
 
-TAGS = {"rectangle": "shape", "sphere": "shape", "perspective": "sensor", "stratified":
+TAGS = {"rectangle": "shape", "sphere": "shape", "cylinder": "shape", "perspective": "sensor", "stratified":
         "sampler", "hdrfilm": "film", "box": "rfilter", "aov": "integrator", "path": "integrator",
         "course": "integrator", "course_material": "bsdf", "diffuse": "bsdf", "point": "emitter",
         "spot": "emitter", "rgb": "rgb"}
-POINTS = ("center", "position", "viewpoint", "point")
+POINTS = ("center", "position", "viewpoint", "point", "p0", "p1")
 
 
 def _xml_object(d: dict, indent: str, name: str | None = None) -> list:
@@ -444,6 +494,7 @@ def scene_xml(scene: Scene, columns: int, rows: int | None = None, sampling: str
                      " mitsuba_ref.convert.mitsuba()) -->")
     if s.note:
         lines.append(f"<!-- WARNING: {s.note} -->")
+    lines += [f"<!-- {note} -->" for note in oracle_only(scene, shading or aovs)]
     lines.append('<scene version="3.0.0">')
     for k, v in d.items():
         if k != "type":

@@ -46,6 +46,7 @@ import numpy as np
 from rt_core.kinds import dispatch
 from rt_core.rules import Rules
 
+from . import quadric
 from .scenefile import read_text
 
 U = {"f32": 2.0 ** -24, "f64": 2.0 ** -53}
@@ -66,6 +67,13 @@ class XObject:
     size: tuple = ()
     center: tuple = ()
     radius: Fraction | None = None
+    fields: tuple = ()         # other kinds' groups as (name, numbers) (quadrics)
+
+    def __getattr__(self, name):        # a quadric's groups: obj.centerline, obj.axes, ...
+        for k, v in self.__dict__.get("fields", ()):
+            if k == name:
+                return v
+        raise AttributeError(name)
 
 
 @dataclass(frozen=True)
@@ -82,6 +90,9 @@ _LAYOUT = {
     "plane": ((None, 9), ("normal", 3), ("point", 3)),
     "fplane": ((None, 9), ("normal", 3), ("point", 3), ("orient", 3), ("size", 2)),
     "tplane": ((None, 9), ("normal", 3), ("point", 3), ("orient", 3), ("size", 2), (None, 9)),
+    "cylinder": ((None, 9), ("center", 3), ("centerline", 3), ("radius_height", 2)),
+    "cone": ((None, 9), ("center", 3), ("centerline", 3), ("radius_height", 2)),
+    "ellipsoid": ((None, 9), ("center", 3), ("axes", 3)),
 }
 
 
@@ -99,7 +110,8 @@ def parse_exact(text: str) -> XScene:
         objs.append(XObject(o.kind, o.index, normal=x.get("normal", ()), point=x.get("point", ()),
                             orient=x.get("orient", ()), size=x.get("size", ()),
                             center=x.get("center", ()),
-                            radius=x["radius"][0] if "radius" in x else None))
+                            radius=x["radius"][0] if "radius" in x else None,
+                            fields=tuple(x.items()) if o.kind in quadric.KINDS else ()))
     return XScene(f.window, f.viewpoint, tuple(objs))
 
 
@@ -195,6 +207,7 @@ DECISIONS = {
     "tplane": ("parallel", "t", "clip"),
     "fplane": ("parallel", "t", "clip", "u>=0", "u<=w", "v>=0", "v<=h"),
     "sphere": ("outline", "outside", "front", "clip"),
+    "cylinder": quadric.DECISIONS, "cone": quadric.DECISIONS, "ellipsoid": quadric.DECISIONS,
 }
 
 
@@ -290,7 +303,8 @@ def _eval_sphere(p: _Prep, D, Dd, rules: Rules):
 
 
 _EVAL = {"sphere": _eval_sphere, "plane": _eval_plane, "fplane": _eval_plane,
-         "tplane": _eval_plane}
+         "tplane": _eval_plane, "cylinder": quadric.evaluate, "cone": quadric.evaluate,
+         "ellipsoid": quadric.evaluate}
 
 
 # --- condition of every decided quantity (float64 dual numbers) -----------------------------------
@@ -371,6 +385,8 @@ def _conditions(obj: XObject, V, d: np.ndarray, rules: Rules) -> dict:
     n = len(d)
     fl = lambda vals: [float(x) for x in vals]
     base = fl(V) + [d[:, 0], d[:, 1], d[:, 2]]
+    if obj.kind in quadric.KINDS:
+        return quadric.conditions(obj, V, d, _Dual, _inputs, _ddot)
     with np.errstate(all="ignore"):
         if obj.kind == "sphere":
             x = _inputs(base + fl(obj.center) + [float(obj.radius)], n)
@@ -506,6 +522,7 @@ def _representable(xs: XScene, obj: XObject, u: float) -> bool:
             obj.orient, obj.size, obj.center) for c in f]
     if obj.radius is not None:
         nums.append(obj.radius)
+    nums += [c for _, v in obj.fields for c in v]
     return all(Fraction(float(dtype(float(c)))) == c for c in nums)
 
 
@@ -525,7 +542,8 @@ def trace_exact(xs: XScene, d: np.ndarray, rules: Rules = Rules(), rays=None) ->
     d = np.asarray(d)
     n = len(d)
     V = xs.viewpoint
-    preps = [_Prep(o, V, rules) for o in xs.objects]
+    preps = [(quadric.Prep if o.kind in quadric.KINDS else _Prep)(o, V, rules)
+             for o in xs.objects]
     if rays is None:
         rays = [ray_ints(row) for row in d.astype(np.float64).tolist()]
     verdicts = []
@@ -546,7 +564,9 @@ def trace_exact(xs: XScene, d: np.ndarray, rules: Rules = Rules(), rays=None) ->
             valid[i] = all(tests[k][0] for k in names)
         ov = ObjectVerdicts(p.kind, valid, t, tq, passed, margin)
         ov.cond = _conditions(p.obj, V, d.astype(np.float64), rules)
-        ov.representable = {u: _representable(xs, p.obj, u) for u in U.values()}
+        # (a quadric's decisions take square roots: exact inputs do not make them exact)
+        ov.representable = {u: _representable(xs, p.obj, u) and p.kind not in quadric.KINDS
+                            for u in U.values()}
         verdicts.append(ov)
     hit = np.zeros(n, bool)
     ids = np.full(n, -1, np.int64)

@@ -25,6 +25,7 @@ import numpy as np
 from rt_core.kinds import kind
 from rt_core.rules import Rules
 
+from . import quadric
 from .convert import stand_in_frame
 from .geometry import frame, normal
 
@@ -55,6 +56,13 @@ class ObjectEval:
         self.beyond = np.zeros(n, bool)
         self.cos = np.ones(n)
         origin = _norm(O) + np.sqrt(V @ V)
+        if obj.kind in quadric.KINDS:          # mitsuba_ref/quadric.py; its classes: silhouette
+            self.t, self.valid, self.margin, size = quadric.classify_eval(obj, O, d, rules)
+            self.size = size
+            if rules.clip_spheres:
+                self.clip_margin = np.abs(O[:, 2] + self.t * d[:, 2])
+            self.scale = origin + size
+            return
         if obj.kind == "sphere":
             q = np.asarray(obj.center) - O
             a = np.sum(d * d, 1)
@@ -150,7 +158,7 @@ def classify(scene: Scene, d: np.ndarray, ours: dict, ref: dict, rules: Rules,
                 continue
             if ev.kind == "fplane":
                 mark(involved & (np.abs(ev.margin) <= b_all[i]), "edge")
-            if ev.kind == "sphere":
+            if ev.kind == "sphere" or ev.kind in quadric.KINDS:
                 mark(involved & (ev.margin <= b_all[i]), "silhouette")
             else:
                 mark(involved & (ev.clip_margin <= b_all[i]), "clip")
@@ -180,6 +188,11 @@ def depth_bound(scene: Scene, d: np.ndarray, ids: np.ndarray, t: np.ndarray, ext
             continue
         ev = ObjectEval(scene, o, d[sel], rules, extent)
         b = ev.bound(t[sel])
+        if o.kind in quadric.KINDS:
+            # as the sphere's: the root's condition near the outline or the rim, the margin
+            # relative to the object's size
+            rel_disc = np.clip(2 * ev.margin / max(ev.size, 1e-300), 1e-300, None)
+            b = np.maximum(b, K_ROUNDING * EPS32 * ev.scale / np.sqrt(np.minimum(rel_disc, 1.0)))
         if o.kind == "sphere":
             rel_disc = np.clip(ev.margin * (2 * o.radius) / (o.radius ** 2), 1e-300, None)
             b = K_ROUNDING * EPS32 * ev.scale / np.sqrt(np.minimum(rel_disc, 1.0))

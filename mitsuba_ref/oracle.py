@@ -38,7 +38,10 @@ import numpy as np
 from rt_core.kinds import dispatch
 from rt_core.rules import Rules
 
+from . import quadric
 from .geometry import frame, normal, unit
+
+PLANE_KINDS = ("plane", "fplane", "tplane")
 
 INF = math.inf
 OFF = 10000.0           # the notes' tile-parity offset
@@ -230,8 +233,13 @@ def _plane_obj(i, o):
     return p
 
 
+def _quadric_obj(i, o):
+    return quadric.prepare(i, o, _Obj, vec, EF)
+
+
 _PREPARE = {"sphere": _sphere_obj, "plane": _plane_obj, "fplane": _plane_obj,
-            "tplane": _plane_obj}
+            "tplane": _plane_obj, "cylinder": _quadric_obj, "cone": _quadric_obj,
+            "ellipsoid": _quadric_obj}
 
 
 def _prepare(scene):
@@ -338,8 +346,14 @@ def sphere_hits(ob: _Obj, base, d, rules: Rules) -> Cand:
     return Cand(True, t, hitloc, disc=disc)
 
 
+def quadric_hits(ob: _Obj, base, d, rules: Rules) -> Cand:
+    """Cylinder, cone, ellipsoid (mitsuba_ref/quadric.py)."""
+    return quadric.hits(ob, base, d, rules, Cand, EF, esqrt, (dot3, diff3, sum3, scale3))
+
+
 HITS = {"plane": plane_hits, "fplane": fplane_hits, "tplane": tplane_hits,
-        "sphere": sphere_hits}
+        "sphere": sphere_hits, "cylinder": quadric_hits, "cone": quadric_hits,
+        "ellipsoid": quadric_hits}
 
 
 def tile_scale(tplane, rules: Rules = Rules()) -> float:
@@ -406,8 +420,20 @@ def _tests(ob: _Obj, c: Cand, base, d, rules: Rules) -> list:
     """Every test of the object's verdict as (diagnostic, passed, margin), evaluated on the same
     numbers as the verdict (also the tests the literal code skipped after an earlier miss)."""
     out = []
-    clip = rules.screen_clip != "off" and (ob.kind != "sphere" or rules.clip_spheres)
-    if ob.kind == "sphere":
+    clip = rules.screen_clip != "off" and (ob.kind in PLANE_KINDS or rules.clip_spheres)
+    if ob.kind in quadric.KINDS:
+        out.append(("disc_margin", c.disc.v > 0.0, _margin(c.disc.v, c.disc.e)))
+        if c.disc.v > 0.0:
+            out.append(("tmin_margin", c.t.v > 0.0, _margin(c.t.v, c.t.e)))
+            if c.newhit and c.t.v > 0.0:
+                sl = quadric.axis_slacks(c)
+                ok = [v >= 0.0 for v, _ in sl]
+                ms = [_margin(v, e) for v, e in sl]
+                out.append(("edge_margin", all(ok), min(ms) if all(ok) else
+                            max(m for m, g in zip(ms, ok) if not g)))
+        if not (c.disc.v > 0.0 and c.t.v > 0.0 and c.why != "edge"):
+            clip = False
+    elif ob.kind == "sphere":
         out.append(("disc_margin", c.disc.v > 0.0, _margin(c.disc.v, c.disc.e)))
         out.append(("tmin_margin", c.t.v > 0.0, _margin(c.t.v, c.t.e)))
     else:
@@ -488,6 +514,8 @@ def trace(scene, base, dir, rules: Rules = Rules(), skip=None) -> Hit:
         hit.position, hit.err_position = vals(c.hitloc), errs(c.hitloc)
         if ob.kind == "sphere":
             n = unit3(diff3(c.hitloc, ob.center))
+        elif ob.kind in quadric.KINDS:
+            n = quadric.normal(ob, c, unit3, diff3)
         else:
             n = ob.normal
         hit.normal, hit.err_normal = vals(n), errs(n)

@@ -19,7 +19,8 @@ import numpy as np
 from .convert import AOVS, course_id, mitsuba, scene_dict, sensor_setup
 
 CAMERA_AOVS = AOVS + ",id:shape_index"
-GROUPS = (("planes", {"plane", "fplane", "tplane"}, True), ("spheres", {"sphere"}, False))
+GROUPS = (("planes", {"plane", "fplane", "tplane"}, True),
+          ("spheres", {"sphere", "cylinder"}, False))      # unclipped (clip_spheres: clipped)
 CHANNELS = ("hit.mask", "depth.Z", "object.id", "normal.X", "normal.Y", "normal.Z",
             "position.X", "position.Y", "position.Z", "uv.U", "uv.V")
 

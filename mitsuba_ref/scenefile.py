@@ -35,6 +35,11 @@ LAYOUT = {
     "tplane": (("ambient", 3), ("diffuse", 3), ("specular", 3), ("normal", 3), ("point", 3),
                ("orient", 3), ("size", 2), ("bg_ambient", 3), ("bg_diffuse", 3),
                ("bg_specular", 3)),
+    "cylinder": (("ambient", 3), ("diffuse", 3), ("specular", 3), ("center", 3),
+                 ("centerline", 3), ("radius_height", 2)),
+    "cone": (("ambient", 3), ("diffuse", 3), ("specular", 3), ("center", 3),
+             ("centerline", 3), ("radius_height", 2)),
+    "ellipsoid": (("ambient", 3), ("diffuse", 3), ("specular", 3), ("center", 3), ("axes", 3)),
 }
 _NUM = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?\Z")
 

@@ -25,7 +25,7 @@ import math
 import numpy as np
 
 from rt_core.rules import Rules
-from mitsuba_ref import oracle
+from mitsuba_ref import oracle, quadric
 from mitsuba_ref.oracle import EF, diff3, dot3, length3, scale3, trace, unit3, vec
 
 INF = math.inf
@@ -52,6 +52,8 @@ def _hit_margin(scene, h, base, d, skip, ties: bool = True, tmax: float = INF) -
     whose well-conditioned margin is |p − r|, p the distance of the centre from the ray line."""
     m = min(h.edge_margin, h.clip_margin, h.tmin_margin, h.graze)
     m = min(m, h.tie_gap) if ties else m
+    if any(o.kind in quadric.KINDS for o in scene.objects):
+        m = min(m, h.disc_margin)        # a quadric's outline (its rim: edge_margin)
     tw = h.t if h.hit else INF
     for i, o in enumerate(scene.objects):
         if o.kind != "sphere" or i == skip:

@@ -40,6 +40,8 @@ import numpy as np
 from .rules import Rules
 from .kinds import PLANE_KINDS
 from .shapes import BOUND_FIELDS, TAME, object_t
+from .quadrics import KINDS as QUADRICS
+from .shapes_quadric import ROW_SLOTS, quadric_boxes, row_view as quadric_row_view
 
 # More (bounded) objects than this: the symbolic loop instead of unrolled code.  Measured
 # crossover (bench, f32): unrolled wins up to ~8-12 objects, the binned loop above.
@@ -64,7 +66,8 @@ LAYOUT = {"sphere": ("qx", "qy", "qz", "radius", "c", "id", "grp", "bo", "bs"),
           "fplane": ("qx", "qy", "qz", "nq", "nx", "ny", "nz", "g", "w", "xx", "xy", "xz", "h",
                      "yx", "yy", "yz", "id", "grp", "bz", "bm")}
 LAYOUT["tplane"] = LAYOUT["plane"]
-BOUNDED = ("sphere", "fplane")
+LAYOUT.update({k: ROW_SLOTS for k in QUADRICS})     # rt_core/shapes_quadric.py
+BOUNDED = ("sphere", "fplane") + QUADRICS
 
 
 def configure(ks, unroll_max: int | None = None, bins: bool | None = None,
@@ -110,6 +113,7 @@ def _row(c) -> dict:
     for name, v in (("q", c.q), ("n", c.n), ("x", c.xdir), ("y", c.ydir)):
         r[name + "x"], r[name + "y"], r[name + "z"] = v
     r["w"], r["h"] = c.size
+    r.update(c.row() if hasattr(c, "row") else {})  # a quadric's own slots
     return r
 
 
@@ -138,6 +142,8 @@ class KindTable:
         A3 = T.Array3
         out = SimpleNamespace(kind=self.kind, id=T.Int32(v["id"]), grp=T.Int32(v["grp"]),
                               q=A3(v["qx"], v["qy"], v["qz"]))
+        if self.kind in QUADRICS:
+            return quadric_row_view(out, v, A3)
         for k in names[names.index("grp") + 1:]:      # the certified decisions' bounds
             setattr(out, k, wide[k] if k in wide else v[k])
         if self.kind == "sphere":
@@ -213,6 +219,8 @@ def never_hit(kind: str, consts) -> np.ndarray:
     (n·q = 0: t = 0).  Both signs are exact (host constants rounded once)."""
     if kind == "sphere":
         return np.array([not c.c > 0 for c in consts], bool)
+    if kind in QUADRICS:                 # an open quadric is seen from inside too
+        return np.zeros(len(consts), bool)
     return np.array([c.nq == 0 for c in consts], bool)
 
 
@@ -271,6 +279,10 @@ def _corners(kind: str, consts) -> np.ndarray:
         q = np.array([c.q for c in consts], np.float64)
         r = np.array([c.radius for c in consts], np.float64) * (1 + MARGIN)
         return q[:, None, :] + r[:, None, None] * s[None]
+    if kind in QUADRICS:                              # the corners of their boxes
+        lo, hi = quadric_boxes(consts)
+        s = np.array([(i, j, k) for i in (0, 1) for j in (0, 1) for k in (0, 1)], bool)
+        return np.where(s[None], hi[:, None, :], lo[:, None, :])
     return None                                       # unbounded: every bin
 
 

@@ -48,6 +48,8 @@ from types import SimpleNamespace
 
 from .accel import pack
 from .shapes import object_t
+from .quadrics import KINDS as QUADRICS
+from .shapes_quadric import ROW_SLOTS, quadric_boxes, row_view as quadric_row_view
 
 LEAF_SIZE = 4
 SAH_BINS = 16
@@ -64,6 +66,7 @@ NODE = 8
 ROW = {"sphere": ("qx", "qy", "qz", "radius", "id"),
        "fplane": ("qx", "qy", "qz", "nx", "ny", "nz", "g", "w", "xx", "xy", "xz", "h",
                   "yx", "yy", "yz", "id")}
+ROW.update({k: ROW_SLOTS for k in QUADRICS})      # rt_core/shapes_quadric.py
 
 
 @dataclass
@@ -96,6 +99,8 @@ def object_boxes(kind: str, consts) -> tuple[np.ndarray, np.ndarray]:
         ex, ey = x * wh[:, :1], y * wh[:, 1:]
         corners = np.stack([q, q + ex, q + ey, q + ex + ey], 1)
         return corners.min(1), corners.max(1)
+    if kind in QUADRICS:
+        return quadric_boxes(consts)
     raise ValueError(f"{kind} objects are unbounded: no BVH")
 
 
@@ -227,6 +232,8 @@ def row_view(T, kind: str, rows, k, active=True):
     v = dict(zip(ROW[kind], g))
     A3 = T.Array3
     out = SimpleNamespace(kind=kind, id=T.Int32(v["id"]), q=A3(v["qx"], v["qy"], v["qz"]))
+    if kind in QUADRICS:
+        return quadric_row_view(out, v, A3)
     if kind == "sphere":
         out.radius = v["radius"]
     else:

@@ -28,6 +28,7 @@ from fractions import Fraction
 
 import numpy as np
 
+from .quadrics import KINDS as QUADRICS, coefficients, equation
 from .rules import Rules
 from .scene import Scene, exact
 
@@ -74,6 +75,11 @@ class _Exact:
 
     def __init__(self, obj, V):
         self.kind = obj.kind
+        if obj.kind in QUADRICS:                    # rt_core/quadrics.py: no float screen
+            self.eq = equation(obj)
+            self.Q = tuple(exact(c) - v for c, v in zip(obj.center, V))
+            self.fQ, self.nQ = (0.0, 0.0, 0.0), 0.0
+            return
         if obj.kind == "sphere":
             self.Q = tuple(exact(c) - v for c, v in zip(obj.center, V))
             self.cc = _dot(self.Q, self.Q) - exact(obj.radius) ** 2
@@ -146,6 +152,39 @@ def _sphere(o: _Exact, E, EE, Vz, rules: Rules):
     return s
 
 
+def _quadric(o: _Exact, E, Vz, rules: Rules):
+    """s = α + β√D as (α, β, D) of the first root that hits (rt_core/quadrics.py), or None.
+    A s² − 2B s + C = 0: roots (B ± √D)/A with D = B² − AC, in increasing order; a closed
+    quadric only at its near root, an open one at the first root with s > 0 and
+    0 <= w·a <= h|a| (w·a = s·E·a − Q·a, sign-exact with sgn_two_sqrt)."""
+    eq = o.eq
+    A, B, C = coefficients(eq, o.Q, E)
+    D = B * B - A * C
+    if D <= 0:
+        return None
+    if A == 0:                                  # one root, B ≠ 0 (D = B² > 0)
+        roots = [(C / (2 * B), Fraction(0), Fraction(0))]
+    else:
+        lo, hi = (B / A, Fraction(-1) / A, D), (B / A, Fraction(1) / A, D)
+        roots = [lo, hi] if A > 0 else [hi, lo]
+    if eq.hh is None:
+        roots = roots[:1]
+    Ea, Qa = _dot(E, eq.a), _dot(o.Q, eq.a)
+    for s in roots:
+        if sgn_sqrt(s[0], s[1], s[2]) <= 0:
+            continue
+        if eq.hh is not None:
+            ya, yb = s[0] * Ea - Qa, s[1] * Ea          # w·a = ya + yb√D
+            if sgn_sqrt(ya, yb, s[2]) < 0 or sgn_two_sqrt(ya, yb, s[2], -1, eq.hh) > 0:
+                continue
+        if rules.clip_spheres and rules.screen_clip != "off":
+            z = sgn_sqrt(Vz + s[0] * E[2], s[1] * E[2], s[2])
+            if z > 0 or (z == 0 and rules.screen_clip == ">="):
+                return None
+        return s
+    return None
+
+
 SCREEN = 1e-6      # relative: float64 arithmetic errs by ~1e-15 here, so this never misjudges
 SCREEN_PAIRS = 1 << 18      # (ray, object) pairs screened at once (the screen's memory)
 
@@ -203,7 +242,8 @@ def surely_missed(objs, fE: np.ndarray) -> np.ndarray:
                (a * a > S.fw2 * (1 + SCREEN) + SCREEN * pa * pa) |
                (bb * bb > S.fh2 * (1 + SCREEN) + SCREEN * ya * ya))
         fpl = open_ & (s > 0) & out & S.fplane
-    return np.where(S.sphere, sph, behind | fpl)
+    quad = np.array([o.kind in QUADRICS for o in objs], bool)
+    return np.where(S.sphere, sph, behind | fpl) & ~quad[None, :]
 
 
 def _less(a, b) -> int:
@@ -280,6 +320,7 @@ def decide_rays(scene: Scene, rules: Rules, rays, distance: bool = False, objs=N
         for j in np.flatnonzero(~missed[k % chunk]).tolist():
             o = objs[j]
             s = (_sphere(o, E, EE, V[2], rules) if o.kind == "sphere"
+                 else _quadric(o, E, V[2], rules) if o.kind in QUADRICS
                  else _plane(o, E, EE, V[2], rules, tmin2))
             if s is None:
                 continue

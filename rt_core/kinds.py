@@ -23,6 +23,10 @@ KINDS = {
     "plane": Kind("plane", 14, False, True),
     "fplane": Kind("fplane", 15, True, True),
     "tplane": Kind("tplane", 16, False, True),
+    # quadrics (rt_core/quadrics.py): open cylinder and cone, axis-aligned ellipsoid
+    "cylinder": Kind("cylinder", 22, True, False),
+    "cone": Kind("cone", 23, True, False),
+    "ellipsoid": Kind("ellipsoid", -1, True, False),      # keyword only (rm768)
 }
 LIGHTS = {"pointlight": 10, "spotlight": 11}
 
@@ -50,6 +54,9 @@ FORMS = {f.name: f for f in (
     Form("plane", "plane", 14, "plane"),
     Form("fplane", "fplane", 15, "fplane"),
     Form("tplane", "tplane", 16, "tplane"),
+    Form("cylinder", "cylinder", 22),      # nw: base centre, centerline, radius height
+    Form("cone", "cone", 23),              # nw: apex, centerline, radius height
+    Form("ellipsoid", "ellipsoid", None, "ellipsoid"),   # rm768: centre, semi-axes
     # procedural shaders (cbl, cd, m4, nw, sgw): the shader index after the geometry
     Form("psphere", "sphere", 19, None, (("shader", 1),),
          f"procedural sphere: its shader is not implemented, {_MAT_ONLY}"),

@@ -39,7 +39,8 @@ parses as its own course program read it
     A line with too few numbers is an error: no real file wraps a group over lines, and
     the programs that would allow it silently misread the following line.
   * An object starts with a line whose first number is its integer code: 10 point light,
-    13 sphere, 14 plane, 15 finite plane, 16 tiled plane.  A second number on the code line
+    13 sphere, 14 plane, 15 finite plane, 16 tiled plane, 22 cylinder, 23 cone (nw's
+    layouts: rt_core/quadrics.py).  A second number on the code line
     is nw's refraction index (``13 1.33``): not supported.  The other codes the course used
     (11-12, 17-29 and cd's 9000/9001 header flags, which add fields to every material) are
     named in the "not supported" error.
@@ -53,6 +54,7 @@ import re
 from dataclasses import dataclass
 from .inputfile import read_input
 from .kinds import CODE_TABLES, CODES, FORMS, HEADER_FLAGS, KEYWORDS, LIGHTS, Form
+from .quadrics import make_cone, make_cylinder, make_ellipsoid
 from .scene import (GeometryError, Material, Num, PointLight, Scene, SceneError, SpotLight,
                     make_fplane, make_plane, make_sphere, make_tplane)
 
@@ -79,7 +81,12 @@ _GROUPS = {
                       ("tile size", 2, "w h"), ("background ambient", 3, "r g b"),
                       ("background diffuse", 3, "r g b"),
                       ("background specular", 3, "r g b")),
+    "cylinder": _MAT + (("center", 3, _XYZ), ("centerline", 3, _XYZ),
+                        ("radius height", 2, "r h")),
+    "cone": _MAT + (("center", 3, _XYZ), ("centerline", 3, _XYZ), ("radius height", 2, "r h")),
+    "ellipsoid": _MAT + (("center", 3, _XYZ), ("semi-axes", 3, "a b c")),
 }
+QUADRIC_MAKERS = {"cylinder": make_cylinder, "cone": make_cone, "ellipsoid": make_ellipsoid}
 _HEADER = (("world window", 2, "w h"), ("viewpoint", 3, _XYZ))
 
 SUPPORTED_KEYWORDS = KEYWORDS
@@ -87,7 +94,7 @@ SUPPORTED_CODES = dict(CODES)
 _CODE_WORDS = {10: "point light", 11: "spotlight", 13: "sphere", 14: "plane",
                15: "finite plane", 16: "tiled plane", 17: "textured plane",
                19: "procedural sphere", 20: "procedural plane", 26: "textured sphere",
-               28: "displacement sphere"}
+               22: "cylinder", 23: "cone", 28: "displacement sphere"}
 _CODE_LIST = ", ".join(f"{c} {_CODE_WORDS[c]}" for c in sorted(CODES))
 
 # kinds the course used that this project does not implement
@@ -99,7 +106,6 @@ _UNSUPPORTED_KEYWORDS = {
     "texplane": "textured plane: only numeric code 17 or fplanetex is read",
     "tex_plane": "textured plane: only numeric code 17 or fplanetex is read",
     "texsphere": "textured sphere: only numeric code 26 or sphere_pixmap is read",
-    "ellipsoid": "ellipsoid",
     "projector": "projector",
     "paraboloid": "paraboloid",
     "cylinder": "cylinder",
@@ -114,8 +120,6 @@ _UNSUPPORTED_CODES = {
     12: "projector",
     18: "reflective sphere",
     21: "paraboloid",
-    22: "cylinder",
-    23: "cone",
     24: "hyperboloid",
     25: "torus in nw, lens in cd",
     27: "triangle; disk in an older nw file",
@@ -244,6 +248,8 @@ def _build(ctx: _Ctx, kind: str, start: _Tok, values: list, where: list):
             return make_sphere(mat, tuple(g[0]), g[1][0], start.line)
         if kind == "plane":
             return make_plane(mat, tuple(g[0]), tuple(g[1]), start.line)
+        if kind in QUADRIC_MAKERS:
+            return QUADRIC_MAKERS[kind](mat, *map(tuple, g), start.line)
         if kind == "fplane":
             return make_fplane(mat, tuple(g[0]), tuple(g[1]), tuple(g[2]), tuple(g[3]),
                                start.line)
@@ -269,6 +275,8 @@ def _geometry_location(kind: str, msg: str, start: _Tok, g: list, where: list):
         return where[5][0]
     if msg.startswith(("size", "tile size")):
         return where[6][0] if not g[3][0] > 0 else where[6][1]
+    if msg.startswith(("radius and height", "semi-axes")):   # quadrics: their last group
+        return where[-1][next(i for i, c in enumerate(g[-1]) if not c > 0)]
     if msg.startswith("radius"):
         return where[4][0]
     return start

@@ -240,6 +240,7 @@ class Scene:
         out = [TABLE_NOTES[self.table]] if self.table else []
         out += [f"line {o.line}: {FORMS[o.form].stand_in}" for o in self.objects
                if o.form and FORMS[o.form].stand_in]
+        out += [f"line {o.line}: {o.note}" for o in self.objects if getattr(o, "note", "")]
         out += [FLAG_STAND_IN.format(f"header flag {f} ({HEADER_FLAGS[f]} after every MAT)")
                 for f in self.flags]
         out += [f"line {o.line}: " + FLAG_STAND_IN.format(f"{o.kind}'s refraction index")

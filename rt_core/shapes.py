@@ -110,6 +110,9 @@ def object_constants(scene: Scene) -> list[ObjectConstants]:
     out = []
     groups = {}                 # exact plane or sphere -> group number (same t on every ray)
     for i, o in enumerate(scene.objects):
+        if o.kind in QUADRIC_KINDS:                 # rt_core/shapes_quadric.py
+            out.append(quadric_constants(i, o, V, groups))
+            continue
         if isinstance(o, Sphere):
             Q = tuple(exact(c) - v for c, v in zip(o.center, V))
             r = exact(o.radius)
@@ -623,7 +626,11 @@ def sphere_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = F
     return (t, *c.split(), lf)
 
 
-OBJECT_T = {"sphere": sphere_t, "plane": plane_t, "fplane": fplane_t, "tplane": plane_t}
+from .quadrics import KINDS as QUADRIC_KINDS  # noqa: E402  (the quadrics' kernel uses the above)
+from .shapes_quadric import quadric_constants, quadric_t  # noqa: E402
+
+OBJECT_T = {"sphere": sphere_t, "plane": plane_t, "fplane": fplane_t, "tplane": plane_t,
+            "cylinder": quadric_t, "cone": quadric_t, "ellipsoid": quadric_t}
 
 
 def object_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = False):

@@ -25,6 +25,7 @@ from .rules import Rules
 from .scene import Scene, SceneError, locate
 from .kinds import KIND_CODE, PLANE_KINDS
 from .shapes import ObjectConstants, least, numbers, object_constants, object_t
+from .shapes_quadric import is_quadric, quadric_code, quadric_normal
 
 backend.require("llvm")     # fail early, with a message, on an LLVM that would abort kernels
 
@@ -91,8 +92,8 @@ def prepare(scene: Scene, T: Types) -> KernelScene:
 def _overflow(scene: Scene, obj) -> SceneError:
     """The error for an object too far from the viewpoint for float64, at whichever of the
     two has the larger coordinate (the one at fault)."""
-    name = "center" if obj.kind == "sphere" else "point"
-    pos = obj.center if obj.kind == "sphere" else obj.point
+    name = "center" if hasattr(obj, "center") else "point"
+    pos = obj.center if hasattr(obj, "center") else obj.point
     i = max(range(3), key=lambda k: max(abs(pos[k]), abs(scene.viewpoint[k])))
     if abs(scene.viewpoint[i]) >= abs(pos[i]):
         line, col = scene.at_viewpoint(i)
@@ -397,8 +398,13 @@ def surface(ks: KernelScene, d, t, oid, hit, o=None):
     if "sphere" in kinds:
         ns = dr.normalize(dr.fma(d, t, -q))
         normal = ns if kind is None else dr.select(kind == KIND_CODE["sphere"], ns, normal)
+    if any(is_quadric(k) for k in kinds):          # rt_core/shapes_quadric.py
+        nq = quadric_normal(ks, d, t, idx, hit, o)
+        isq = True if kind is None else quadric_code(kind)
+        normal = nq if kind is None and len(kinds) == 1 else dr.select(isq, nq, normal)
     if "fplane" in kinds or "tplane" in kinds:
-        planar = True if kind is None else (kind >= KIND_CODE["fplane"])
+        planar = True if kind is None else ((kind == KIND_CODE["fplane"]) |
+                                            (kind == KIND_CODE["tplane"]))
         # the seed's newhit.xy as u·(n·d) = ŷ·(q×d), v·(n·d) = −x̂·(q×d) (see shapes.py),
         # one correctly rounded division each
         c = dr.cross(q, d)

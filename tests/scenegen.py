@@ -69,7 +69,10 @@ def _corners(p, n, o, w, h):
             for a, b in ((0, 0), (w, 0), (w, h), (0, h))]
 
 
-def random_scene(seed: int, n_objects: int = 8, kinds=KINDS, tie_prob: float = 0.2) -> Scene:
+BASE_KINDS = ("sphere", "plane", "fplane", "tplane")     # the kinds generated here
+
+
+def random_scene(seed: int, n_objects: int = 8, kinds=BASE_KINDS, tie_prob: float = 0.2) -> Scene:
     """A random scene: window 8 x 6, viewpoint near (0, 0, 3..6), ``n_objects`` objects drawn
     from ``kinds`` in front of the window, one or two point lights."""
     rng = random.Random(seed)

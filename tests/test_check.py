@@ -69,7 +69,9 @@ def _course_sample():
         if COURSE.resolve() not in Path(p).resolve().parents:
             continue
         try:
-            if parse_scene(p).objects:
+            sc = parse_scene(p)
+            # the kinds the C test tracer (tests/ctracer) implements
+            if sc.objects and set(sc.kinds()) <= {"sphere", "plane", "fplane", "tplane"}:
                 out.append(p)
         except SceneError:
             pass

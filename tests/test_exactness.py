@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mitsuba_ref import quadric
 from mitsuba_ref.exact import ideal_rays, parse_exact, trace_exact
 from rt_core import backend
 from rt_core.camera import make_camera, primary_offsets
@@ -106,7 +107,12 @@ def _near(xs, W, H, rel=1e-7):
     for o in xs.objects:
         fl = lambda v: np.array([float(c) for c in v])
         with np.errstate(all="ignore"):
-            if o.kind == "sphere":
+            if o.kind in quadric.KINDS:
+                # the decision nearest to flipping (outline or rim), in world units
+                t, ok, m, size = quadric.classify_eval(o, np.tile(V, (len(d), 1)), d, Rules())
+                near |= m <= rel * (size + np.linalg.norm(V) + np.abs(t))
+                t = np.where(ok, t, np.nan)
+            elif o.kind == "sphere":
                 Q, r = fl(o.center) - V, float(o.radius)
                 b = d @ Q
                 cc = Q @ Q - r * r

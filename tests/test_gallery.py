@@ -49,15 +49,15 @@ def test02_given_files(tmp_path):
     """A scene named on the command line must render (as in validate): an unsupported one is
     an error, not a skip; two named files with one stem get distinct images."""
     bad = tmp_path / "spot.txt"
-    bad.write_text("8 6\n0 0 5\n22\n1 1 1\n")
+    bad.write_text("8 6\n0 0 5\n21\n1 1 1\n")
     r = rtval("gallery", "-o", tmp_path / "g", "--columns", 16, REPO / "scenes" / "sphere.txt",
               bad)
     assert r.returncode == 2 and "Traceback" not in r.stderr
-    assert r.stderr.strip().endswith(f"{bad}:3:1: 22 (cylinder) is not supported "
+    assert r.stderr.strip().endswith(f"{bad}:3:1: 21 (paraboloid) is not supported "
                                      "(supported codes: 10 point light, 11 spotlight, 13 sphere, "
                                      "14 plane, 15 finite plane, 16 tiled plane, 17 textured "
                                      "plane, 19 procedural sphere, 20 procedural plane, "
-                                     "26 textured sphere)")
+                                     "22 cylinder, 23 cone, 26 textured sphere)")
     for sub, src in (("a", "sphere.txt"), ("b", "plane.txt")):
         (tmp_path / sub).mkdir()
         (tmp_path / sub / "s.txt").write_text((REPO / "scenes" / src).read_text())

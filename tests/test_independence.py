@@ -26,7 +26,7 @@ REFERENCES = ("mitsuba_ref.oracle", "mitsuba_ref.exact", "mitsuba_ref.scenefile"
               "mitsuba_ref.reference", "mitsuba_ref.integrator")
 FORBIDDEN = ("rt_core.scene", "rt_core.parser", "rt_core.camera", "rt_core.shapes",
              "rt_core.tracer", "rt_core.accel", "rt_core.decide", "rt_core.shading",
-             "rt_core.render")
+             "rt_core.render", "rt_core.quadrics", "rt_core.shapes_quadric")
 
 
 @pytest.mark.parametrize("module", REFERENCES)
@@ -113,10 +113,10 @@ def test05_unknown_kind_raises():
     from rt_core.kinds import dispatch
     from rt_core.shapes import object_t
     with pytest.raises(ValueError, match="cone"):
-        object_t(None, None, SimpleNamespace(kind="cone"), None, 0.0)
+        object_t(None, None, SimpleNamespace(kind="hyperboloid"), None, 0.0)
     from mitsuba_ref import oracle
-    with pytest.raises(ValueError, match="cone"):
-        oracle._prepare(SimpleNamespace(objects=[SimpleNamespace(kind="cone")]))
+    with pytest.raises(ValueError, match="hyperboloid"):
+        oracle._prepare(SimpleNamespace(objects=[SimpleNamespace(kind="hyperboloid")]))
     with pytest.raises(ValueError):
         dispatch({}, "sphere")
 

@@ -151,7 +151,19 @@ def test10_no_unexplained_pixels(scene, mode, precision, tmp_path):
     assert cmp.depth["over_bound"] == 0, cmp.summary()
     # most pixels agree: explanations are about boundaries, not whole images
     boundary = cmp.counts["edge"] + cmp.counts["tie"] + cmp.counts["silhouette"]
+    # (less the exact ties of two objects on one plane, which the tie rule decides and
+    # Mitsuba cannot: rm768__bowling's sign on its back wall)
+    boundary -= int(_same_plane_ties(cmp).sum())
     assert boundary <= 0.02 * cmp.columns * cmp.rows, cmp.summary()
+
+
+def _same_plane_ties(cmp) -> np.ndarray:
+    from mitsuba_ref.explain import CLASS_CODE
+    from rt_core.shapes import object_constants
+    grp = np.array([c.grp for c in object_constants(cmp.scene)] + [-1])
+    a = cmp.ours["object.id"].astype(int)
+    b = cmp.ref["object.id"].astype(int)
+    return (cmp.classes == CLASS_CODE["tie"]) & (a >= 0) & (b >= 0) & (grp[a] == grp[b])
 
 
 def test11_course_scenes_are_covered():

@@ -76,7 +76,7 @@ BAD = [
     ("truncated", "8 6\n0 0 3\nsphere\n1 1 1\n", "end of file"),
     ("parallel", "8 6\n0 0 3\nfplane\n0 0 0\n1 1 1\n0 0 0\n0 0 1\n0 0 -1\n0 0 2\n1 1\n",
      "parallel"),
-    ("unsupported", "8 6\n0 0 3\n22 cylinder\n", "not supported"),
+    ("unsupported", "8 6\n0 0 3\n21 paraboloid\n", "not supported"),
 ]
 
 

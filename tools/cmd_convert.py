@@ -40,7 +40,7 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     from rt_core.exrio import atomic_write
     from rt_core.parser import parse_scene
-    from mitsuba_ref.convert import DEFAULT_MAX_DIST, scene_xml, sensor_setup
+    from mitsuba_ref.convert import DEFAULT_MAX_DIST, oracle_only, scene_xml, sensor_setup
 
     from rt_core.usererror import InputError
     parent = os.path.dirname(os.path.abspath(args.output))
@@ -56,6 +56,8 @@ def run(args) -> int:
     xml = scene_xml(scene, args.columns, args.rows, args.sampling, args.shading,
                     rules=args.rules, max_dist=DEFAULT_MAX_DIST if args.max_dist is None else args.max_dist,
                     aovs=args.aovs)
+    for note in oracle_only(scene, course):
+        print(f"rtval convert: note: {note}", file=sys.stderr)
     atomic_write(args.output, lambda tmp: Path(tmp).write_text(xml))
     print(f"{args.output}: {len(scene.objects)} shapes, {setup.columns}x{setup.rows}",
           file=sys.stderr)

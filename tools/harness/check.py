@@ -308,7 +308,7 @@ def _can_matter(r: Renderer, name: str) -> bool:
         if sc.lights or any(any(o.material.specular) for o in sc.objects):
             return True
         for o in sc.objects:
-            if o.kind != "sphere":
+            if o.kind in ("plane", "fplane", "tplane"):
                 n = o.normal
                 q = tuple(p - v for p, v in zip(o.point, V))
                 if abs(sum(a * b for a, b in zip(n, q))) < 1e-4 * (1 + 1e-9):
@@ -318,6 +318,7 @@ def _can_matter(r: Renderer, name: str) -> bool:
         # a sphere reaching in front of the window (z > 0 if the viewpoint is)
         side = math.copysign(1.0, V[2]) if V[2] else 1.0
         return any(o.kind == "sphere" and side * o.center[2] + o.radius >= 0
+                   or o.kind in ("cylinder", "cone", "ellipsoid")   # (not bounded here)
                    for o in sc.objects)
     return True
 

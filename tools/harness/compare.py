@@ -18,7 +18,7 @@ from rt_core.memory import compare_bytes, guard
 from rt_core.render import provenance, to_images, trace_geometry, write_images
 from rt_core.rules import Rules
 from rt_core.scene import Scene
-from mitsuba_ref.convert import plane_extent, sensor_setup
+from mitsuba_ref.convert import mitsuba_subset, plane_extent, sensor_setup
 from mitsuba_ref.explain import CLASS_CODE, CLASSES, classify, depth_bound
 from mitsuba_ref.reference import MitsubaScene, render_camera, trace_rays
 
@@ -77,6 +77,8 @@ def compare(scene: Scene, columns: int, rows: int | None = None, precision: str 
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}")
     T = backend.types(precision, backend_name)
+    # kinds without a Mitsuba shape (cone, ellipsoid) are left out on both sides
+    scene, subset_note = mitsuba_subset(scene)
     cam = make_camera(scene, columns, rows, sampling)
     guard(lambda px: compare_bytes(px, precision), "compare", cam.columns, cam.rows)
     note = ""
@@ -122,6 +124,7 @@ def compare(scene: Scene, columns: int, rows: int | None = None, precision: str 
              "mean_rel": float(rel.mean()) if len(rel) else 0.0,
              "over_bound": int(np.count_nonzero(rel > bound))}
     counts = {c: int(np.count_nonzero(classes == i)) for i, c in enumerate(CLASSES)}
+    note = "; ".join(n for n in (note, subset_note) if n)
     return Comparison(scene, mode, precision, cam.columns, cam.rows, classes, ours, ref, depth,
                       ms_ours, ms_ref, note, counts, sampling, rules, backend_name)
 

@@ -39,7 +39,8 @@ from rt_core.render import render_image
 from rt_core.rules import Rules
 from rt_core.scene import Scene
 from rt_core.shading import DEFAULT_MAX_DIST
-from mitsuba_ref.convert import course_id, mitsuba, plane_extent, scene_dict, shape_id
+from mitsuba_ref.convert import (course_id, mitsuba, mitsuba_subset, plane_extent, scene_dict,
+                                 shape_id)
 from mitsuba_ref.explain import EPS32, K_ROUNDING, ObjectEval
 
 CLASSES = ("agree", "edge", "silhouette", "graze", "clip", "light", "origin", "tie", "extent",
@@ -124,9 +125,9 @@ def reference_hits(refs: SkipScenes, rules: Rules, O, d, maxt, skip):
         pa = np.where(ahead, 0.0, np.where(d[:, 2] < 0, cross, np.inf))
         pb = np.where(ahead, np.where(d[:, 2] > 0, np.minimum(cross, maxt), maxt), maxt)
     groups = [(frozenset(PLANE_KINDS & present), pa, pb)]
-    if "sphere" in present:
+    if present & {"sphere", "cylinder"}:             # unclipped unless clip_spheres
         sa, sb = (pa, pb) if rules.clip_spheres else (zero, maxt)
-        groups.append((frozenset({"sphere"}), sa, sb))
+        groups.append((frozenset({"sphere", "cylinder"} & present), sa, sb))
     for kinds, a, b in groups:
         if not kinds:
             continue
@@ -250,6 +251,7 @@ class SecondaryComparison:
     rows: int
     max_dist: float
     checks: list = field(default_factory=list)
+    note: str = ""               # objects left out (no Mitsuba shape: cone, ellipsoid)
 
     @property
     def unexplained(self) -> int:
@@ -259,7 +261,7 @@ class SecondaryComparison:
         return {"scene": self.scene.path, "precision": self.precision,
                 "columns": self.columns, "rows": self.rows, "max_dist": self.max_dist,
                 "rays": {c.name: {"rays": len(c.classes), **c.counts} for c in self.checks},
-                "unexplained": self.unexplained}
+                "unexplained": self.unexplained, "note": self.note}
 
 
 def compare_secondary(scene: Scene, columns: int, rows: int | None = None,
@@ -269,13 +271,15 @@ def compare_secondary(scene: Scene, columns: int, rows: int | None = None,
     """Shadow rays (primary hits and first reflection bounce, every light) and first-bounce
     reflection rays of rt_core's shading, each against Mitsuba."""
     T = backend.types(precision, backend_name)
+    # kinds without a Mitsuba shape (cone, ellipsoid) are left out on both sides
+    scene, note = mitsuba_subset(scene)
     cam = make_camera(scene, columns, rows, sampling)
     _, res = render_image(scene, cam, T, rules, geometry=False, shade=True,
                           max_dist=max_dist, record=2)
     V = np.asarray(scene.viewpoint, np.float64)
     refs = SkipScenes(scene, cam.columns, cam.rows, sampling)
     extent = plane_extent(scene)
-    out = SecondaryComparison(scene, precision, cam.columns, cam.rows, max_dist)
+    out = SecondaryComparison(scene, precision, cam.columns, cam.rows, max_dist, note=note)
     recs = res.records if scene.objects else []
     for b, rec in enumerate(recs):
         hit = rec["hit"].astype(bool)

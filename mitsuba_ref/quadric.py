@@ -1,0 +1,325 @@
+"""The references' own quadrics (cylinder 22, cone 23, ellipsoid), written from the course's
+intended geometry independently of rt_core (tests/test_independence.py):
+
+* cylinder: base centre P, centerline a (0 0 0 read as the y axis, as nw's code), radius r,
+  height h: |w|²|a|² − (w·a)² = r²|a|², w = p − P, open, 0 <= w·a <= h|a|;
+* cone: apex P, centerline a, k = (r/h)²: |w|²|a|² − (1+k)(w·a)² = 0, open,
+  0 <= w·a <= h|a|;
+* ellipsoid: centre P, semi-axes (a, b, c): Σ (w_i/s_i)² = 1, closed.
+
+Along base + t·d (w = base − P + t·d): α t² + β t + γ = 0 with β = 2·(d·M·w0) (the course's
+a, b, c quadratic).  Closed: the near root only (as the sphere); open: the nearer root with
+t > 0 in the axial range.  The float64 oracle (``hits``) follows that literally with
+rounding-error bounds (mitsuba_ref/oracle.py's EF); the exact oracle (``evaluate``) decides it
+in rational arithmetic, signs of α + β√D exactly.
+"""
+from __future__ import annotations
+
+import math
+from fractions import Fraction
+
+import numpy as np
+
+KINDS = ("cylinder", "cone", "ellipsoid")
+OPEN = ("cylinder", "cone")
+
+
+def fields(o):
+    """(centre, axis, radius, height) or (centre, semi-axes) of a quadric read by rt_core
+    (.axis, .radius, .height) or by mitsuba_ref.scenefile / exact (.centerline,
+    .radius_height): numbers as given."""
+    if o.kind == "ellipsoid":
+        return tuple(o.center), tuple(o.axes)
+    axis = tuple(o.axis) if _has(o, "axis") else tuple(o.centerline)
+    if all(c == 0 for c in axis):
+        axis = tuple(type(axis[0])(c) for c in (0, 1, 0))
+    if _has(o, "height"):
+        r, h = o.radius, o.height
+    else:
+        r, h = o.radius_height
+    return tuple(o.center), axis, r, h
+
+
+def _has(o, name) -> bool:
+    try:
+        getattr(o, name)
+        return True
+    except AttributeError:
+        return False
+
+
+def _dot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _form(kind, f):
+    """(mdiag, c, a, e, hh): f(w) = Σ m_i w_i² − c (w·a)² − e; axial range w·a in
+    [0, √hh] (None: closed)."""
+    if kind == "ellipsoid":
+        a2, b2, c2 = (s * s for s in f[1])
+        return (b2 * c2, a2 * c2, a2 * b2), 0, (0, 0, 0), a2 * b2 * c2, None
+    _, a, r, h = f
+    aa = _dot(a, a)
+    k = r * r / (h * h) if kind == "cone" else None
+    c = (1 + k) if kind == "cone" else 1
+    e = r * r * aa if kind == "cylinder" else 0
+    return (aa, aa, aa), c, a, e, h * h * aa
+
+
+def _mul(m, c, a, x, y):
+    return (m[0] * x[0] * y[0] + m[1] * x[1] * y[1] + m[2] * x[2] * y[2]
+            - c * _dot(x, a) * _dot(y, a))
+
+
+# --- the float64 oracle (EF numbers) ---------------------------------------------------------
+
+def prepare(i, o, Obj, vec, EFof):
+    """oracle._Obj of a quadric: its numbers as inputs rounded once."""
+    f = fields(o)
+    # point: the axis (or the semi-axes), size: radius and height
+    return Obj(i, o.kind, o, ("q", o.kind, f), center=vec(f[0]), point=vec(f[1]),
+               size=tuple(EFof(x) for x in f[2:]))
+
+
+def _of(ob):
+    """The oracle object's numbers in the order ``_form`` takes them."""
+    return (ob.center, ob.point, *ob.size)
+
+
+def hits(ob, base, d, rules, Cand, EF, esqrt, ops):
+    """The oracle's Cand for a quadric: the course's quadratic, literally."""
+    dot3, diff3, sum3, scale3 = ops
+    m, c, a, e, hh = _form(ob.kind, _of(ob))
+    w0 = diff3(base, ob.center)
+    A = _mul(m, c, a, d, d)
+    B = 2.0 * _mul(m, c, a, d, w0)
+    C = _mul(m, c, a, w0, w0) - e
+    disc = B * B - 4.0 * A * C
+    if not disc.v > 0.0:
+        t = -B / (2.0 * A)
+        return Cand(False, t, sum3(base, scale3(t, d)), disc=disc, why="disc")
+    s = esqrt(disc)
+    r1, r2 = (-B - s) / (2.0 * A), (-B + s) / (2.0 * A)
+    roots = sorted((r1, r2), key=lambda x: x.v)
+    first = None
+    for t in (roots if hh is not None else roots[:1]):
+        hit = sum3(base, scale3(t, d))
+        y = dot3(diff3(hit, ob.center), a)
+        cand = Cand(t.v > 0.0, t, hit, disc=disc, why="" if t.v > 0.0 else "tmin")
+        cand.newhit = (y, hh) if hh is not None else ()
+        if cand.ok and hh is not None and not (y.v >= 0.0 and y.v <= math.sqrt(hh.v)):
+            cand.ok, cand.why = False, "edge"
+        if first is None:
+            first = cand
+        if cand.ok:
+            first = cand
+            break
+    if first.ok and rules.clip_spheres and _clipped(first.hitloc[2], rules):
+        first.ok, first.why = False, "clip"
+    return first
+
+
+def _clipped(z, rules) -> bool:
+    if rules.screen_clip == ">":
+        return z.v > 0.0
+    if rules.screen_clip == ">=":
+        return z.v >= 0.0
+    return False
+
+
+def axis_slacks(c):
+    """(y, h|a| − y) of an open quadric's hit (values, error bounds in units of u)."""
+    y, hh = c.newhit
+    hv = math.sqrt(hh.v)
+    return ((y.v, y.e), (hv - y.v, y.e + hh.e / (2 * hv) + hv))
+
+
+def normal(ob, c, unit3, diff3):
+    """Outward normal: the gradient M·w at the hit."""
+    m, cc, a, e, hh = _form(ob.kind, _of(ob))
+    w = diff3(c.hitloc, ob.center)
+    wa = _dot(w, a)
+    return unit3(tuple(m[i] * w[i] - cc * wa * a[i] for i in range(3)))
+
+
+# --- the exact oracle -------------------------------------------------------------------------
+
+def _sign(x) -> int:
+    return (x > 0) - (x < 0)
+
+
+def _sgn(p, q, r) -> int:
+    """sign(p + q√r), r >= 0, exactly."""
+    sp, sq = _sign(p), (_sign(q) if r > 0 else 0)
+    if sq == 0:
+        return sp
+    if sp == 0 or sp == sq:
+        return sq
+    return sp * _sign(p * p - q * q * r)
+
+
+def _sgn2(p, q, r, u, v) -> int:
+    """sign(p + q√r + u√v) exactly."""
+    s1, s2 = _sgn(p, q, r), (_sign(u) if v > 0 else 0)
+    if s2 == 0 or s1 == s2:
+        return s1 if s1 else s2
+    if s1 == 0:
+        return s2
+    return s1 * _sgn(p * p + q * q * r - u * u * v, 2 * p * q, r)
+
+
+def _float(p, q, r) -> float:
+    return float(p) + float(q) * math.sqrt(float(r))
+
+
+class Prep:
+    """A quadric's exact numbers relative to the viewpoint (exact.trace_exact)."""
+
+    def __init__(self, obj, V, rules):
+        self.obj, self.kind = obj, obj.kind
+        f = fields(obj)
+        self.form = _form(obj.kind, f)
+        self.W0 = tuple(Fraction(v) - Fraction(c) for v, c in zip(V, f[0]))   # base − P
+        self.Vz = Fraction(V[2])
+
+
+DECISIONS = ("outline", "t", "axis>=0", "axis<=h", "clip")
+
+
+def evaluate(p: Prep, D, Dd, rules):
+    """((tn, td) or None, {decision: (passed, margin)}) for the ray V + t·D/Dd; t's ratio is
+    the float64 value of the exact root as a fraction (for ordering and depth)."""
+    d = tuple(Fraction(c, Dd) for c in D)
+    m, c, a, e, hh = p.form
+    A = _mul(m, c, a, d, d)
+    Bh = _mul(m, c, a, d, p.W0)                 # β/2
+    C = _mul(m, c, a, p.W0, p.W0) - e
+    X = Bh * Bh - A * C
+    dd = _dot(d, d)
+    norm = float(dd) ** 0.5
+    tests = {"outline": (X > 0, float(X / dd) if X else 0.0)}
+    closed = hh is None
+    if X <= 0 or A == 0 and Bh == 0:
+        t0 = -Bh / A if A else Fraction(0)
+        tests.update({"t": (False, 0.0), "axis>=0": (False, 0.0), "axis<=h": (False, 0.0),
+                      "clip": (False, 0.0)})
+        return (t0.numerator, t0.denominator), tests
+    if A == 0:
+        roots = [(-C / (2 * Bh), Fraction(0))]
+    else:
+        lo, hi = (-Bh / A, Fraction(-1) / A), (-Bh / A, Fraction(1) / A)
+        roots = [lo, hi] if A > 0 else [hi, lo]
+    if closed:
+        roots = roots[:1]
+    first = None
+    for al, be in roots:
+        tp = _sgn(al, be, X)
+        tv = _float(al, be, X)
+        res = {"t": (tp > 0, tv * norm)}
+        if closed:
+            res["axis>=0"] = res["axis<=h"] = (True, math.inf)
+        else:
+            Wa, da = _dot(p.W0, a), _dot(d, a)
+            ya, yb = Wa + al * da, be * da          # w·a = ya + yb√X
+            s_lo = _sgn(ya, yb, X)
+            s_hi = _sgn2(ya, yb, X, -1, hh)
+            na = math.sqrt(float(_dot(a, a)))
+            y = _float(ya, yb, X) / na
+            res["axis>=0"] = (s_lo >= 0, y)
+            res["axis<=h"] = (s_hi <= 0, math.sqrt(float(hh)) / na - y)
+        if rules.clip_spheres and rules.screen_clip != "off":
+            z = _sgn(p.Vz + al * d[2], be * d[2], X)
+            ok = z < 0 or (z == 0 and rules.screen_clip == ">")
+            res["clip"] = (ok, -(float(p.Vz) + tv * float(d[2])))
+        else:
+            res["clip"] = (True, math.inf)
+        if first is None:
+            first = (res, tv)
+        if all(res[k][0] for k in ("t", "axis>=0", "axis<=h")):
+            first = (res, tv)
+            break
+    res, tv = first
+    tests.update(res)
+    tq = Fraction(tv) if math.isfinite(tv) else Fraction(0)
+    return (tq.numerator, tq.denominator), tests
+
+
+def conditions(obj, V, d, Dual, inputs, ddot):
+    """{decision or 't': S} (exact.py's componentwise condition) along unit rays d (N, 3),
+    of the root the float64 arithmetic picks (the near one if neither is valid)."""
+    n = len(d)
+    f = fields(obj)
+    fl = lambda vals: [float(x) for x in vals]
+    params = fl(f[0]) + (fl(f[1]) if obj.kind == "ellipsoid" else fl(f[1]) + fl(f[2:]))
+    x = inputs(fl(V) + [d[:, 0], d[:, 1], d[:, 2]] + params, n)
+    Vv, dv, P = x[0:3], x[3:6], x[6:9]
+    if obj.kind == "ellipsoid":
+        form = _form("ellipsoid", (P, tuple(x[9:12])))
+    else:
+        form = _form(obj.kind, (P, tuple(x[9:12]), x[12], x[13]))
+    m, c, a, e, hh = form
+    w0 = tuple(v - pp for v, pp in zip(Vv, P))
+    A = _mul(m, c, a, dv, dv)
+    Bh = _mul(m, c, a, dv, w0)
+    C = _mul(m, c, a, w0, w0) - e
+    X = Bh * Bh - A * C
+    with np.errstate(all="ignore"):
+        s = Dual(np.sqrt(np.maximum(X.v, 0)), X.g / (2 * np.sqrt(np.maximum(X.v, 1e-300)))[:, None])
+        r1, r2 = (-Bh - s) / A, (-Bh + s) / A
+        lo_first = (r1.v <= r2.v)
+        out = {"outline": X.cond()}
+        conds = []
+        for t in (r1, r2):
+            y = (ddot(w0, a) + t * ddot(dv, a)) / ddot(a, a).sqrt() if hh is not None else t
+            hl = (hh.sqrt() / ddot(a, a).sqrt()) if hh is not None else t
+            z = Vv[2] + t * dv[2]
+            ok = (t.v > 0) & ((hh is None) | ((y.v >= 0) & (y.v <= hl.v)))
+            conds.append((ok, {"t": t.cond(), "axis>=0": y.cond(), "axis<=h": (hl - y).cond(),
+                               "clip": z.cond()}))
+        near = np.where(lo_first, 0, 1)
+        ok_near = np.where(lo_first, conds[0][0], conds[1][0])
+        pick = near if hh is None else np.where(ok_near, near, 1 - near)
+        for k in conds[0][1]:
+            out[k] = np.where(pick == 0, conds[0][1][k], conds[1][1][k])
+    return {k: np.nan_to_num(v, nan=np.inf) for k, v in out.items()}
+
+
+# --- the classifier's float64 view (mitsuba_ref/explain.py) -----------------------------------
+
+def classify_eval(obj, O, d, rules):
+    """(t, valid, margin, scale) of a quadric along rays O + t·d (float64 arrays (N, 3)):
+    the hit rule as above; ``margin`` the world distance of the decision nearest to flipping:
+    the outline (the distance of the ray's closest approach from the surface, |min f|/|∇f|)
+    or an open quadric's rim (the hit's axial distance from 0 or h)."""
+    f = fields(obj)
+    P = np.array([float(c) for c in f[0]])
+    fl = (P, tuple(float(c) for c in f[1])) + tuple(float(c) for c in f[2:])
+    m, c, a, e, hh = _form(obj.kind, fl)
+    m, a = np.array(m, float), np.array(a, float)
+    w0 = O - P
+    M = lambda x, y: (x * y * m).sum(-1) - c * (x @ a) * (y @ a)
+    with np.errstate(all="ignore"):
+        A, Bh, C = M(d, d), M(d, w0), M(w0, w0) - e
+        X = Bh * Bh - A * C
+        s = np.sqrt(np.maximum(X, 0))
+        r1, r2 = (-Bh - s) / A, (-Bh + s) / A
+        lo, hi = np.minimum(r1, r2), np.maximum(r1, r2)
+        ts = w0 + (-Bh / A)[:, None] * d                     # the closest approach
+        g = 2 * (ts * m - c * (ts @ a)[:, None] * a)
+        margin = np.abs(X / A) / np.linalg.norm(g, axis=1)
+        if hh is None:
+            t = lo
+            valid = (X > 0) & (t > 0)
+        else:
+            na, h = math.sqrt(a @ a), math.sqrt(hh) / math.sqrt(a @ a)
+            y = lambda t: ((w0 + t[:, None] * d) @ a) / na
+            ok = lambda t: (t > 0) & (y(t) >= 0) & (y(t) <= h)
+            t = np.where(ok(lo), lo, hi)
+            valid = (X > 0) & (ok(lo) | ok(hi))
+            yt = y(np.where(X > 0, t, lo))
+            margin = np.minimum(margin, np.minimum(np.abs(yt), np.abs(h - yt)))
+        if rules.clip_spheres and rules.screen_clip != "off":
+            z = O[:, 2] + t * d[:, 2]
+            valid &= (z <= 0) if rules.screen_clip == ">" else (z < 0)
+    size = max(fl[1]) if obj.kind == "ellipsoid" else fl[2] + fl[3]
+    return t, valid, np.nan_to_num(margin, nan=0.0), float(np.linalg.norm(P) + size)
