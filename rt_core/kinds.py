@@ -79,10 +79,10 @@ FORMS = {f.name: f for f in (
          "displacement sphere: traced as its undisplaced sphere (nw subtracts 0.1·(r+g+b) of "
          f"the map's pixel from t; the map is not applied), {_MAT_ONLY}"),
 )}
-# Other course years' code tables: code -> (form, the groups' names in the file's order; a
-# name the kind lacks is one number, recorded).  A numeric file that CODES cannot read is read
-# with the first of these that reads the whole file; the scene records which, and every output
-# says so (TABLE_NOTES).
+# Other course years' code tables: code -> (form, the groups' names in the file's order, None
+# for the kind's own; a name the kind lacks is one number, recorded).  A numeric file that
+# CODES cannot read is read with the first of these that reads the whole file; the scene
+# records which, and every output says so (TABLE_NOTES).
 CODE_TABLES = {
     # nw__a3t7.txt's (an assignment file that nw's final program, whose table is CODES, no
     # longer reads): each kind's geometry before its MAT, lights with a radius after the centre
@@ -92,11 +92,23 @@ CODE_TABLES = {
         12: ("plane", ("normal", "point", "ambient", "diffuse", "specular")),
         16: ("spotlight", ("center", "radius", "emissivity", "aim", "theta")),
     },
+    # nw__cone-sphere.txt's (nw's repository, another early table): the MAT first as in CODES,
+    # but 11 sphere, 13 cylinder, 17 cone, and a light with a radius after its centre
+    "early-nw": {
+        10: ("pointlight", ("emissivity", "center", "radius")),
+        11: ("sphere", None),
+        13: ("cylinder", None),
+        17: ("cone", None),
+    },
 }
 TABLE_NOTES = {
     "geometry-first": "read with the geometry-first code table (10 light, 11 sphere, 12 plane, "
                       "16 spotlight; geometry before the MAT; a light's radius is not used), "
                       "which the notes' table could not read",
+    "early-nw": "read with nw's early code table (10 light with a radius, 11 sphere, "
+                "13 cylinder, 17 cone; a light's radius is not used), which the notes' table "
+                "could not read; its cone is nw's final 23 (the point is the apex), though "
+                "the file's own sphere meets the rim exactly if the point is the base centre",
 }
 # cd's header flags (numeric dialect, after the viewpoint): each adds one number after every
 # MAT (ambient, diffuse, specular), in the order the flags are given

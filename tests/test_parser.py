@@ -257,6 +257,25 @@ def test07d_geometry_first_table():
         parse_text(GEOMETRY_FIRST_TEXT.replace("20.0", "twenty"), "bad.txt")
 
 
+def test07e_early_nw_table():
+    """nw__cone-sphere's table (MAT first; 10 light with emissivity, centre, radius; 11 sphere,
+    13 cylinder, 17 cone): both readers, every number in its place."""
+    from mitsuba_ref import scenefile
+    path = COURSE / "numeric" / "nw__cone-sphere.txt"
+    if not path.exists():
+        pytest.skip(f"real course scenes not found at {COURSE}")
+    s = parse_scene(path)
+    assert s.table == "early-nw" and "early code table" in s.stand_ins()[0]
+    (li,) = s.lights
+    assert (li.emissivity, li.center) == ((12, 12, 12), (4, 3, 5))
+    assert [o.kind for o in s.objects] == ["cone", "sphere", "cylinder", "sphere", "sphere"]
+    ref = scenefile.read(path)
+    assert ref.table == "early-nw" and ref.lights[0].extras == (("radius", 1),)
+    assert ref.objects[1].f["center"] == (4, 4.8, -4) and ref.objects[1].f["radius"] == (2.15407,)
+    assert ref.objects[2].f["centerline"] == (1, 0, 0)
+    assert s.objects[1].center == (4, 4.8, -4) and s.objects[1].radius == 2.15407
+
+
 def test07c_spotlight():
     s = parse_text(NUM + "11 spot\n0 3 9 emissivity\n2 9 4 location\n0 -1 -5 aim\n22 theta\n")
     (L,) = s.lights
@@ -598,9 +617,8 @@ def test42_fuzz_never_crashes_long():
 # "ok", objects, lights: parses to that many objects and lights.
 # "unsupported: <kind>", line: SceneError "... is not supported" naming the kind, at that line.
 # "error: <message>", line: a broken file (not a scene, or a different code table).
-# nw__a3t7 uses another course year's code table, read with kinds.CODE_TABLES["geometry-first"]; nw__cone-sphere
-# a third one (10 light with emissivity, centre, radius; 11 sphere; 13 cylinder; 17 cone) that
-# rtval does not read (no course program's source for it is in the corpus): it fails at once.
+# nw__a3t7 and nw__cone-sphere use other course years' code tables (kinds.CODE_TABLES:
+# "geometry-first" and "early-nw"), read when the notes' table cannot read them.
 
 COURSE_OUTCOMES = {
     "keyword/rm768__bowling.txt": ("ok", 19, 2),
@@ -671,7 +689,7 @@ COURSE_OUTCOMES = {
     "numeric/nw__a09.txt": ("ok", 12, 0),
     "numeric/nw__a3t4.txt": ("ok", 5, 2),
     "numeric/nw__a3t7.txt": ("ok", 3, 4),
-    "numeric/nw__cone-sphere.txt": ("error: unknown object code 1", 7),
+    "numeric/nw__cone-sphere.txt": ("ok", 5, 1),
     "numeric/nw__conetest.txt": ("ok", 3, 1),
     "numeric/nw__cyltest.txt": ("ok", 3, 1),
     "numeric/nw__d01.txt": ("ok", 2, 1),
