@@ -66,6 +66,7 @@ class XObject:
     size: tuple = ()
     center: tuple = ()
     radius: Fraction | None = None
+    points: tuple = ()              # a triangle's three points
 
 
 @dataclass(frozen=True)
@@ -90,16 +91,17 @@ def exact_number(text: str) -> Fraction:
     return Fraction(Decimal(text))
 
 
-def parse_exact(text: str) -> XScene:
+def parse_exact(text: str, code27: str = "auto") -> XScene:
     """A scene's numbers exactly as written, either dialect (mitsuba_ref/scenefile.py)."""
-    f = read_text(text)
+    f = read_text(text, code27)
     objs = []
     for o in f.objects:
         x = o.x
         objs.append(XObject(o.kind, o.index, normal=x.get("normal", ()), point=x.get("point", ()),
                             orient=x.get("orient", ()), size=x.get("size", ()),
                             center=x.get("center", ()),
-                            radius=x["radius"][0] if "radius" in x else None))
+                            radius=x["radius"][0] if "radius" in x else None,
+                            points=tuple(x[k] for k in ("point1", "point2", "point3") if k in x)))
     return XScene(f.window, f.viewpoint, tuple(objs))
 
 

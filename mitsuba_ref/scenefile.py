@@ -21,7 +21,9 @@ from decimal import Decimal
 from fractions import Fraction
 
 from rt_core.inputfile import read_input
-from rt_core.kinds import HEADER_FLAGS, KEYWORDS, KINDS, LIGHTS, form_of_code, form_of_keyword
+from rt_core.kinds import (FORMS, HEADER_FLAGS, KEYWORDS, KINDS, LIGHTS, SHAPED_CODES,
+                           form_of_code, form_of_keyword)
+from rt_core.kinds_planar import shaped_form
 
 # number groups after the type token: (field, count); None = not geometry (materials)
 LAYOUT = {
@@ -34,6 +36,10 @@ LAYOUT = {
     "tplane": (("ambient", 3), ("diffuse", 3), ("specular", 3), ("normal", 3), ("point", 3),
                ("orient", 3), ("size", 2), ("bg_ambient", 3), ("bg_diffuse", 3),
                ("bg_specular", 3)),
+    "triangle": (("ambient", 3), ("diffuse", 3), ("specular", 3), ("point1", 3), ("point2", 3),
+                 ("point3", 3)),
+    "disk": (("ambient", 3), ("diffuse", 3), ("specular", 3), ("center", 3), ("radius", 1),
+             ("normal", 3)),
 }
 _NUM = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?\Z")
 
@@ -83,7 +89,7 @@ def _lines(text: str):
         yield no, raw.split("#", 1)[0].split()
 
 
-def read_text(text: str) -> File:
+def read_text(text: str, code27: str = "auto") -> File:
     lines = [(no, t) for no, t in _lines(text) if t]
     # the header's five numbers; then a keyword, or a number (a code) starting a line
     got, k, after = 0, 0, None
@@ -98,12 +104,13 @@ def read_text(text: str) -> File:
     if after is not None and after.lower() in KEYWORDS:
         return _keyword(lines)
     if got >= 5 and k < len(lines) and _NUM.match(lines[k][1][0]):
-        return _numeric(lines)
+        return _numeric(lines, code27)
     return _keyword(lines)
 
 
-def read(path) -> File:
-    return read_text(read_input(path, "scene").decode("utf-8", "replace"))
+def read(path, code27: str = "auto") -> File:
+    """``code27``: how code 27 is read ('auto': by the line shape; rt_core/kinds_planar.py)."""
+    return read_text(read_input(path, "scene").decode("utf-8", "replace"), code27)
 
 
 def _exact(tok: str) -> Fraction:
@@ -165,7 +172,7 @@ def _keyword(lines) -> File:
     return File(window, viewpoint, tuple(lights), tuple(objects), "keyword")
 
 
-def _numeric(lines) -> File:
+def _numeric(lines, code27: str = "auto") -> File:
     idx = 0
 
     def group(n):
@@ -200,6 +207,17 @@ def _numeric(lines) -> File:
             flags.append(code)
             continue
         form = form_of_code(code)
+        if code in SHAPED_CODES:        # 27: triangle, or disk in nw's older layout
+            geo, _ = SHAPED_CODES[code]
+            at = idx + 3 + len(flags) + geo
+            if at >= len(lines):
+                raise ValueError("truncated scene")
+            count = next((i for i, t in enumerate(lines[at][1]) if not _NUM.match(t)),
+                         len(lines[at][1]))
+            name = shaped_form(code, count, code27)
+            if name is None:
+                raise ValueError(f"line {lines[at][0]}: {count} numbers fit no layout of {code}")
+            form = FORMS[name]
         extras = []
         if len(toks) > 1 and _NUM.match(toks[1]):        # nw's refraction index
             extras.append(("refraction index", _exact(toks[1])))

@@ -149,8 +149,7 @@ def test06_dialects_mixed():
     (NUM + "12\n", 3, 1, "12 (projector)"),
     (NUM + "18\n", 3, 1, "18 (reflective sphere)"),
     (NUM + "22\n", 3, 1, "22 (cylinder)"),
-    (NUM + "27   triangle\n", 3, 1, "27 (triangle; disk in an older nw file)"),
-], ids=["ellipsoid", "cylinder-keyword", "psphere-keyword", "12", "18", "22", "27"])
+], ids=["ellipsoid", "cylinder-keyword", "psphere-keyword", "12", "18", "22"])
 def test07_unsupported_kind(text, line, col, kind):
     at(fails(text), line, col, kind, "is not supported")
 
@@ -619,7 +618,7 @@ COURSE_OUTCOMES = {
     "numeric/nw__d04.txt": ("ok", 4, 2),
     "numeric/nw__d05.txt": ("ok", 11, 3),
     "numeric/nw__d05a.txt": ("ok", 11, 3),
-    "numeric/nw__disk1.txt": ("unsupported: 27 (triangle; disk in an older nw file)", 12),
+    "numeric/nw__disk1.txt": ("ok", 2, 1),
     "numeric/nw__displace.txt": ("unsupported: 28 (displacement sphere)", 12),
     "numeric/nw__displacement.txt": ("unsupported: 28 (displacement sphere)", 12),
     "numeric/nw__e01.txt": ("ok", 2, 1),
@@ -648,7 +647,7 @@ COURSE_OUTCOMES = {
     "numeric/nw__textest.txt": ("ok", 1, 1),
     "numeric/nw__tileplane.txt": ("ok", 1, 0),
     "numeric/nw__transparent.txt": ("ok", 2, 1),
-    "numeric/nw__tritest.txt": ("unsupported: 27 (triangle; disk in an older nw file)", 4),
+    "numeric/nw__tritest.txt": ("ok", 2, 0),
     "numeric/sgw__a01.txt": ("ok", 1, 0),
     "numeric/sgw__a02.txt": ("ok", 4, 0),
     "numeric/sgw__a03.txt": ("ok", 6, 0),
