@@ -110,6 +110,9 @@ def object_constants(scene: Scene) -> list[ObjectConstants]:
     out = []
     groups = {}                 # exact plane or sphere -> group number (same t on every ray)
     for i, o in enumerate(scene.objects):
+        if o.kind in ("triangle", "disk"):          # rt_core/shapes_planar.py
+            out.append(_planar().planar_constants(i, o, V, groups, scene.viewpoint[2]))
+            continue
         if isinstance(o, Sphere):
             Q = tuple(exact(c) - v for c, v in zip(o.center, V))
             r = exact(o.radius)
@@ -623,7 +626,17 @@ def sphere_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = F
     return (t, *c.split(), lf)
 
 
-OBJECT_T = {"sphere": sphere_t, "plane": plane_t, "fplane": fplane_t, "tplane": plane_t}
+def _planar():
+    from . import shapes_planar          # (it imports this module's helpers)
+    return shapes_planar
+
+
+def planar_t(*args, **kw):
+    return _planar().planar_t(*args, **kw)
+
+
+OBJECT_T = {"sphere": sphere_t, "plane": plane_t, "fplane": fplane_t, "tplane": plane_t,
+            "triangle": planar_t, "disk": planar_t}
 
 
 def object_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = False):
