@@ -185,3 +185,71 @@ def test08_samples_exactly_on_the_edges(rules, layout, monkeypatch):
                 ob.representable = {}
             assert ex.explained(ids, 2.0 ** -24).all()
             assert (ids != ex.id).sum() < 0.25 * W * H
+
+
+# generic decimals: tilted triangles and disks, and a small far triangle (|q| >> its size)
+NEAR = f"""8 6  0.3 -0.2 4.7
+triangle {M0}  -3.1 -2.3 -2.9  0.7 -1.9 -1.3  -2.2 1.7 -3.3
+triangle {M0}  0.3 0.1 -1.7  3.3 -2.1 -2.9  2.1 2.3 -0.9
+disk {M0}  1.9 1.3 -2.3  1.1  0.3 0.2 1
+disk {M0}  -1.3 -0.4 -3.1  0.9  -0.2 0.7 0.6
+triangle {M0}  -0.53 0.31 -40.3  0.61 0.13 -41.1  0.17 1.23 -39.7
+"""
+
+
+def _near_rays(seed: int = 5, n: int = 1600) -> np.ndarray:
+    """Directions from the viewpoint to points on NEAR's triangle edges and disk rims (in
+    float64, a few ulps off), each component then moved by up to 8 ulps: rays on both
+    sides of every extent decision, where rounding decides a margin's sign unless the
+    certified bound flags the ray, and rays beyond the bounds."""
+    rng = np.random.default_rng(seed)
+    xs = parse_exact(NEAR)
+    V = np.array([float(c) for c in xs.viewpoint])
+    fl = lambda v: np.array([float(c) for c in v])
+    pts = []
+    for o in xs.objects:
+        if o.kind == "triangle":
+            P = [fl(p) for p in o.points]
+            for A, B in ((P[0], P[1]), (P[1], P[2]), (P[2], P[0])):
+                s = rng.random((n // 12, 1))
+                pts.append(A + s * (B - A))
+        else:
+            C, r, N = fl(o.center), float(o.radius), fl(o.normal)
+            N /= np.linalg.norm(N)
+            x = np.cross(N, [1.0, 0.0, 0.0])
+            x /= np.linalg.norm(x)
+            y = np.cross(N, x)
+            a = rng.uniform(0, 2 * np.pi, (n // 4, 1))
+            pts.append(C + r * (np.cos(a) * x + np.sin(a) * y))
+    d = np.concatenate(pts) - V
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    # half the rays a few ulps off (rounding decides unless flagged), half 1e-9 off (beyond
+    # every bound: certain, decided by the kernel alone)
+    far = rng.random((len(d), 1)) < 0.5
+    step = np.where(far, 3e-8 * np.abs(d) + np.spacing(d), np.spacing(d))
+    return xs, d + rng.integers(-8, 9, d.shape) * step
+
+
+@pytest.mark.parametrize("layout", ["unrolled", "looped"])
+@pytest.mark.parametrize("rules", [Rules(), Rules(edges="open", ties="last"),
+                                   Rules(screen_clip=">=", t_min=1e-4)],
+                         ids=["closed-first", "open-last", "variant"])
+def test09_rounding_cannot_decide_an_edge(rules, layout, monkeypatch):
+    """Rays within a few ulps of every triangle edge and disk rim: rt_core f64's answer is
+    exact arithmetic's on the same rays (the certified bounds at work), with some rays
+    flagged and decided exactly."""
+    from rt_core import backend
+    from rt_core.tracer import closest_hit, prepare
+    xs, d = _near_rays()
+    T = backend.types("f64")
+    if layout == "looped":
+        monkeypatch.setattr(accel, "UNROLL_MAX", 0)
+    ks = prepare(parse_text(NEAR), T)
+    _, oid, _ = closest_hit(ks, T.Array3(*(T.Float(c) for c in d.T)), None, rules,
+                            cam="rays", dmax=float(np.linalg.norm(d, axis=1).max()))
+    ids = np.asarray(oid.numpy())
+    ex = trace_exact(xs, d, rules)
+    wrong = np.flatnonzero(ids != ex.id)
+    assert not len(wrong), f"{len(wrong)} wrong of {len(d)}"
+    assert 0 < ks.decided < len(d)
+    assert len(set(ex.id.tolist())) == 6             # every object and the background
