@@ -53,9 +53,12 @@ def run(args) -> int:
         print(f"rtval convert: warning: {setup.note}", file=sys.stderr)
     if not course and (args.rules or args.max_dist is not None):
         args.usage_error("--rules and --max-dist go with --shading or --aovs")
+    plys: dict = {}                         # triangles: a PLY file each, beside the XML
     xml = scene_xml(scene, args.columns, args.rows, args.sampling, args.shading,
                     rules=args.rules, max_dist=DEFAULT_MAX_DIST if args.max_dist is None else args.max_dist,
-                    aovs=args.aovs)
+                    aovs=args.aovs, files=plys, stem=Path(args.output).name)
+    for name, text in plys.items():
+        atomic_write(os.path.join(parent, name), lambda tmp, text=text: Path(tmp).write_text(text))
     atomic_write(args.output, lambda tmp: Path(tmp).write_text(xml))
     print(f"{args.output}: {len(scene.objects)} shapes, {setup.columns}x{setup.rows}",
           file=sys.stderr)

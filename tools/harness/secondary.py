@@ -45,7 +45,7 @@ from mitsuba_ref.explain import EPS32, K_ROUNDING, ObjectEval
 CLASSES = ("agree", "edge", "silhouette", "graze", "clip", "light", "origin", "tie", "extent",
            "unexplained")
 CLASS_CODE = {c: i for i, c in enumerate(CLASSES)}
-PLANE_KINDS = {"plane", "fplane", "tplane"}
+PLANE_KINDS = {"plane", "fplane", "tplane", "triangle", "disk"}
 
 
 # --- Mitsuba: the scene without the surface a ray leaves -------------------------------------

@@ -1,0 +1,74 @@
+"""Mitsuba equivalents of the planar kinds (mitsuba_ref/convert.py), from the numbers as
+written (mitsuba_ref/oracle_planar.py's own normal and frame):
+
+* disk -> Mitsuba's ``disk`` (the unit disk in z = 0, normal +z) with ``to_world`` columns
+  r·x̂, r·ŷ, n̂, centre: the same disk, normal and frame (Mitsuba's uv is polar, rtval's the
+  frame coordinates: compared by geometry, not uv);
+* triangle -> a one-triangle mesh P1 P2 P3 (Mitsuba's face normal is (P2 − P1) × (P3 − P1),
+  the course's; texture coordinates (0, 0), (1, 0), (0, 1), so Mitsuba's uv is the
+  barycentric uv rtval writes).  For ``mi.load_dict`` a ``mi.Mesh``; in the XML a PLY file
+  beside it (``rtval convert`` writes ``<OUT>.obj<id>_triangle.ply``).
+"""
+from __future__ import annotations
+
+from .oracle_planar import disk_frame, points, triangle_normal  # noqa: F401 (convert's)
+
+TEXCOORDS = (0.0, 0.0, 1.0, 0.0, 0.0, 1.0)
+
+
+def disk_matrix(o) -> list:
+    """4×4 ``to_world`` of the Mitsuba disk equal to the course disk."""
+    x, y, n = disk_frame(o)
+    r = float(o.radius)
+    c = tuple(float(v) for v in o.center)
+    return [[r * x[0], r * y[0], n[0], c[0]], [r * x[1], r * y[1], n[1], c[1]],
+            [r * x[2], r * y[2], n[2], c[2]], [0.0, 0.0, 0.0, 1.0]]
+
+
+def triangle_spec(o) -> dict:
+    """The triangle as a ``ply`` shape whose file is still to be written (``_points``)."""
+    pts = [tuple(float(c) for c in p) for p in points(o)]
+    return {"type": "ply", "face_normals": True, "_points": pts}
+
+
+def ply_text(pts) -> str:
+    """An ASCII PLY of one triangle with the barycentric texture coordinates."""
+    head = ["ply", "format ascii 1.0", "element vertex 3", "property float x",
+            "property float y", "property float z", "property float u", "property float v",
+            "element face 1", "property list uchar int vertex_indices", "end_header"]
+    rows = [f"{p[0]!r} {p[1]!r} {p[2]!r} {TEXCOORDS[2 * i]!r} {TEXCOORDS[2 * i + 1]!r}"
+            for i, p in enumerate(pts)]
+    return "\n".join(head + rows + ["3 0 1 2"]) + "\n"
+
+
+def realize(d: dict, mi) -> dict:
+    """``scene_dict``'s triangle specs as ``mi.Mesh`` objects (id and BSDF kept), for
+    ``mi.load_dict``."""
+    for key, v in list(d.items()):
+        if not (isinstance(v, dict) and "_points" in v):
+            continue
+        props = mi.Properties()
+        if "bsdf" in v:
+            props["bsdf"] = mi.load_dict(v["bsdf"])
+        m = mi.Mesh(v["id"], vertex_count=3, face_count=1, props=props,
+                    has_vertex_normals=False, has_vertex_texcoords=True)
+        p = mi.traverse(m)
+        p["vertex_positions"] = [c for pt in v["_points"] for c in pt]
+        p["faces"] = [0, 1, 2]
+        p["vertex_texcoords"] = list(TEXCOORDS)
+        p.update()
+        m.set_id(v["id"])
+        d[key] = m
+    return d
+
+
+def ply_files(d: dict, stem: str) -> dict:
+    """For the XML: each triangle spec's file name (``<stem>.<id>.ply``) set in place;
+    returns {file name: PLY text}."""
+    out = {}
+    for v in d.values():
+        if isinstance(v, dict) and "_points" in v:
+            name = f"{stem}.{v['id']}.ply"
+            out[name] = ply_text(v.pop("_points"))
+            v["filename"] = name
+    return out
