@@ -93,16 +93,18 @@ from tests.test_tracer_vs_oracle import TOL, compare, tracer  # noqa: E402
 SCENES = [REPO / "scenes" / "planar.txt", COURSE / "nw__tritest.txt", COURSE / "nw__disk1.txt"]
 IDS = ["planar", "nw__tritest", "nw__disk1"]
 M0 = "1 1 1 0 0 0 0 0 0"
-# rays through the corner samples of a 17 x 13 image (0.5 apart on the window) hit the plane
-# z = −5 at twice the window point: a triangle whose hypotenuse x + y = 0 and a disk of radius
-# 5 (through (3, 4), (4, 3), (5, 0), ...) have samples exactly on their edges; the second
-# triangle shares the hypotenuse (an exact tie on it); the disk lies on the back plane (a tie)
+# rays through the corner samples of a 17 x 13 image (0.5 apart on the window, at (−4 + c/2,
+# 3 − r/2)) hit the plane z = −5 at twice the window point and z = −4 at 1.8 times it: two
+# triangles in z = −5 share the edge x + y = 2 (an exact tie on it), and have samples exactly
+# on it and on their other edges; a disk of radius 4.5 in z = −4 has samples exactly on its
+# rim (window points at distance 2.5: (1.5, 2), (2.5, 0), ...), and a smaller disk on its
+# plane (an exact tie)
 EDGES = f"""8 6
 0 0 5
 triangle {M0}  -8 -6 -5  8 -6 -5  -8 10 -5
 triangle {M0}  8 -6 -5  8 6 -5  -6 8 -5
-disk {M0}  0 0 -5.5  5  0 0 2
-plane {M0}  0 0 -1  0 0 -5.5
+disk {M0}  0 0 -4  4.5  0 0 2
+disk {M0}  0.9 0 -4  1.8  0 0 -1
 """
 
 
@@ -171,7 +173,8 @@ def test08_samples_exactly_on_the_edges(rules, layout, monkeypatch):
     ex = _exact_ids(None, W, H, rules, EDGES)
     other = _exact_ids(None, W, H, Rules(edges="open" if rules.edges == "closed" else
                                           "closed", ties=rules.ties), EDGES)
-    assert (ex.id != other.id).sum() >= 8                 # hypotenuse and rim samples
+    assert (ex.id != other.id).sum() >= 8                 # edge and rim samples
+    assert ex.id[2 * W + 11] == (2 if rules.edges == "closed" else 1)   # (1.5, 2): the rim
     for precision in ("f32", "f64"):
         out = render_geometry(sc, W, H, precision=precision, backend="llvm", rules=rules)
         ids = np.where(out["hit.mask"] > 0, out["object.id"], -1).ravel()
@@ -278,3 +281,38 @@ def test10_mitsuba_equivalents(tmp_path):
     ours = scenefile.read(REPO / "scenes" / "planar.txt").floats()
     theirs = parse_scene(REPO / "scenes" / "planar.txt")
     assert scene_dict(ours, 32).keys() == scene_dict(theirs, 32).keys()
+
+
+def test11_classifier_explains_edges_only():
+    """validate's classifier: an answer flipped at a sample exactly on a triangle's edge or a
+    disk's rim is 'edge'; flipped well inside them it is 'unexplained'."""
+    from mitsuba_ref.explain import CLASS_CODE, classify
+    W, H = 17, 13
+    ex = _exact_ids(None, W, H, Rules(), EDGES)
+    xs = parse_exact(EDGES)
+    rays, d = ideal_rays(xs.window, xs.viewpoint, W, H, range(W * H))
+    sc = scenefile.read_text(EDGES).floats()
+    # column c, row r sample the window at (−4 + c/2, 3 − r/2)
+    on_edge = 1 * W + 5                 # window (−1.5, 2.5): the hit (−3, 5) on x + y = 2
+    rim = 2 * W + 11                    # window (1.5, 2): on the big disk's rim
+    inside = 9 * W + 3                  # window (−2.5, −1.5): well inside triangle 0
+    ours = {"hit.mask": (ex.id >= 0).astype(float), "object.id": ex.id.astype(float)}
+    assert [ex.id[p] for p in (on_edge, rim, inside)] == [0, 2, 0]
+    ref = {k: v.copy() for k, v in ours.items()}
+    for p in (on_edge, rim, inside):            # the other tracer saw nothing there
+        ref["object.id"][p], ref["hit.mask"][p] = -1, 0
+    cls = classify(sc, d, ours, ref, Rules(), extent=1e3)
+    assert cls[on_edge] == CLASS_CODE["edge"] and cls[rim] == CLASS_CODE["edge"]
+    assert cls[inside] == CLASS_CODE["unexplained"]
+
+
+@pytest.mark.parametrize("path", SCENES, ids=IDS)
+def test12_mitsuba_agrees(path):
+    """rt_core f32 against Mitsuba (its disk and triangle mesh) on the same rays: every
+    differing pixel explained by the classifier, depth within its bound, and the objects
+    really hit by both."""
+    from tools.harness.compare import compare
+    sc = _scene_ok(path)
+    cmp = compare(sc, 48, None, "f32", "rays")
+    assert cmp.unexplained == 0 and cmp.depth["over_bound"] == 0, cmp.counts
+    assert cmp.counts["agree"] >= 0.98 * sum(cmp.counts.values())

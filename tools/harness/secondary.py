@@ -152,7 +152,7 @@ def _near_boundary(ev: ObjectEval, b, t_hi):
         out[mask & (out == "")] = name
 
     reach = np.isfinite(ev.t) & (ev.t >= -b) & (ev.t <= t_hi + b)
-    if ev.kind == "fplane":
+    if ev.kind in ("fplane", "triangle", "disk"):
         mark(reach & (np.abs(ev.margin) <= b), "edge")
     if ev.kind == "sphere":
         mark(reach & (ev.margin <= b), "silhouette")
