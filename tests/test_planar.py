@@ -316,3 +316,21 @@ def test12_mitsuba_agrees(path):
     cmp = compare(sc, 48, None, "f32", "rays")
     assert cmp.unexplained == 0 and cmp.depth["over_bound"] == 0, cmp.counts
     assert cmp.counts["agree"] >= 0.98 * sum(cmp.counts.values())
+
+
+def test13_code27_option(tmp_path, capsys):
+    """rtval render --code27: 'disk' reads nw__disk1's 27 as the file means it; 'triangle'
+    is refused with one line naming the file, line and field (exit 2), and no output."""
+    from tools.cli import main
+    scene = tmp_path / "d.txt"
+    scene.write_text(DISK27)
+    out = tmp_path / "d.exr"
+    assert main(["render", str(scene), "--columns", "16", "--code27", "disk",
+                 "-o", str(out)]) == 0 and out.is_file()
+    out.unlink()
+    capsys.readouterr()
+    assert main(["render", str(scene), "--columns", "16", "--code27", "triangle",
+                 "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and f"{scene}:8:1: triangle: expected 3 numbers for point 2" in err
+    assert not out.exists() and list(tmp_path.iterdir()) == [scene]
