@@ -332,5 +332,5 @@ def test13_code27_option(tmp_path, capsys):
     assert main(["render", str(scene), "--columns", "16", "--code27", "triangle",
                  "-o", str(out)]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.count("\n") == 0 and f"{scene}:8:1: triangle: expected 3 numbers for point 2" in err
+    assert err.count("\n") == 0 and f"{scene}:8:5: triangle: expected 3 numbers for point 2" in err
     assert not out.exists() and list(tmp_path.iterdir()) == [scene]
