@@ -116,7 +116,7 @@ _SHAPES = {   # Mitsuba shape dict per kind
     "plane": lambda o, v, R, T: {"type": "rectangle", "to_world": T(infinite_matrix(o, v, R))},
     "tplane": lambda o, v, R, T: {"type": "rectangle", "to_world": T(infinite_matrix(o, v, R))},
     # mitsuba_ref/convert_planar.py
-    "disk": lambda o, v, R, T: {"type": "disk", "to_world": T(convert_planar.disk_matrix(o))},
+    "disk": lambda o, v, R, T: {"type": "disk", "to_world": convert_planar.disk_to_world(o)},
     "triangle": lambda o, v, R, T: convert_planar.triangle_spec(o),
 }
 
@@ -403,7 +403,7 @@ def _xml_value(name: str, v, indent: str) -> list:
     if isinstance(v, list) and len(v) == 3:
         tag = "point" if name in POINTS else "rgb" if name == "value" else "vector"
         return [f'{indent}<{tag} name="{name}" value="{", ".join(_num(c) for c in v)}"/>']
-    if isinstance(v, mi.ScalarTransform4f):
+    if isinstance(v, (mi.ScalarTransform4f, mi.ScalarTransform4d)):
         m = v.matrix
         vals = " ".join(_num(m[i][j]) for i in range(4) for j in range(4))
         return [f'{indent}<transform name="{name}">', f'{indent}    <matrix value="{vals}"/>',

@@ -6,10 +6,13 @@ written (mitsuba_ref/oracle_planar.py's own normal and frame):
   frame coordinates: compared by geometry, not uv);
 * triangle -> a one-triangle mesh P1 P2 P3 (Mitsuba's face normal is (P2 − P1) × (P3 − P1),
   the course's; texture coordinates (0, 0), (1, 0), (0, 1), so Mitsuba's uv is the
-  barycentric uv rtval writes).  For ``mi.load_dict`` a ``mi.Mesh``; in the XML a PLY file
-  beside it (``rtval convert`` writes ``<OUT>.obj<id>_triangle.ply``).
+  barycentric uv rtval writes).  In the XML a PLY file beside it (``rtval convert`` writes
+  ``<OUT>.obj<id>_triangle.ply``); for ``mi.load_dict`` the same PLY, loaded.
 """
 from __future__ import annotations
+
+import os
+import tempfile
 
 from .oracle_planar import disk_frame, points, triangle_normal  # noqa: F401 (convert's)
 
@@ -23,6 +26,17 @@ def disk_matrix(o) -> list:
     c = tuple(float(v) for v in o.center)
     return [[r * x[0], r * y[0], n[0], c[0]], [r * x[1], r * y[1], n[1], c[1]],
             [r * x[2], r * y[2], n[2], c[2]], [0.0, 0.0, 0.0, 1.0]]
+
+
+def disk_to_world(o):
+    """The disk's ``to_world`` as Mitsuba's XML reader makes it from the matrix we write
+    (numbers read as float32, the transform and its inverse kept in double), so that the
+    dict renders exactly as the XML: a float32 transform inverts in float32, which moves
+    the disk's polar uv by an ulp."""
+    import mitsuba as mi
+    import numpy as np
+    m = np.array(disk_matrix(o), np.float32).astype(np.float64)
+    return mi.ScalarTransform4d(m.tolist())
 
 
 def triangle_spec(o) -> dict:
@@ -42,23 +56,22 @@ def ply_text(pts) -> str:
 
 
 def realize(d: dict, mi) -> dict:
-    """``scene_dict``'s triangle specs as ``mi.Mesh`` objects (id and BSDF kept), for
-    ``mi.load_dict``."""
-    for key, v in list(d.items()):
-        if not (isinstance(v, dict) and "_points" in v):
-            continue
-        props = mi.Properties()
-        if "bsdf" in v:
-            props["bsdf"] = mi.load_dict(v["bsdf"])
-        m = mi.Mesh(v["id"], vertex_count=3, face_count=1, props=props,
-                    has_vertex_normals=False, has_vertex_texcoords=True)
-        p = mi.traverse(m)
-        p["vertex_positions"] = [c for pt in v["_points"] for c in pt]
-        p["faces"] = [0, 1, 2]
-        p["vertex_texcoords"] = list(TEXCOORDS)
-        p.update()
-        m.set_id(v["id"])
-        d[key] = m
+    """``scene_dict``'s triangle specs as loaded Mitsuba shapes (id and BSDF kept), for
+    ``mi.load_dict``: each loaded from its PLY text in a temporary directory (removed at
+    once), so that the dict renders exactly as the XML with its PLY files does."""
+    specs = [(k, v) for k, v in d.items() if isinstance(v, dict) and "_points" in v]
+    if not specs:
+        return d
+    with tempfile.TemporaryDirectory(prefix="rtval-triangles-") as tmp:
+        for key, v in specs:
+            path = os.path.join(tmp, f"{v['id']}.ply")
+            with open(path, "w") as f:
+                f.write(ply_text(v["_points"]))
+            spec = {k: x for k, x in v.items() if k not in ("_points", "id")}
+            spec["filename"] = path
+            shape = mi.load_dict(spec)
+            shape.set_id(v["id"])
+            d[key] = shape
     return d
 
 
