@@ -41,12 +41,15 @@ def disk_frame(o) -> tuple:
 def prepare(i, o, _Obj, vec, EF):
     """The oracle's _Obj of a triangle or disk, its numbers taken as inputs rounded once."""
     if o.kind == "triangle":
+        from .oracle import cross3, diff3, unit3, vals     # (oracle imports this module)
         pts = points(o)
-        n = unit(triangle_normal(o))
-        ob = _Obj(i, o.kind, o, ("p", n, tuple(pts[0])), normal=vec(n), point=vec(pts[0]))
-        ob.pts = tuple(vec(p) for p in pts)
-        ob.N = cross(tuple(b - a for a, b in zip(ob.pts[0], ob.pts[1])),
-                     tuple(c - a for a, c in zip(ob.pts[0], ob.pts[2])))
+        P = tuple(vec(p) for p in pts)
+        # N and its unit from the points with their error bounds (a rounded cross product
+        # of differences: more than one rounding)
+        N = cross3(diff3(P[1], P[0]), diff3(P[2], P[0]))
+        n = unit3(N)
+        ob = _Obj(i, o.kind, o, ("p", vals(n), tuple(pts[0])), normal=n, point=P[0])
+        ob.pts, ob.N = P, N
         return ob
     x, y, n = disk_frame(o)
     ob = _Obj(i, o.kind, o, ("p", n, tuple(o.center)), normal=vec(n), point=vec(o.center),
