@@ -334,3 +334,19 @@ def test13_code27_option(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and f"{scene}:8:5: triangle: expected 3 numbers for point 2" in err
     assert not out.exists() and list(tmp_path.iterdir()) == [scene]
+
+
+def test14_check_infers_open_edges(tmp_path, capsys):
+    """rtval check on a course-style image of EDGES rendered with open edges: the triangle
+    and disk edge samples determine the rule (edges=open), and the image passes under it."""
+    import json
+    from tools.cli import main
+    scene, ppm = tmp_path / "edges.txt", tmp_path / "edges.ppm"
+    scene.write_text(EDGES)
+    assert main(["render", str(scene), "--columns", "17", "--rules", "edges=open",
+                 "--ppm", str(ppm), "-o", str(tmp_path / "edges.exr")]) == 0
+    capsys.readouterr()
+    assert main(["check", str(scene), str(ppm), "--json"]) == 0
+    (r,) = json.loads(capsys.readouterr().out)
+    edges = next(f for f in r["findings"] if f["rule"] == "edges")
+    assert (edges["value"], edges["determined"], r["status"]) == ("open", True, "pass")
