@@ -14,7 +14,13 @@ from __future__ import annotations
 import os
 import tempfile
 
-from .oracle_planar import disk_frame, points, triangle_normal  # noqa: F401 (convert's)
+from .oracle_planar import disk_frame, points, triangle_normal
+
+# convert.py takes the triangle's points and normal from here too
+__all__ = ["disk_matrix", "disk_to_world", "triangle_spec", "ply_text", "realize", "ply_files",
+           "points", "triangle_normal", "disk_frame"]
+
+
 
 TEXCOORDS = (0.0, 0.0, 1.0, 0.0, 0.0, 1.0)
 
