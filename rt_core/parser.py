@@ -460,9 +460,11 @@ def _parse_numeric(ctx: _Ctx):
                 raise _unsupported_code(ctx, code, start)
             raise ctx.error(f"unknown object code {code}; expected {_CODE_LIST}", start)
         form = FORMS[SUPPORTED_CODES[code]]
+        extras = []
         if code in SHAPED_CODES:          # 27: a triangle, or a disk in nw's older layout
             form = _shaped(ctx, code, content, idx, len(flags), lead_count, start)
-        extras = []
+            how = "the line shape" if ctx.code27 == "auto" else "the code27 option"
+            extras.append((f"code {code} read as", f"{form.kind} (by {how})"))
         if lead_count(toks) > 1:          # nw: a refraction index after the code, recorded
             if form.kind in LIGHTS:
                 raise ctx.error(f"{code} ({form.kind}): expected the code alone on its line, "

@@ -37,6 +37,8 @@ def test01_code27_by_line_shape():
     assert d.given_normal == (1, 1, 1)
     d29 = parse_text(DISK27.replace("27 disk", "29 disk")).objects[0]
     assert d29 == d
+    # how a 27 was read is recorded with the object (the outputs' rtval.extras)
+    assert d.extras == (("code 27 read as", "disk (by the line shape)"),) and d29.extras == ()
     assert [o.kind for o in scenefile.read_text(TRI).objects] == ["triangle"]
     assert [o.kind for o in scenefile.read_text(DISK27).objects] == ["disk"]
 
@@ -319,14 +321,18 @@ def test12_mitsuba_agrees(path):
 
 
 def test13_code27_option(tmp_path, capsys):
-    """rtval render --code27: 'disk' reads nw__disk1's 27 as the file means it; 'triangle'
-    is refused with one line naming the file, line and field (exit 2), and no output."""
+    """rtval render --code27: 'disk' reads nw__disk1's 27 as the file means it (recorded in
+    the output's provenance); 'triangle' is refused with one line naming the file, line and
+    field (exit 2), and no output."""
     from tools.cli import main
     scene = tmp_path / "d.txt"
     scene.write_text(DISK27)
     out = tmp_path / "d.exr"
     assert main(["render", str(scene), "--columns", "16", "--code27", "disk",
                  "-o", str(out)]) == 0 and out.is_file()
+    import OpenEXR
+    extras = OpenEXR.File(str(out)).header()["rtval.extras"]
+    assert extras == "line 3 disk: code 27 read as=disk (by the code27 option)"
     out.unlink()
     capsys.readouterr()
     assert main(["render", str(scene), "--columns", "16", "--code27", "triangle",
