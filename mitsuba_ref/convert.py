@@ -26,6 +26,7 @@ from rt_core.rules import Rules
 DEFAULT_MAX_DIST = 1000.0       # the notes' MAX_DIST, as ``rtval render``'s default
 
 from . import quadric
+from . import convert_planar
 from .geometry import corners, cross, dot, frame, normal, sub, unit
 
 VARIANT = "llvm_ad_rgb"
@@ -68,6 +69,11 @@ def scene_scale(scene: Scene) -> float:
             f = quadric.fields(o)
             size = max(f[1]) if o.kind == "ellipsoid" else float(f[2]) + float(f[3])
             r = max(r, math.sqrt(dot(sub(f[0], v), sub(f[0], v))) + float(size))
+        elif o.kind == "triangle":
+            for c in convert_planar.points(o):
+                r = max(r, math.sqrt(dot(sub(c, v), sub(c, v))))
+        elif o.kind == "disk":
+            r = max(r, math.sqrt(dot(sub(o.center, v), sub(o.center, v))) + o.radius)
         elif o.kind == "fplane":
             for c in corners(o):
                 r = max(r, math.sqrt(dot(sub(c, v), sub(c, v))))
@@ -118,6 +124,9 @@ _SHAPES = {   # Mitsuba shape dict per kind
     # no Mitsuba shape (its sphere forbids non-uniform scale): checked against the oracles only
     "cone": lambda o, v, R, T: None,
     "ellipsoid": lambda o, v, R, T: None,
+    # mitsuba_ref/convert_planar.py
+    "disk": lambda o, v, R, T: {"type": "disk", "to_world": convert_planar.disk_to_world(o)},
+    "triangle": lambda o, v, R, T: convert_planar.triangle_spec(o),
 }
 
 
@@ -306,9 +315,12 @@ def course_material(o, oid: int, rules: Rules) -> dict:
     b = {"type": "course_material", "kind": o.kind, "course_id": oid, **_mat(o.material)}
     if o.kind == "sphere":
         b["center"], b["radius"] = [float(c) for c in o.center], float(o.radius)
+    elif o.kind == "triangle":              # its normal and anchor from the points
+        b["normal"] = list(unit(convert_planar.triangle_normal(o)))
+        b["point"] = [float(c) for c in convert_planar.points(o)[0]]
     else:
         b["normal"] = list(normal(o))
-        b["point"] = [float(c) for c in o.point]
+        b["point"] = [float(c) for c in (o.center if o.kind == "disk" else o.point)]
     if o.kind == "fplane":
         x, y, _ = frame(o)
         b.update({"xdir": list(x), "ydir": list(y),
@@ -336,7 +348,8 @@ def course_integrator(scene: Scene, columns: int, rows: int, sampling: str, rule
 def scene_dict(scene: Scene, columns: int, rows: int | None = None, sampling: str = "corners",
                shading: bool = False, integrator: bool = True, only=None,
                clip: bool = True, rules: Rules | None = None,
-               max_dist: float = DEFAULT_MAX_DIST, aovs: bool = False) -> dict:
+               max_dist: float = DEFAULT_MAX_DIST, aovs: bool = False,
+               meshes: bool = True) -> dict:
     """The Mitsuba 3 scene as a dict for ``mi.load_dict(d, optimize=False)``.
 
     ``only``: a set of object kinds to include (default all); ``clip``: whether the sensor
@@ -382,7 +395,8 @@ def scene_dict(scene: Scene, columns: int, rows: int | None = None, sampling: st
         if aovs:
             d["integrator"]["aovs"] = True
     _check_float32(scene, d)
-    return d
+    # triangles: mi.Mesh objects (``meshes`` False: specs whose PLY files scene_xml writes)
+    return convert_planar.realize(d, mi) if meshes else d
 
 
 F32_MAX = 3.4028234663852886e38
@@ -439,7 +453,7 @@ def _xml_value(name: str, v, indent: str) -> list:
     if isinstance(v, list) and len(v) == 3:
         tag = "point" if name in POINTS else "rgb" if name == "value" else "vector"
         return [f'{indent}<{tag} name="{name}" value="{", ".join(_num(c) for c in v)}"/>']
-    if isinstance(v, mi.ScalarTransform4f):
+    if isinstance(v, (mi.ScalarTransform4f, mi.ScalarTransform4d)):
         m = v.matrix
         vals = " ".join(_num(m[i][j]) for i in range(4) for j in range(4))
         return [f'{indent}<transform name="{name}">', f'{indent}    <matrix value="{vals}"/>',
@@ -449,7 +463,7 @@ def _xml_value(name: str, v, indent: str) -> list:
     raise TypeError(f"cannot write {name}={v!r} as Mitsuba XML")
 
 
-TAGS = {"rectangle": "shape", "sphere": "shape", "cylinder": "shape", "perspective": "sensor", "stratified":
+TAGS = {"rectangle": "shape", "sphere": "shape", "cylinder": "shape", "disk": "shape", "ply": "shape", "perspective": "sensor", "stratified":
         "sampler", "hdrfilm": "film", "box": "rfilter", "aov": "integrator", "path": "integrator",
         "course": "integrator", "course_material": "bsdf", "diffuse": "bsdf", "point": "emitter",
         "spot": "emitter", "rgb": "rgb"}
@@ -473,11 +487,19 @@ def _xml_object(d: dict, indent: str, name: str | None = None) -> list:
 
 def scene_xml(scene: Scene, columns: int, rows: int | None = None, sampling: str = "corners",
               shading: bool = False, rules: Rules | None = None,
-              max_dist: float = DEFAULT_MAX_DIST, aovs: bool = False) -> str:
+              max_dist: float = DEFAULT_MAX_DIST, aovs: bool = False,
+              files: dict | None = None, stem: str = "scene") -> str:
     """The same scene as ``scene_dict``, as Mitsuba 3 XML (``mi.load_file`` accepts it once
-    mitsuba_ref has registered its plugins: ``rtval render --mitsuba``)."""
+    mitsuba_ref has registered its plugins: ``rtval render --mitsuba``).  Triangles refer
+    to PLY files ``<stem>.obj<id>_triangle.ply`` beside the XML, added to ``files`` (name ->
+    text) for the caller to write."""
     d = scene_dict(scene, columns, rows, sampling, shading, rules=rules, max_dist=max_dist,
-                   aovs=aovs)
+                   aovs=aovs, meshes=False)
+    plys = convert_planar.ply_files(d, stem)
+    if plys and files is None:
+        raise ValueError("this scene has triangles: pass files= to receive their PLY files")
+    if files is not None:
+        files.update(plys)
     s = sensor_setup(scene, columns, rows, sampling)
     lines = ['<?xml version="1.0" encoding="utf-8"?>',
              f"<!-- rtval convert: {scene.path} ({columns}x{s.rows}, {sampling} sampling) -->",

@@ -47,6 +47,7 @@ from rt_core.kinds import dispatch
 from rt_core.rules import Rules
 
 from . import quadric
+from . import exact_planar
 from .scenefile import read_text
 
 U = {"f32": 2.0 ** -24, "f64": 2.0 ** -53}
@@ -68,6 +69,7 @@ class XObject:
     center: tuple = ()
     radius: Fraction | None = None
     fields: tuple = ()         # other kinds' groups as (name, numbers) (quadrics)
+    points: tuple = ()              # a triangle's three points
 
     def __getattr__(self, name):        # a quadric's groups: obj.centerline, obj.axes, ...
         for k, v in self.__dict__.get("fields", ()):
@@ -101,9 +103,9 @@ def exact_number(text: str) -> Fraction:
     return Fraction(Decimal(text))
 
 
-def parse_exact(text: str) -> XScene:
+def parse_exact(text: str, code27: str = "auto") -> XScene:
     """A scene's numbers exactly as written, either dialect (mitsuba_ref/scenefile.py)."""
-    f = read_text(text)
+    f = read_text(text, code27)
     objs = []
     for o in f.objects:
         x = o.x
@@ -111,7 +113,8 @@ def parse_exact(text: str) -> XScene:
                             orient=x.get("orient", ()), size=x.get("size", ()),
                             center=x.get("center", ()),
                             radius=x["radius"][0] if "radius" in x else None,
-                            fields=tuple(x.items()) if o.kind in quadric.KINDS else ()))
+                            fields=tuple(x.items()) if o.kind in quadric.KINDS else (),
+                            points=tuple(x[k] for k in ("point1", "point2", "point3") if k in x)))
     return XScene(f.window, f.viewpoint, tuple(objs))
 
 
@@ -169,6 +172,8 @@ class _Prep:
     def __init__(self, obj: XObject, V: tuple, rules: Rules):
         self.obj, self.kind = obj, obj.kind
         anchor = obj.center if obj.kind == "sphere" else obj.point
+        if obj.kind in exact_planar.DECISIONS:          # mitsuba_ref/exact_planar.py
+            anchor = exact_planar.anchor(obj)
         self.L = _lcm_den(*V, *anchor)                    # positions: integers / L
         self.Q = tuple(int((a - v) * self.L) for a, v in zip(anchor, V))
         self.VZ = int(V[2] * self.L)
@@ -178,8 +183,12 @@ class _Prep:
             self.QQ = _dot(self.Q, self.Q)
             self.CC = self.QQ * self.Lr ** 2 - self.R ** 2 * self.L ** 2   # (|q|²−r²)·L²Lr²
             return
-        Ln = _lcm_den(*obj.normal)
-        self.N = _ints(obj.normal, Ln)
+        if obj.kind in exact_planar.DECISIONS:
+            self.N, Ln = exact_planar.normal(obj)
+            exact_planar.prepare(self, obj, V)
+        else:
+            Ln = _lcm_den(*obj.normal)
+            self.N = _ints(obj.normal, Ln)
         self.Ln = Ln
         self.NN = _dot(self.N, self.N)
         self.NQ = _dot(self.N, self.Q)                     # n·q · Ln·L
@@ -208,6 +217,7 @@ DECISIONS = {
     "fplane": ("parallel", "t", "clip", "u>=0", "u<=w", "v>=0", "v<=h"),
     "sphere": ("outline", "outside", "front", "clip"),
     "cylinder": quadric.DECISIONS, "cone": quadric.DECISIONS, "ellipsoid": quadric.DECISIONS,
+    **exact_planar.DECISIONS,
 }
 
 
@@ -224,8 +234,7 @@ def _eval_plane(p: _Prep, D, Dd, rules: Rules):
     ND = _dot(p.N, D)
     if ND == 0:
         tests = {"parallel": (False, 0.0), "t": (False, 0.0), "clip": (False, 0.0)}
-        if p.kind == "fplane":
-            tests.update({k: (False, 0.0) for k in ("u>=0", "u<=w", "v>=0", "v<=h")})
+        tests.update({k: (False, 0.0) for k in DECISIONS[p.kind][3:]})   # the extent's
         return None, tests
     sg = 1 if ND > 0 else -1
     tn, td = p.NQ * Dd * sg, p.L * ND * sg                  # t = tn/td, td > 0
@@ -240,6 +249,8 @@ def _eval_plane(p: _Prep, D, Dd, rules: Rules):
         tests["clip"] = (True, math.inf)
     if p.kind == "fplane":
         tests.update(_eval_edges(p, D, ND, sg, rules))
+    if p.kind in exact_planar.DECISIONS:
+        tests.update(exact_planar.eval_extent(p, D, Dd, tn, td, rules))
     return (tn, td), tests
 
 
@@ -304,7 +315,7 @@ def _eval_sphere(p: _Prep, D, Dd, rules: Rules):
 
 _EVAL = {"sphere": _eval_sphere, "plane": _eval_plane, "fplane": _eval_plane,
          "tplane": _eval_plane, "cylinder": quadric.evaluate, "cone": quadric.evaluate,
-         "ellipsoid": quadric.evaluate}
+         "ellipsoid": quadric.evaluate, "triangle": _eval_plane, "disk": _eval_plane}
 
 
 # --- condition of every decided quantity (float64 dual numbers) -----------------------------------
@@ -403,6 +414,11 @@ def _conditions(obj: XObject, V, d: np.ndarray, rules: Rules) -> dict:
             z = Vv[2] + t * dv[2]
             out = {"outline": (r - perp).cond(), "outside": (qn - r).cond(),
                    "front": (bh / a.sqrt()).cond(), "clip": z.cond(), "t": t.cond()}
+        elif obj.kind in exact_planar.DECISIONS:
+            nums = ([c for P in obj.points for c in fl(P)] if obj.kind == "triangle" else
+                    fl(obj.center) + [float(obj.radius)] + fl(obj.normal))
+            x = _inputs(base + nums, n)
+            out = exact_planar.conditions(x, x[0:3], x[3:6], _ddot, _dcross)
         else:
             x = _inputs(base + fl(obj.normal) + fl(obj.point) +
                         (fl(obj.orient) + fl(obj.size) if obj.kind == "fplane" else []), n)
@@ -519,7 +535,7 @@ def _representable(xs: XScene, obj: XObject, u: float) -> bool:
     """Every number of the object, the window and the viewpoint is exact in precision u."""
     dtype = np.float32 if u == U["f32"] else np.float64
     nums = list(xs.window) + list(xs.viewpoint) + [c for f in (obj.normal, obj.point,
-            obj.orient, obj.size, obj.center) for c in f]
+            obj.orient, obj.size, obj.center, *obj.points) for c in f]
     if obj.radius is not None:
         nums.append(obj.radius)
     nums += [c for _, v in obj.fields for c in v]

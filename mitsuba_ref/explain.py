@@ -3,7 +3,8 @@
 A disagreement (mask or object id) is *explained* when an object involved (ours or the
 reference's) is within a float32 error bound of a decision boundary:
 
-  edge        a finite plane's hit lies within the bound of its rectangle's border
+  edge        a finite plane's hit lies within the bound of its rectangle's border (a
+              triangle's: of its edges; a disk's: of its rim)
   tie         the two objects lie at the same depth within the bound
   clip        a plane hit within the bound of the window plane z = 0 (the screen clip)
   extent      our hit on an infinite/tiled plane lies beyond the reference's finite stand-in
@@ -27,7 +28,8 @@ from rt_core.rules import Rules
 
 from . import quadric
 from .convert import stand_in_frame
-from .geometry import frame, normal
+from .geometry import frame, normal, unit
+from .oracle_planar import points, triangle_normal
 
 K_ROUNDING = 16.0
 EPS32 = 2.0 ** -24
@@ -81,8 +83,15 @@ class ObjectEval:
             self.margin = np.abs(pn - obj.radius)          # distance from the outline
             self.scale = origin + qn + obj.radius
             return
-        nrm = np.asarray(normal(obj))
-        q = np.asarray(obj.point) - O
+        planar = obj.kind in ("triangle", "disk")      # mitsuba_ref/oracle_planar.py
+        if planar:
+            nrm = np.asarray(unit(triangle_normal(obj)) if obj.kind == "triangle"
+                             else normal(obj))
+            anchor = points(obj)[0] if obj.kind == "triangle" else obj.center
+        else:
+            nrm = np.asarray(normal(obj))
+            anchor = obj.point
+        q = np.asarray(anchor) - O
         den = d @ nrm
         with np.errstate(divide="ignore", invalid="ignore"):
             t = (q @ nrm) / den
@@ -109,6 +118,22 @@ class ObjectEval:
                                    np.hypot(du, dv))
             valid &= inside
             size = max(w, h)
+        elif planar:
+            # signed distance of the hit inside the edges (triangle) or the rim (disk)
+            H = O + t[:, None] * d
+            with np.errstate(invalid="ignore"):
+                if obj.kind == "disk":
+                    m = obj.radius - _norm(H - np.asarray(obj.center))
+                    size = obj.radius
+                else:
+                    P = [np.asarray(p, np.float64) for p in points(obj)]
+                    N = np.cross(P[1] - P[0], P[2] - P[0])
+                    m = np.min([(np.cross(B - A, H - A) @ N) / (_norm(N) * _norm(B - A))
+                                for A, B in ((P[0], P[1]), (P[1], P[2]), (P[2], P[0]))], 0)
+                    size = max(_norm(P[1] - P[0]), _norm(P[2] - P[0]))
+            inside = (m >= 0) if rules.edges == "closed" else (m > 0)
+            self.margin = np.where(np.isfinite(m), np.abs(m), np.inf)
+            valid &= inside
         else:
             # beyond the reference's stand-in square (half-size extent, its own axes)
             ax, ay, foot = stand_in_frame(obj, scene.viewpoint)
@@ -156,7 +181,7 @@ def classify(scene: Scene, d: np.ndarray, ours: dict, ref: dict, rules: Rules,
             involved = side_ids == i
             if not involved.any():
                 continue
-            if ev.kind == "fplane":
+            if ev.kind in ("fplane", "triangle", "disk"):
                 mark(involved & (np.abs(ev.margin) <= b_all[i]), "edge")
             if ev.kind == "sphere" or ev.kind in quadric.KINDS:
                 mark(involved & (ev.margin <= b_all[i]), "silhouette")

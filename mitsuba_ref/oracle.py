@@ -39,6 +39,7 @@ from rt_core.kinds import dispatch
 from rt_core.rules import Rules
 
 from . import quadric
+from . import oracle_planar
 from .geometry import frame, normal, unit
 
 PLANE_KINDS = ("plane", "fplane", "tplane")
@@ -237,9 +238,13 @@ def _quadric_obj(i, o):
     return quadric.prepare(i, o, _Obj, vec, EF)
 
 
+def _planar_obj(i, o):
+    return oracle_planar.prepare(i, o, _Obj, vec, EF)
+
+
 _PREPARE = {"sphere": _sphere_obj, "plane": _plane_obj, "fplane": _plane_obj,
             "tplane": _plane_obj, "cylinder": _quadric_obj, "cone": _quadric_obj,
-            "ellipsoid": _quadric_obj}
+            "ellipsoid": _quadric_obj, "triangle": _planar_obj, "disk": _planar_obj}
 
 
 def _prepare(scene):
@@ -351,9 +356,22 @@ def quadric_hits(ob: _Obj, base, d, rules: Rules) -> Cand:
     return quadric.hits(ob, base, d, rules, Cand, EF, esqrt, (dot3, diff3, sum3, scale3))
 
 
+def planar_hits(ob: _Obj, base, d, rules: Rules) -> Cand:
+    """plane_hits, then the triangle's or disk's extent test (mitsuba_ref/oracle_planar.py);
+    newhit holds the uv."""
+    c = plane_hits(ob, base, d, rules)
+    if c.t is None:
+        return c
+    inside, c.slacks, c.newhit = oracle_planar.extent(ob, c.hitloc, rules,
+                                                      (dot3, diff3, cross3))
+    if c.ok and not inside:
+        c.ok, c.why = False, "edge"
+    return c
+
+
 HITS = {"plane": plane_hits, "fplane": fplane_hits, "tplane": tplane_hits,
         "sphere": sphere_hits, "cylinder": quadric_hits, "cone": quadric_hits,
-        "ellipsoid": quadric_hits}
+        "ellipsoid": quadric_hits, "triangle": planar_hits, "disk": planar_hits}
 
 
 def tile_scale(tplane, rules: Rules = Rules()) -> float:
@@ -448,6 +466,12 @@ def _tests(ob: _Obj, c: Cand, base, d, rules: Rules) -> list:
     if ob.kind == "fplane":
         out.append(("edge_margin", _inside(c.newhit, ob.size, rules),
                     _edge_margin(c, ob, base, d, rules)))
+    if ob.kind in ("triangle", "disk"):
+        # each slack against its own bound: the nearest inside, the farthest failed outside
+        ok = [(s.v >= 0.0) if rules.edges == "closed" else (s.v > 0.0) for s in c.slacks]
+        ms = [_margin(s.v, s.e) for s in c.slacks]
+        out.append(("edge_margin", all(ok), min(ms) if all(ok) else
+                    max(m for m, good in zip(ms, ok) if not good)))
     assert all(p for _, p, _ in out) == c.ok, (ob, c, out)
     return out
 
@@ -519,7 +543,7 @@ def trace(scene, base, dir, rules: Rules = Rules(), skip=None) -> Hit:
         else:
             n = ob.normal
         hit.normal, hit.err_normal = vals(n), errs(n)
-        if ob.kind in ("fplane", "tplane"):
+        if ob.kind in ("fplane", "tplane", "triangle", "disk"):
             hit.uv, hit.err_uv = (c.newhit[0].v, c.newhit[1].v), (c.newhit[0].e, c.newhit[1].e)
     _diagnose(hit, obs, cands, win, base, d, rules)
     return hit
@@ -541,7 +565,7 @@ def _diagnose(hit: Hit, obs, cands, win, base, d, rules: Rules) -> None:
             if c.t is None:
                 # exactly parallel: a flip puts the hit at a huge t, which only matters if
                 # nothing else is hit and the object is unbounded
-                if win is not None or ob.kind == "fplane":
+                if win is not None or ob.kind in ("fplane", "triangle", "disk"):
                     continue
             elif tw is not None and abs(c.t.v) > tw.v + 1e-4 * (tw.v + tw.e + c.t.e):
                 continue                             # behind the winner: cannot matter

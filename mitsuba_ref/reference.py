@@ -19,7 +19,7 @@ import numpy as np
 from .convert import AOVS, course_id, mitsuba, scene_dict, sensor_setup
 
 CAMERA_AOVS = AOVS + ",id:shape_index"
-GROUPS = (("planes", {"plane", "fplane", "tplane"}, True),
+GROUPS = (("planes", {"plane", "fplane", "tplane", "triangle", "disk"}, True),
           ("spheres", {"sphere", "cylinder"}, False))      # unclipped (clip_spheres: clipped)
 CHANNELS = ("hit.mask", "depth.Z", "object.id", "normal.X", "normal.Y", "normal.Z",
             "position.X", "position.Y", "position.Z", "uv.U", "uv.V")
@@ -60,6 +60,8 @@ class MitsubaScene:
         for i, obj in enumerate(scene.objects):
             if obj.kind == "fplane":
                 self.uv_scale[i] = obj.size
+            if obj.kind == "triangle":          # barycentric in both (convert_planar.py)
+                self.uv_scale[i] = (1.0, 1.0)
 
 
 def window_distance(viewpoint, d: np.ndarray):

@@ -21,8 +21,9 @@ from decimal import Decimal
 from fractions import Fraction
 
 from rt_core.inputfile import read_input
-from rt_core.kinds import (CODE_TABLES, FORMS, HEADER_FLAGS, KEYWORDS, KINDS, LIGHTS, form_of_code,
-                           form_of_keyword)
+from rt_core.kinds import (CODE_TABLES, FORMS, HEADER_FLAGS, KEYWORDS, KINDS, LIGHTS,
+                           SHAPED_CODES, form_of_code, form_of_keyword)
+from rt_core.kinds_planar import shaped_form
 
 # number groups after the type token: (field, count); None = not geometry (materials)
 LAYOUT = {
@@ -40,6 +41,10 @@ LAYOUT = {
     "cone": (("ambient", 3), ("diffuse", 3), ("specular", 3), ("center", 3),
              ("centerline", 3), ("radius_height", 2)),
     "ellipsoid": (("ambient", 3), ("diffuse", 3), ("specular", 3), ("center", 3), ("axes", 3)),
+    "triangle": (("ambient", 3), ("diffuse", 3), ("specular", 3), ("point1", 3), ("point2", 3),
+                 ("point3", 3)),
+    "disk": (("ambient", 3), ("diffuse", 3), ("specular", 3), ("center", 3), ("radius", 1),
+             ("normal", 3)),
 }
 _NUM = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?\Z")
 
@@ -90,7 +95,7 @@ def _lines(text: str):
         yield no, raw.split("#", 1)[0].split()
 
 
-def read_text(text: str) -> File:
+def read_text(text: str, code27: str = "auto") -> File:
     lines = [(no, t) for no, t in _lines(text) if t]
     # the header's five numbers; then a keyword, or a number (a code) starting a line
     got, k, after = 0, 0, None
@@ -106,21 +111,22 @@ def read_text(text: str) -> File:
         return _keyword(lines)
     if got >= 5 and k < len(lines) and _NUM.match(lines[k][1][0]):
         try:
-            return _numeric(lines)
+            return _numeric(lines, code27)
         except ValueError as first:
             # another course year's code table (rt_core.kinds.CODE_TABLES): the first that
             # reads the whole file
             for name, table in CODE_TABLES.items():
                 try:
-                    return _numeric(lines, table, name)
+                    return _numeric(lines, code27, table, name)
                 except ValueError:
                     continue
             raise first
     return _keyword(lines)
 
 
-def read(path) -> File:
-    return read_text(read_input(path, "scene").decode("utf-8", "replace"))
+def read(path, code27: str = "auto") -> File:
+    """``code27``: how code 27 is read ('auto': by the line shape; rt_core/kinds_planar.py)."""
+    return read_text(read_input(path, "scene").decode("utf-8", "replace"), code27)
 
 
 def _exact(tok: str) -> Fraction:
@@ -186,7 +192,7 @@ def _keyword(lines) -> File:
     return File(window, viewpoint, tuple(lights), tuple(objects), "keyword")
 
 
-def _numeric(lines, table: dict | None = None, name: str = "") -> File:
+def _numeric(lines, code27: str = "auto", table: dict | None = None, name: str = "") -> File:
     """The numeric dialect with the notes' code table, or ``table`` (code -> (form, the
     groups' order)) named ``name``."""
     idx = 0
@@ -228,6 +234,17 @@ def _numeric(lines, table: dict | None = None, name: str = "") -> File:
             form, order = FORMS[table[code][0]], table[code][1]
         else:
             form, order = form_of_code(code), None
+        if table is None and code in SHAPED_CODES:   # 27: triangle, or nw's older disk
+            geo, _ = SHAPED_CODES[code]
+            at = idx + 3 + len(flags) + geo
+            if at >= len(lines):
+                raise ValueError("truncated scene")
+            count = next((i for i, t in enumerate(lines[at][1]) if not _NUM.match(t)),
+                         len(lines[at][1]))
+            shaped = shaped_form(code, count, code27)
+            if shaped is None:
+                raise ValueError(f"line {lines[at][0]}: {count} numbers fit no layout of {code}")
+            form = FORMS[shaped]
         extras = []
         if len(toks) > 1 and _NUM.match(toks[1]):        # nw's refraction index
             extras.append(("refraction index", _exact(toks[1])))

@@ -67,7 +67,11 @@ LAYOUT = {"sphere": ("qx", "qy", "qz", "radius", "c", "id", "grp", "bo", "bs"),
                      "yx", "yy", "yz", "id", "grp", "bz", "bm")}
 LAYOUT["tplane"] = LAYOUT["plane"]
 LAYOUT.update({k: ROW_SLOTS for k in QUADRICS})     # rt_core/shapes_quadric.py
-BOUNDED = ("sphere", "fplane") + QUADRICS
+# the planar kinds (rt_core/shapes_planar.py): a triangle's size is |N| twice, a disk's c r²
+LAYOUT["triangle"] = LAYOUT["fplane"]
+LAYOUT["disk"] = ("qx", "qy", "qz", "nq", "nx", "ny", "nz", "g", "c", "xx", "xy", "xz", "radius",
+                  "yx", "yy", "yz", "id", "grp", "bz", "bm")
+BOUNDED = ("sphere", "fplane", "triangle", "disk") + QUADRICS
 
 
 def configure(ks, unroll_max: int | None = None, bins: bool | None = None,
@@ -156,6 +160,10 @@ class KindTable:
             out.xdir = A3(v["xx"], v["xy"], v["xz"])
             out.ydir = A3(v["yx"], v["yy"], v["yz"])
             out.size = (v["w"], v["h"])
+        if self.kind in ("triangle", "disk"):              # rt_core/shapes_planar.py
+            out.xdir = A3(v["xx"], v["xy"], v["xz"])
+            out.ydir = A3(v["yx"], v["yy"], v["yz"])
+            out.c = v.get("c")
         return out
 
 
@@ -274,6 +282,9 @@ def _corners(kind: str, consts) -> np.ndarray:
             w, h = c.size
             out.append([q, q + w * x, q + w * x + h * y, q + h * y])
         return np.array(out, np.float64)
+    if kind in ("triangle", "disk"):
+        from .shapes_planar import planar_corners
+        return planar_corners(kind, consts)
     if kind == "sphere":
         s = np.array([(i, j, k) for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], np.float64)
         q = np.array([c.q for c in consts], np.float64)

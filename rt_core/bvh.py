@@ -67,6 +67,9 @@ ROW = {"sphere": ("qx", "qy", "qz", "radius", "id"),
        "fplane": ("qx", "qy", "qz", "nx", "ny", "nz", "g", "w", "xx", "xy", "xz", "h",
                   "yx", "yy", "yz", "id")}
 ROW.update({k: ROW_SLOTS for k in QUADRICS})      # rt_core/shapes_quadric.py
+ROW["triangle"] = ROW["fplane"]                     # rt_core/shapes_planar.py
+ROW["disk"] = ("qx", "qy", "qz", "nx", "ny", "nz", "g", "c", "xx", "xy", "xz", "radius",
+               "yx", "yy", "yz", "id")
 
 
 @dataclass
@@ -101,6 +104,10 @@ def object_boxes(kind: str, consts) -> tuple[np.ndarray, np.ndarray]:
         return corners.min(1), corners.max(1)
     if kind in QUADRICS:
         return quadric_boxes(consts)
+    if kind in ("triangle", "disk"):
+        from .shapes_planar import planar_corners
+        corners = planar_corners(kind, consts)
+        return corners.min(1), corners.max(1)
     raise ValueError(f"{kind} objects are unbounded: no BVH")
 
 
@@ -240,7 +247,8 @@ def row_view(T, kind: str, rows, k, active=True):
         out.n, out.g = A3(v["nx"], v["ny"], v["nz"]), v["g"]
         out.xdir = A3(v["xx"], v["xy"], v["xz"])
         out.ydir = A3(v["yx"], v["yy"], v["yz"])
-        out.size = (v["w"], v["h"])
+        out.size = (v["w"], v["h"]) if "w" in v else None
+        out.c = v.get("c")
     return out
 
 

@@ -14,6 +14,7 @@ corner-grid (or centre) sample, ``E = world − viewpoint``.  No rounding enters
   a >= 0 and a² <= w²|p|² (a = p·(sE − Q)), and the same for v;
 * sphere: the near root s = (Q·E − √D)/|E|², D = (Q·E)² − |E|²(|Q|² − r²): a hit iff
   D > 0, Q·E > 0 and |Q|² > r²;
+* triangle, disk: the plane's s, then the extent test (rt_core/decide_planar.py);
 * closest hit: the parameters s (numbers of the form α + β√D) are compared exactly; an exact
   tie goes to the rule's object.
 
@@ -29,6 +30,7 @@ from fractions import Fraction
 import numpy as np
 
 from .quadrics import KINDS as QUADRICS, coefficients, equation
+from . import decide_planar
 from .rules import Rules
 from .scene import Scene, exact
 
@@ -86,10 +88,13 @@ class _Exact:
             self.fQ, self.fcc = tuple(float(c) for c in self.Q), float(self.cc)
             self.nQ = math.sqrt(sum(c * c for c in self.fQ))
             return
-        N = tuple(exact(c) for c in obj.given_normal)
-        self.N = N
-        self.Q = tuple(exact(c) - v for c, v in zip(obj.point, V))
-        self.NQ = _dot(N, self.Q)
+        if obj.kind in ("triangle", "disk"):
+            decide_planar.init(self, obj, V)            # rt_core/decide_planar.py
+        else:
+            N = tuple(exact(c) for c in obj.given_normal)
+            self.N = N
+            self.Q = tuple(exact(c) - v for c, v in zip(obj.point, V))
+            self.NQ = _dot(N, self.Q)
         if obj.kind == "fplane":
             O = tuple(exact(c) for c in obj.orient)
             NN = _dot(N, N)
@@ -133,6 +138,8 @@ def _plane(o: _Exact, E, EE, Vz, rules: Rules, tmin2):
                 return None
         elif not (a > 0 and a * a < o.w2 and b > 0 and b * b < o.h2):
             return None
+    if o.kind in ("triangle", "disk") and not decide_planar.inside(o, E, s, rules.edges):
+        return None
     return (s, 0, 0)
 
 

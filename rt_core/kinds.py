@@ -27,6 +27,10 @@ KINDS = {
     "cylinder": Kind("cylinder", 22, True, False),
     "cone": Kind("cone", 23, True, False),
     "ellipsoid": Kind("ellipsoid", -1, True, False),      # keyword only (rm768)
+    # the plane of three points, inside its three edges (README "Triangle"; kinds_planar.py)
+    "triangle": Kind("triangle", 27, True, True),
+    # the plane through a centre, within a radius of it (README "Disk"; kinds_planar.py)
+    "disk": Kind("disk", 29, True, True),
 }
 LIGHTS = {"pointlight": 10, "spotlight": 11}
 
@@ -57,6 +61,8 @@ FORMS = {f.name: f for f in (
     Form("cylinder", "cylinder", 22),      # nw: base centre, centerline, radius height
     Form("cone", "cone", 23),              # nw: apex, centerline, radius height
     Form("ellipsoid", "ellipsoid", None, "ellipsoid"),   # rm768: centre, semi-axes
+    Form("triangle", "triangle", 27, "triangle"),
+    Form("disk", "disk", 29, "disk"),
     # procedural shaders (cbl, cd, m4, nw, sgw): the shader index after the geometry
     Form("psphere", "sphere", 19, None, (("shader", 1),),
          f"procedural sphere: its shader is not implemented, {_MAT_ONLY}"),
@@ -114,6 +120,9 @@ TABLE_NOTES = {
 # MAT (ambient, diffuse, specular), in the order the flags are given
 HEADER_FLAGS = {9000: "transparency", 9001: "refraction index"}
 FLAG_STAND_IN = "{}: recorded, not used in shading (the course's refraction is not implemented)"
+# numeric codes whose field layout differs between course programs, told apart by the line
+# shape (rt_core/kinds_planar.py SHAPED_CODES)
+from .kinds_planar import SHAPED_CODES  # noqa: E402  (a table, like this module)
 KEYWORDS = tuple(f.keyword for f in FORMS.values() if f.keyword)
 CODES = {f.code: f.name for f in FORMS.values() if f.code is not None}
 PLANE_KINDS = tuple(n for n, k in KINDS.items() if k.planar)

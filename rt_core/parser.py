@@ -40,7 +40,10 @@ parses as its own course program read it
     the programs that would allow it silently misread the following line.
   * An object starts with a line whose first number is its integer code: 10 point light,
     13 sphere, 14 plane, 15 finite plane, 16 tiled plane, 22 cylinder, 23 cone (nw's
-    layouts: rt_core/quadrics.py).  A second number on the code line
+    layouts: rt_core/quadrics.py), 27 triangle, 29 disk.  Code 27 is
+    a disk (centre, radius, normal) in nw's older layout: a 27 whose second geometry line
+    starts with 1 number (not 3) is read as a disk, unless the ``code27`` option forces
+    either (rt_core/kinds_planar.py).  A second number on the code line
     is nw's refraction index (``13 1.33``): not supported.  The other codes the course used
     (11-12, 17-29 and cd's 9000/9001 header flags, which add fields to every material) are
     named in the "not supported" error.
@@ -53,7 +56,9 @@ import math
 import re
 from dataclasses import dataclass
 from .inputfile import read_input
-from .kinds import CODE_TABLES, CODES, FORMS, HEADER_FLAGS, KEYWORDS, LIGHTS, Form
+from .kinds import CODE_TABLES, CODES, FORMS, HEADER_FLAGS, KEYWORDS, LIGHTS, SHAPED_CODES, Form
+from .kinds_planar import CODE27_CHOICES, shaped_form
+from .planar import make_disk, make_triangle
 from .quadrics import make_cone, make_cylinder, make_ellipsoid
 from .scene import (GeometryError, Material, Num, PointLight, Scene, SceneError, SpotLight,
                     make_fplane, make_plane, make_sphere, make_tplane)
@@ -85,6 +90,8 @@ _GROUPS = {
                         ("radius height", 2, "r h")),
     "cone": _MAT + (("center", 3, _XYZ), ("centerline", 3, _XYZ), ("radius height", 2, "r h")),
     "ellipsoid": _MAT + (("center", 3, _XYZ), ("semi-axes", 3, "a b c")),
+    "triangle": _MAT + (("point 1", 3, _XYZ), ("point 2", 3, _XYZ), ("point 3", 3, _XYZ)),
+    "disk": _MAT + (("center", 3, _XYZ), ("radius", 1, "r"), ("normal", 3, _XYZ)),
 }
 QUADRIC_MAKERS = {"cylinder": make_cylinder, "cone": make_cone, "ellipsoid": make_ellipsoid}
 _HEADER = (("world window", 2, "w h"), ("viewpoint", 3, _XYZ))
@@ -94,7 +101,8 @@ SUPPORTED_CODES = dict(CODES)
 _CODE_WORDS = {10: "point light", 11: "spotlight", 13: "sphere", 14: "plane",
                15: "finite plane", 16: "tiled plane", 17: "textured plane",
                19: "procedural sphere", 20: "procedural plane", 26: "textured sphere",
-               22: "cylinder", 23: "cone", 28: "displacement sphere"}
+               22: "cylinder", 23: "cone", 27: "triangle (a disk in nw's older layout)",
+               28: "displacement sphere", 29: "disk"}
 _CODE_LIST = ", ".join(f"{c} {_CODE_WORDS[c]}" for c in sorted(CODES))
 
 # kinds the course used that this project does not implement
@@ -112,8 +120,6 @@ _UNSUPPORTED_KEYWORDS = {
     "cone": "cone",
     "hyperboloid": "hyperboloid",
     "torus": "torus",
-    "triangle": "triangle",
-    "disk": "disk",
     "lens": "lens",
 }
 _UNSUPPORTED_CODES = {
@@ -122,8 +128,6 @@ _UNSUPPORTED_CODES = {
     21: "paraboloid",
     24: "hyperboloid",
     25: "torus in nw, lens in cd",
-    27: "triangle; disk in an older nw file",
-    29: "disk",
 }
 
 
@@ -155,6 +159,7 @@ class _Ctx:
         self.path = path
         self.header_at: tuple = ()
         self.flags: tuple = ()
+        self.code27 = "auto"          # parse option: how code 27 is read (kinds_planar.py)
         text = text.lstrip("\ufeff").replace("\r\n", "\n").replace("\r", "\n")
         self.lines: list[list[_Tok]] = []   # tokens per line, comments removed
         for lineno, raw in enumerate(text.split("\n"), 1):
@@ -243,6 +248,8 @@ def _build(ctx: _Ctx, kind: str, start: _Tok, values: list, where: list):
                          start.line)
     mat = Material(tuple(values[0]), tuple(values[1]), tuple(values[2]))
     g = values[3:]
+    if kind in ("triangle", "disk"):
+        return _build_planar(ctx, kind, mat, start, g, where)
     try:
         if kind == "sphere":
             return make_sphere(mat, tuple(g[0]), g[1][0], start.line)
@@ -259,6 +266,19 @@ def _build(ctx: _Ctx, kind: str, start: _Tok, values: list, where: list):
     except GeometryError as exc:
         raise ctx.error(f"{kind}: {_geometry_message(kind, str(exc))}",
                         _geometry_location(kind, str(exc), start, g, where)) from None
+
+
+def _build_planar(ctx: _Ctx, kind: str, mat, start: _Tok, g: list, where: list):
+    """A triangle (three points) or disk (centre, radius, normal); a geometry error points
+    at the group it is about (the triangle's third point, the disk's radius or normal)."""
+    try:
+        if kind == "triangle":
+            return make_triangle(mat, tuple(g[0]), tuple(g[1]), tuple(g[2]), start.line)
+        return make_disk(mat, tuple(g[0]), g[1][0], tuple(g[2]), start.line)
+    except GeometryError as exc:
+        msg = str(exc)
+        at = where[5][0] if kind == "triangle" or msg.startswith("normal") else where[4][0]
+        raise ctx.error(f"{kind}: {msg}", at) from None
 
 
 def _geometry_message(kind: str, msg: str) -> str:
@@ -467,6 +487,10 @@ def _parse_numeric(ctx: _Ctx, table: dict | None = None):
             raise ctx.error(f"unknown object code {code}; expected {_CODE_LIST}", start)
         form = FORMS[SUPPORTED_CODES[code]]
         extras = []
+        if code in SHAPED_CODES:          # 27: a triangle, or a disk in nw's older layout
+            form = _shaped(ctx, code, content, idx, len(flags), lead_count, start)
+            how = "the line shape" if ctx.code27 == "auto" else "the code27 option"
+            extras.append((f"code {code} read as", f"{form.kind} (by {how})"))
         if lead_count(toks) > 1:          # nw: a refraction index after the code, recorded
             if form.kind in LIGHTS:
                 raise ctx.error(f"{code} ({form.kind}): expected the code alone on its line, "
@@ -478,10 +502,33 @@ def _parse_numeric(ctx: _Ctx, table: dict | None = None):
     return window, viewpoint, lights, objects
 
 
+def _shaped(ctx: _Ctx, code: int, content: list, idx: int, nflags: int, lead_count,
+            start: _Tok) -> Form:
+    """The form of a code whose layout the course programs disagree on (kinds_planar.py):
+    forced by the parse option, else told by how many numbers its distinguishing geometry
+    line (after the code line, the MAT's three lines and one line per header flag) starts
+    with."""
+    geo, by_count = SHAPED_CODES[code]
+    at = idx + 1 + 3 + nflags + geo
+    count = lead_count(content[at]) if at < len(content) else None
+    name = shaped_form(code, count, ctx.code27)
+    if name is None:
+        layouts = " or ".join(f"{n} ({FORMS[f].kind})" for n, f in sorted(by_count.items(),
+                                                                           reverse=True))
+        found = "end of file" if count is None else f"{_numbers(count)}"
+        where = ctx.eof if count is None else content[at][0]
+        raise ctx.error(f"{code}: its geometry line {geo + 1} must start with {layouts} "
+                        f"numbers, found {found}; force a layout with --code27", where)
+    return FORMS[name]
+
+
 # --- public API ---------------------------------------------------------------------------
 
-def _parse(text: str, path: str, sha: str) -> Scene:
+def _parse(text: str, path: str, sha: str, code27: str = "auto") -> Scene:
     ctx = _Ctx(text, path)
+    if code27 not in CODE27_CHOICES:
+        raise ValueError(f"code27 must be one of {', '.join(CODE27_CHOICES)}, not {code27!r}")
+    ctx.code27 = code27
     if not any(ctx.lines):
         raise ctx.error("empty scene file: expected the world window (w h), the viewpoint "
                         "(x y z), then objects", (1, 1))
@@ -497,6 +544,7 @@ def _parse(text: str, path: str, sha: str) -> Scene:
             for table, codes in CODE_TABLES.items():
                 try:
                     ctx = _Ctx(text, path)
+                    ctx.code27 = code27
                     window, viewpoint, lights, objects = _parse_numeric(ctx, codes)
                     break
                 except SceneError:
@@ -508,18 +556,22 @@ def _parse(text: str, path: str, sha: str) -> Scene:
                  header_at=ctx.header_at, flags=ctx.flags, table=table)
 
 
-def parse_text(text: str | bytes, path: str = "<string>") -> Scene:
+def parse_text(text: str | bytes, path: str = "<string>", code27: str = "auto") -> Scene:
     """Parse scene text (either dialect); ``path`` is used in messages and ``Scene.path``.
-    ``Scene.sha256`` is the hash of the bytes given, or of the UTF-8 encoded text."""
+    ``Scene.sha256`` is the hash of the bytes given, or of the UTF-8 encoded text.
+    ``code27``: 'auto' (by the line shape), 'triangle' or 'disk' (rt_core/kinds_planar.py)."""
     if isinstance(text, (bytes, bytearray)):
         data = bytes(text)
-        return _parse(data.decode("utf-8", "replace"), path, hashlib.sha256(data).hexdigest())
-    return _parse(text, path, hashlib.sha256(text.encode("utf-8", "surrogatepass")).hexdigest())
+        return _parse(data.decode("utf-8", "replace"), path, hashlib.sha256(data).hexdigest(),
+                      code27)
+    return _parse(text, path, hashlib.sha256(text.encode("utf-8", "surrogatepass")).hexdigest(),
+                  code27)
 
 
-def parse_scene(path) -> Scene:
+def parse_scene(path, code27: str = "auto") -> Scene:
     """Parse a scene file (either dialect). ``Scene.sha256`` is the hash of the file's bytes.
 
     Raises SceneError for any problem in the content; OSError (missing file, ...) as is."""
     data = read_input(path, "scene")
-    return _parse(data.decode("utf-8", "replace"), str(path), hashlib.sha256(data).hexdigest())
+    return _parse(data.decode("utf-8", "replace"), str(path), hashlib.sha256(data).hexdigest(),
+                  code27)

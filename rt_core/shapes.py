@@ -113,6 +113,9 @@ def object_constants(scene: Scene) -> list[ObjectConstants]:
         if o.kind in QUADRIC_KINDS:                 # rt_core/shapes_quadric.py
             out.append(quadric_constants(i, o, V, groups))
             continue
+        if o.kind in ("triangle", "disk"):          # rt_core/shapes_planar.py
+            out.append(_planar().planar_constants(i, o, V, groups, scene.viewpoint[2]))
+            continue
         if isinstance(o, Sphere):
             Q = tuple(exact(c) - v for c, v in zip(o.center, V))
             r = exact(o.radius)
@@ -629,8 +632,19 @@ def sphere_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = F
 from .quadrics import KINDS as QUADRIC_KINDS  # noqa: E402  (the quadrics' kernel uses the above)
 from .shapes_quadric import quadric_constants, quadric_t  # noqa: E402
 
+
+def _planar():
+    from . import shapes_planar          # (it imports this module's helpers)
+    return shapes_planar
+
+
+def planar_t(*args, **kw):
+    return _planar().planar_t(*args, **kw)
+
+
 OBJECT_T = {"sphere": sphere_t, "plane": plane_t, "fplane": fplane_t, "tplane": plane_t,
-            "cylinder": quadric_t, "cone": quadric_t, "ellipsoid": quadric_t}
+            "cylinder": quadric_t, "cone": quadric_t, "ellipsoid": quadric_t,
+            "triangle": planar_t, "disk": planar_t}
 
 
 def object_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = False):

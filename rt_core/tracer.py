@@ -402,9 +402,14 @@ def surface(ks: KernelScene, d, t, oid, hit, o=None):
         nq = quadric_normal(ks, d, t, idx, hit, o)
         isq = True if kind is None else quadric_code(kind)
         normal = nq if kind is None and len(kinds) == 1 else dr.select(isq, nq, normal)
-    if "fplane" in kinds or "tplane" in kinds:
-        planar = True if kind is None else ((kind == KIND_CODE["fplane"]) |
-                                            (kind == KIND_CODE["tplane"]))
+    framed = [k for k in ("fplane", "tplane", "triangle", "disk") if k in kinds]
+    if framed:
+        # the kinds whose uv is the frame's (a triangle's: barycentric; rt_core/planar.py)
+        planar = True
+        if kind is not None:
+            planar = kind == KIND_CODE[framed[0]]
+            for k in framed[1:]:
+                planar |= kind == KIND_CODE[k]
         # the seed's newhit.xy as u·(n·d) = ŷ·(q×d), v·(n·d) = −x̂·(q×d) (see shapes.py),
         # one correctly rounded division each
         c = dr.cross(q, d)

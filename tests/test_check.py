@@ -26,7 +26,18 @@ from tools.harness.check import CLASSES, check_image, check_run
 REPO = Path(__file__).resolve().parents[1]
 CT = REPO / "tests" / "ctracer"
 COURSE = REPO.parent / "shared" / "course-scenes"
-SCENES = sorted((REPO / "scenes").glob("*.txt")) + sorted((CT / "scenes").glob("*.txt"))
+# the C test tracer reads the course's original kinds; scenes with kinds it does not have
+# (triangle, disk: their check is in tests/test_planar.py) are left out here
+CT_KINDS = {"sphere", "plane", "fplane", "tplane"}
+
+
+def _ct_scene(path) -> bool:
+    from rt_core.parser import parse_scene
+    return {o.kind for o in parse_scene(path).objects} <= CT_KINDS
+
+
+SCENES = [p for p in sorted((REPO / "scenes").glob("*.txt")) + sorted((CT / "scenes").glob(
+    "*.txt")) if _ct_scene(p)]
 
 
 @pytest.fixture(scope="session")
@@ -70,8 +81,7 @@ def _course_sample():
             continue
         try:
             sc = parse_scene(p)
-            # the kinds the C test tracer (tests/ctracer) implements
-            if sc.objects and set(sc.kinds()) <= {"sphere", "plane", "fplane", "tplane"}:
+            if sc.objects and {o.kind for o in sc.objects} <= CT_KINDS:
                 out.append(p)
         except SceneError:
             pass

@@ -121,7 +121,10 @@ def _near(xs, W, H, rel=1e-7):
                 near |= np.abs(b) <= rel * np.linalg.norm(Q)
                 t = np.where((D > 0) & (b > 0) & (cc > 0), (b - np.sqrt(np.maximum(D, 0))), np.nan)
             else:
-                N, Q = fl(o.normal), fl(o.point) - V
+                if o.kind in ("triangle", "disk"):
+                    N, Q = _planar_plane(o, V)
+                else:
+                    N, Q = fl(o.normal), fl(o.point) - V
                 nd = d @ N
                 near |= np.abs(nd) <= rel * (np.abs(d) @ np.abs(N))
                 t = (N @ Q) / nd
@@ -140,12 +143,40 @@ def _near(xs, W, H, rel=1e-7):
                     for m in (u, w - u, v, h - v):
                         near |= np.abs(m) <= sc
                     t = np.where((u >= -sc) & (u <= w + sc) & (v >= -sc) & (v <= h + sc), t, np.nan)
+                if o.kind in ("triangle", "disk"):
+                    m, sc = _planar_margin(o, t[:, None] * d + V)
+                    near |= np.abs(m) <= rel * sc
+                    t = np.where(m >= -rel * sc, t, np.nan)
                 t = np.where(t > 0, t, np.nan)
         ts.append(t)
     if len(ts) > 1:
         T = np.sort(np.stack(ts), axis=0)
         near |= np.nan_to_num(np.abs(T[1] - T[0]) <= rel * np.abs(T[0]), nan=False)
     return near
+
+
+def _planar_plane(o, V):
+    """(N, anchor − V) of a triangle (N = (P2 − P1) × (P3 − P1)) or disk, in float64."""
+    fl = lambda v: np.array([float(c) for c in v])
+    if o.kind == "triangle":
+        P = [fl(p) for p in o.points]
+        return np.cross(P[1] - P[0], P[2] - P[0]), P[0] - V
+    return fl(o.normal), fl(o.center) - V
+
+
+def _planar_margin(o, H):
+    """(signed distance of the hits H inside the triangle's edges or the disk's rim, the
+    scale of the numbers it is computed from)."""
+    fl = lambda v: np.array([float(c) for c in v])
+    if o.kind == "disk":
+        C, r = fl(o.center), float(o.radius)
+        dist = np.linalg.norm(H - C, axis=1)
+        return r - dist, dist + r + np.linalg.norm(C)
+    P = [fl(p) for p in o.points]
+    N = np.cross(P[1] - P[0], P[2] - P[0])
+    ms = [(np.cross(B - A, H - A) @ N) / (np.linalg.norm(N) * np.linalg.norm(B - A))
+          for A, B in ((P[0], P[1]), (P[1], P[2]), (P[2], P[0]))]
+    return np.min(ms, axis=0), np.linalg.norm(H, axis=1) + sum(np.linalg.norm(p) for p in P)
 
 
 def _supported():

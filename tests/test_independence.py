@@ -23,7 +23,8 @@ from rt_core.kinds import KIND_CODE, KINDS
 REPO = Path(__file__).resolve().parents[1]
 REFERENCES = ("mitsuba_ref.oracle", "mitsuba_ref.exact", "mitsuba_ref.scenefile",
               "mitsuba_ref.geometry", "mitsuba_ref.explain", "mitsuba_ref.convert",
-              "mitsuba_ref.reference", "mitsuba_ref.integrator")
+              "mitsuba_ref.reference", "mitsuba_ref.integrator", "mitsuba_ref.oracle_planar",
+              "mitsuba_ref.exact_planar", "mitsuba_ref.convert_planar")
 FORBIDDEN = ("rt_core.scene", "rt_core.parser", "rt_core.camera", "rt_core.shapes",
              "rt_core.tracer", "rt_core.accel", "rt_core.decide", "rt_core.shading",
              "rt_core.render", "rt_core.quadrics", "rt_core.shapes_quadric")

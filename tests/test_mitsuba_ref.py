@@ -62,7 +62,10 @@ def test01_xml_loads_and_equals_dict(path, tmp_path):
     mi = mitsuba()
     scene = parse_scene(path)
     xml = tmp_path / "scene.xml"
-    xml.write_text(scene_xml(scene, 48, 36))
+    files = {}                          # triangles: PLY files beside the XML
+    xml.write_text(scene_xml(scene, 48, 36, files=files, stem=xml.name))
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
     a = np.asarray(mi.render(mi.load_file(str(xml), optimize=False)))
     b = np.asarray(mi.render(mi.load_dict(scene_dict(scene, 48, 36), optimize=False)))
     assert a.shape == (36, 48, 9)

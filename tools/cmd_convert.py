@@ -5,7 +5,7 @@ import sys
 import os
 from pathlib import Path
 
-from .options import add_max_dist, add_rules, positive_int
+from .options import add_code27, add_max_dist, add_rules, positive_int
 
 
 def add_parser(sub) -> None:
@@ -32,6 +32,7 @@ def add_parser(sub) -> None:
     add_rules(p, "--shading/--aovs: the hit-rule variants the integrator uses (as in rtval "
                  "render)")
     add_max_dist(p, "--shading: reflections stop at this path length (default 1000)")
+    add_code27(p)
     p.add_argument("-o", "--output", required=True, metavar="OUT.xml",
                    help="the Mitsuba 3 XML scene to write")
     p.set_defaults(func=run, usage_error=p.error)
@@ -46,18 +47,21 @@ def run(args) -> int:
     parent = os.path.dirname(os.path.abspath(args.output))
     if not os.path.isdir(parent):
         raise InputError(f"{args.output}: no directory {parent}; create it first")
-    scene = parse_scene(args.scene)
+    scene = parse_scene(args.scene, code27=args.code27)
     setup = sensor_setup(scene, args.columns, args.rows, args.sampling)
     course = args.shading or args.aovs
     if setup.note and not course:           # the course integrator makes its own rays
         print(f"rtval convert: warning: {setup.note}", file=sys.stderr)
     if not course and (args.rules or args.max_dist is not None):
         args.usage_error("--rules and --max-dist go with --shading or --aovs")
+    plys: dict = {}                         # triangles: a PLY file each, beside the XML
     xml = scene_xml(scene, args.columns, args.rows, args.sampling, args.shading,
                     rules=args.rules, max_dist=DEFAULT_MAX_DIST if args.max_dist is None else args.max_dist,
-                    aovs=args.aovs)
+                    aovs=args.aovs, files=plys, stem=Path(args.output).name)
     for note in oracle_only(scene, course):
         print(f"rtval convert: note: {note}", file=sys.stderr)
+    for name, text in plys.items():
+        atomic_write(os.path.join(parent, name), lambda tmp, text=text: Path(tmp).write_text(text))
     atomic_write(args.output, lambda tmp: Path(tmp).write_text(xml))
     print(f"{args.output}: {len(scene.objects)} shapes, {setup.columns}x{setup.rows}",
           file=sys.stderr)

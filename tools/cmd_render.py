@@ -11,7 +11,7 @@ import os
 import tempfile
 import sys
 
-from .options import add_image_options, add_max_dist, positive_int
+from .options import add_code27, add_image_options, add_max_dist, positive_int
 
 
 def add_parser(sub) -> None:
@@ -24,6 +24,7 @@ def add_parser(sub) -> None:
     p.add_argument("scene", help="course scene file (keyword or numeric dialect); with "
                                  "--mitsuba a Mitsuba XML scene from rtval convert --shading")
     add_image_options(p, columns_required=False)
+    add_code27(p)
     for a in p._actions:        # required, except with --mitsuba (checked in run)
         if a.dest == "columns":
             a.default, a.help = None, "image width in pixels (required unless --mitsuba)"
@@ -144,7 +145,7 @@ def run(args) -> int:
     shade = bool(args.ppm or args.png or args.shade)
     for _, path in outs:
         _check_writable(path)
-    scene = parse_scene(args.scene)
+    scene = parse_scene(args.scene, code27=args.code27)
     phase("parse")
     T = backend.types(args.precision, args.backend)
     cam = make_camera(scene, args.columns, args.rows, args.sampling, rules)

@@ -89,6 +89,14 @@ def add_rules(p: argparse.ArgumentParser, help: str = RULES_HELP) -> None:
     p.add_argument("--rules", type=rules_arg, default=None, metavar="NAME=VALUE,...", help=help)
 
 
+def add_code27(p: argparse.ArgumentParser) -> None:
+    """--code27 auto|triangle|disk: how the numeric code 27 is read (rt_core/kinds_planar.py)."""
+    from rt_core.kinds_planar import CODE27_CHOICES
+    p.add_argument("--code27", choices=CODE27_CHOICES, default="auto",
+                   help="numeric code 27: a triangle (nw's final program) or a disk (nw's "
+                        "older layout); default auto: by the line shape (README \"Triangle\")")
+
+
 def add_max_dist(p: argparse.ArgumentParser, help: str) -> None:
     """--max-dist D: the notes' MAX_DIST, where reflections stop (None: the default, 1000)."""
     p.add_argument("--max-dist", type=nonneg_float, default=None, metavar="D", help=help)

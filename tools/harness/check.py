@@ -46,10 +46,12 @@ DEFAULT_MAX_DIST = 1000.0
 MAX_DISTS = (1000.0, 20.0, 30.0, 50.0, 70.0, 200.0, 50000.0)
 # (rule, values with the notes' first, which scenes it can matter in)
 DIMENSIONS = (
-    ("edges", ("closed", "open"), lambda k: "fplane" in k),
-    ("screen_clip", (">", ">="), lambda k: bool(set(k) & {"plane", "fplane", "tplane"})),
+    ("edges", ("closed", "open"), lambda k: bool(set(k) & {"fplane", "triangle", "disk"})),
+    ("screen_clip", (">", ">="), lambda k: bool(set(k) & {"plane", "fplane", "tplane",
+                                                          "triangle", "disk"})),
     ("ties", ("first", "last"), lambda k: len(k) > 0),
-    ("t_min", (0.0, 1e-4, 1e-5), lambda k: bool(set(k) & {"plane", "fplane", "tplane"})),
+    ("t_min", (0.0, 1e-4, 1e-5), lambda k: bool(set(k) & {"plane", "fplane", "tplane",
+                                                          "triangle", "disk"})),
     ("clip_spheres", (False, True), lambda k: "sphere" in k),
     ("max_dist", MAX_DISTS, None),
     ("reflect", ("total", "segment"), "specular"),
@@ -58,8 +60,9 @@ DIMENSIONS = (
     ("tile_project", (True, False), lambda k: "tplane" in k),
 )
 WORDS = {
-    ("edges", "open"): "finite-plane edges are open (0 < u < w): the notes' bounds are closed, "
-                       "0 <= u <= w, so rays exactly through an edge are lost",
+    ("edges", "open"): "finite-plane edges are open (0 < u < w; a triangle's or disk's edge "
+                       "too): the notes' bounds are closed, 0 <= u <= w, so rays exactly "
+                       "through an edge are lost",
     ("screen_clip", ">="): "hits exactly in the window plane (z = 0) are clipped: the notes clip "
                            "only z > 0, so a plane lying in z = 0 should be visible",
     ("ties", "last"): "an exact tie goes to the later object (a list built by inserting at the "

@@ -46,7 +46,7 @@ from mitsuba_ref.explain import EPS32, K_ROUNDING, ObjectEval
 CLASSES = ("agree", "edge", "silhouette", "graze", "clip", "light", "origin", "tie", "extent",
            "unexplained")
 CLASS_CODE = {c: i for i, c in enumerate(CLASSES)}
-PLANE_KINDS = {"plane", "fplane", "tplane"}
+PLANE_KINDS = {"plane", "fplane", "tplane", "triangle", "disk"}
 
 
 # --- Mitsuba: the scene without the surface a ray leaves -------------------------------------
@@ -153,7 +153,7 @@ def _near_boundary(ev: ObjectEval, b, t_hi):
         out[mask & (out == "")] = name
 
     reach = np.isfinite(ev.t) & (ev.t >= -b) & (ev.t <= t_hi + b)
-    if ev.kind == "fplane":
+    if ev.kind in ("fplane", "triangle", "disk"):
         mark(reach & (np.abs(ev.margin) <= b), "edge")
     if ev.kind == "sphere":
         mark(reach & (ev.margin <= b), "silhouette")
