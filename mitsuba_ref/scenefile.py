@@ -21,7 +21,8 @@ from decimal import Decimal
 from fractions import Fraction
 
 from rt_core.inputfile import read_input
-from rt_core.kinds import HEADER_FLAGS, KEYWORDS, KINDS, LIGHTS, form_of_code, form_of_keyword
+from rt_core.kinds import (FORMS, HEADER_FLAGS, KEYWORDS, KINDS, LIGHTS, SHARED_CODES,
+                           form_of_code, form_of_keyword)
 
 # number groups after the type token: (field, count); None = not geometry (materials)
 LAYOUT = {
@@ -53,7 +54,7 @@ class Item:
         f = self.__dict__.get("f", {})
         if name in f:
             v = f[name]
-            return v[0] if name in ("radius", "theta") else v
+            return v[0] if name in ("radius", "theta", "major", "minor") else v
         raise AttributeError(name)
 
 
@@ -165,6 +166,14 @@ def _keyword(lines) -> File:
     return File(window, viewpoint, tuple(lights), tuple(objects), "keyword")
 
 
+def _lead(toks):
+    """The leading number tokens of a line."""
+    for t in toks:
+        if not _NUM.match(t):
+            return
+        yield t
+
+
 def _numeric(lines) -> File:
     idx = 0
 
@@ -199,7 +208,13 @@ def _numeric(lines) -> File:
         if code in HEADER_FLAGS:
             flags.append(code)
             continue
-        form = form_of_code(code)
+        form = None if code in SHARED_CODES else form_of_code(code)
+        # code 25: cd's lens with cd's header flags, or a single number after the centre
+        # (nw's torus has its 3-number axis there): MAT 3 lines, the flags', the centre
+        after = idx + 3 + len(flags) + 1
+        if code in SHARED_CODES and (flags or (after < len(lines) and sum(
+                1 for _ in _lead(lines[after][1])) == 1)):
+            form = FORMS[SHARED_CODES[code]]
         extras = []
         if len(toks) > 1 and _NUM.match(toks[1]):        # nw's refraction index
             extras.append(("refraction index", _exact(toks[1])))

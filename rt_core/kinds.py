@@ -66,7 +66,17 @@ FORMS = {f.name: f for f in (
     Form("sphere_pixmap", "sphere", None, "sphere_pixmap",
          (("brightness", 1), ("forward", 3), ("texture", 0)),
          f"texture-mapped sphere: its texture is not applied, {_MAT_ONLY}"),
+    # cd's lens (code 25 in cd files): centre, radius.  cd's lens.c is a sphere hit only
+    # from inside (the negated near root) that refracts: traced here as the sphere
+    Form("lens", "sphere", None, None, (),
+         "cd's lens (code 25): traced as the sphere (centre, radius); cd's lens.c hits it "
+         f"only from inside and refracts, which is not implemented: {_MAT_ONLY}"),
 )}
+# code 25 is nw's torus and cd's lens: a file's 25 is the lens when it has cd's header flags
+# (9000/9001), or else when the line after the centre has one number (the lens's radius; the
+# torus has its axis there, 3 numbers).  Both readers apply this rule (rt_core/parser.py,
+# mitsuba_ref/scenefile.py)
+SHARED_CODES = {25: "lens"}
 # cd's header flags (numeric dialect, after the viewpoint): each adds one number after every
 # MAT (ambient, diffuse, specular), in the order the flags are given
 HEADER_FLAGS = {9000: "transparency", 9001: "refraction index"}

@@ -52,7 +52,7 @@ import math
 import re
 from dataclasses import dataclass
 from .inputfile import read_input
-from .kinds import CODES, FORMS, HEADER_FLAGS, KEYWORDS, LIGHTS, Form
+from .kinds import CODES, FORMS, HEADER_FLAGS, KEYWORDS, LIGHTS, SHARED_CODES, Form
 from .scene import (GeometryError, Material, Num, PointLight, Scene, SceneError, SpotLight,
                     make_fplane, make_plane, make_sphere, make_tplane)
 
@@ -86,7 +86,8 @@ SUPPORTED_KEYWORDS = KEYWORDS
 SUPPORTED_CODES = dict(CODES)
 _CODE_WORDS = {10: "point light", 11: "spotlight", 13: "sphere", 14: "plane",
                15: "finite plane", 16: "tiled plane", 17: "textured plane",
-               19: "procedural sphere", 20: "procedural plane", 26: "textured sphere"}
+               19: "procedural sphere", 20: "procedural plane",
+               26: "textured sphere"}
 _CODE_LIST = ", ".join(f"{c} {_CODE_WORDS[c]}" for c in sorted(CODES))
 
 # kinds the course used that this project does not implement
@@ -104,10 +105,10 @@ _UNSUPPORTED_KEYWORDS = {
     "cylinder": "cylinder",
     "cone": "cone",
     "hyperboloid": "hyperboloid",
-    "torus": "torus",
+    "torus": "torus: only numeric code 25 is read",
     "triangle": "triangle",
     "disk": "disk",
-    "lens": "lens",
+    "lens": "lens: only cd's numeric code 25 is read",
 }
 _UNSUPPORTED_CODES = {
     12: "projector",
@@ -116,7 +117,7 @@ _UNSUPPORTED_CODES = {
     22: "cylinder",
     23: "cone",
     24: "hyperboloid",
-    25: "torus in nw, lens in cd",
+    25: "torus in nw; cd's lens is read",
     27: "triangle; disk in an older nw file",
     28: "displacement sphere",
     29: "disk",
@@ -271,6 +272,9 @@ def _geometry_location(kind: str, msg: str, start: _Tok, g: list, where: list):
         return where[6][0] if not g[3][0] > 0 else where[6][1]
     if msg.startswith("radius"):
         return where[4][0]
+    if kind == "torus":          # centre, axis, major radius, minor radius
+        return {"axis": where[4], "major": where[5], "minor": where[6]}.get(
+            msg.split()[0], [start])[0]
     return start
 
 
@@ -435,11 +439,12 @@ def _parse_numeric(ctx: _Ctx):
             flags.append(code)
             idx += 1
             continue
-        if code not in SUPPORTED_CODES:
+        lens = code in SHARED_CODES and _shared_code_form(content, idx, flags)
+        if code not in SUPPORTED_CODES and not lens:
             if code in _UNSUPPORTED_CODES:
                 raise _unsupported_code(ctx, code, start)
             raise ctx.error(f"unknown object code {code}; expected {_CODE_LIST}", start)
-        form = FORMS[SUPPORTED_CODES[code]]
+        form = FORMS[SHARED_CODES[code] if lens else SUPPORTED_CODES[code]]
         extras = []
         if lead_count(toks) > 1:          # nw: a refraction index after the code, recorded
             if form.kind in LIGHTS:
@@ -450,6 +455,23 @@ def _parse_numeric(ctx: _Ctx):
         _read_object(ctx, form, start, group, word, lights, objects, flags, extras)
     ctx.flags = tuple(flags)
     return window, viewpoint, lights, objects
+
+
+def _shared_code_form(content: list, idx: int, flags) -> bool:
+    """Is the object whose code is on content[idx] written in the other course program's
+    layout (kinds.SHARED_CODES: 25 is cd's lens, not nw's torus)?  Yes with cd's header
+    flags; else by the line shape: the lens has one number (its radius) on the line after
+    the centre, the torus three (its axis)."""
+    if flags:
+        return True
+    after = idx + 1 + 3 + 1                 # code line, MAT (3 lines), centre
+    if after >= len(content):
+        return False                        # truncated: read as the torus, which reports it
+    toks = content[after]
+    k = 0
+    while k < len(toks) and _NUMBER.match(toks[k].text):
+        k += 1
+    return k == 1
 
 
 # --- public API ---------------------------------------------------------------------------
