@@ -35,6 +35,8 @@ LAYOUT = {
     "tplane": (("ambient", 3), ("diffuse", 3), ("specular", 3), ("normal", 3), ("point", 3),
                ("orient", 3), ("size", 2), ("bg_ambient", 3), ("bg_diffuse", 3),
                ("bg_specular", 3)),
+    "torus": (("ambient", 3), ("diffuse", 3), ("specular", 3), ("center", 3), ("axis", 3),
+              ("major", 1), ("minor", 1)),
 }
 _NUM = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?\Z")
 
@@ -208,7 +210,7 @@ def _numeric(lines) -> File:
         if code in HEADER_FLAGS:
             flags.append(code)
             continue
-        form = None if code in SHARED_CODES else form_of_code(code)
+        form = form_of_code(code)
         # code 25: cd's lens with cd's header flags, or a single number after the centre
         # (nw's torus has its 3-number axis there): MAT 3 lines, the flags', the centre
         after = idx + 3 + len(flags) + 1

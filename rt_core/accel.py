@@ -64,7 +64,9 @@ LAYOUT = {"sphere": ("qx", "qy", "qz", "radius", "c", "id", "grp", "bo", "bs"),
           "fplane": ("qx", "qy", "qz", "nq", "nx", "ny", "nz", "g", "w", "xx", "xy", "xz", "h",
                      "yx", "yy", "yz", "id", "grp", "bz", "bm")}
 LAYOUT["tplane"] = LAYOUT["plane"]
-BOUNDED = ("sphere", "fplane")
+LAYOUT["torus"] = ("qx", "qy", "qz", "radius", "c", "nx", "ny", "nz", "w", "h", "id", "grp",
+                   "bo", "bs")
+BOUNDED = ("sphere", "fplane", "torus")
 
 
 def configure(ks, unroll_max: int | None = None, bins: bool | None = None,
@@ -140,7 +142,10 @@ class KindTable:
                               q=A3(v["qx"], v["qy"], v["qz"]))
         for k in names[names.index("grp") + 1:]:      # the certified decisions' bounds
             setattr(out, k, wide[k] if k in wide else v[k])
-        if self.kind == "sphere":
+        if self.kind == "torus":
+            out.radius, out.c, out.size = v["radius"], v["c"], (v["w"], v["h"])
+            out.n = A3(v["nx"], v["ny"], v["nz"])
+        elif self.kind == "sphere":
             out.radius, out.c = v["radius"], v["c"]
         else:
             out.n, out.nq = A3(v["nx"], v["ny"], v["nz"]), v["nq"]
@@ -213,6 +218,8 @@ def never_hit(kind: str, consts) -> np.ndarray:
     (n·q = 0: t = 0).  Both signs are exact (host constants rounded once)."""
     if kind == "sphere":
         return np.array([not c.c > 0 for c in consts], bool)
+    if kind == "torus":
+        return np.zeros(len(consts), bool)
     return np.array([c.nq == 0 for c in consts], bool)
 
 
@@ -266,7 +273,7 @@ def _corners(kind: str, consts) -> np.ndarray:
             w, h = c.size
             out.append([q, q + w * x, q + w * x + h * y, q + h * y])
         return np.array(out, np.float64)
-    if kind == "sphere":
+    if kind in ("sphere", "torus"):              # a torus: its bounding sphere
         s = np.array([(i, j, k) for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], np.float64)
         q = np.array([c.q for c in consts], np.float64)
         r = np.array([c.radius for c in consts], np.float64) * (1 + MARGIN)

@@ -63,7 +63,8 @@ NODE = 8
 # faster than one gather per constant on the LLVM backend)
 ROW = {"sphere": ("qx", "qy", "qz", "radius", "id"),
        "fplane": ("qx", "qy", "qz", "nx", "ny", "nz", "g", "w", "xx", "xy", "xz", "h",
-                  "yx", "yy", "yz", "id")}
+                  "yx", "yy", "yz", "id"),
+       "torus": ("qx", "qy", "qz", "radius", "c", "nx", "ny", "nz", "w", "h", "id")}
 
 
 @dataclass
@@ -96,6 +97,13 @@ def object_boxes(kind: str, consts) -> tuple[np.ndarray, np.ndarray]:
         ex, ey = x * wh[:, :1], y * wh[:, 1:]
         corners = np.stack([q, q + ex, q + ey, q + ex + ey], 1)
         return corners.min(1), corners.max(1)
+    if kind == "torus":
+        # the ring's extent along axis i is R·√(1 − â_i²), plus the tube's r
+        q = np.array([c.q for c in consts], np.float64).reshape(-1, 3)
+        a = np.array([c.n for c in consts], np.float64).reshape(-1, 3)
+        R, r = (np.array([c.size[j] for c in consts], np.float64)[:, None] for j in (0, 1))
+        ext = R * np.sqrt(np.clip(1 - a * a, 0, 1)) + r
+        return q - ext, q + ext
     raise ValueError(f"{kind} objects are unbounded: no BVH")
 
 
@@ -227,7 +235,10 @@ def row_view(T, kind: str, rows, k, active=True):
     v = dict(zip(ROW[kind], g))
     A3 = T.Array3
     out = SimpleNamespace(kind=kind, id=T.Int32(v["id"]), q=A3(v["qx"], v["qy"], v["qz"]))
-    if kind == "sphere":
+    if kind == "torus":
+        out.radius, out.c, out.size = v["radius"], v["c"], (v["w"], v["h"])
+        out.n = A3(v["nx"], v["ny"], v["nz"])
+    elif kind == "sphere":
         out.radius = v["radius"]
     else:
         out.n, out.g = A3(v["nx"], v["ny"], v["nz"]), v["g"]

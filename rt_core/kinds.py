@@ -23,6 +23,10 @@ KINDS = {
     "plane": Kind("plane", 14, False, True),
     "fplane": Kind("fplane", 15, True, True),
     "tplane": Kind("tplane", 16, False, True),
+    # nw's torus (nw__t.txt): centre, axis (normal of its plane), major radius R, minor r;
+    # the surface (|w|² + R² − r²)² = 4R²(|w|² − (w·â)²), w = x − centre (a ring torus,
+    # 0 < r < R).  Code 25 is also cd's lens: see SHARED_CODES
+    "torus": Kind("torus", 25, True, False),
 }
 LIGHTS = {"pointlight": 10, "spotlight": 11}
 
@@ -66,6 +70,7 @@ FORMS = {f.name: f for f in (
     Form("sphere_pixmap", "sphere", None, "sphere_pixmap",
          (("brightness", 1), ("forward", 3), ("texture", 0)),
          f"texture-mapped sphere: its texture is not applied, {_MAT_ONLY}"),
+    Form("torus", "torus", 25),
     # cd's lens (code 25 in cd files): centre, radius.  cd's lens.c is a sphere hit only
     # from inside (the negated near root) that refracts: traced here as the sphere
     Form("lens", "sphere", None, None, (),

@@ -55,6 +55,7 @@ from .inputfile import read_input
 from .kinds import CODES, FORMS, HEADER_FLAGS, KEYWORDS, LIGHTS, SHARED_CODES, Form
 from .scene import (GeometryError, Material, Num, PointLight, Scene, SceneError, SpotLight,
                     make_fplane, make_plane, make_sphere, make_tplane)
+from .torus import make_torus
 
 __all__ = ["parse_scene", "parse_text", "SUPPORTED_KEYWORDS", "SUPPORTED_CODES"]
 
@@ -79,6 +80,8 @@ _GROUPS = {
                       ("tile size", 2, "w h"), ("background ambient", 3, "r g b"),
                       ("background diffuse", 3, "r g b"),
                       ("background specular", 3, "r g b")),
+    "torus": _MAT + (("center", 3, _XYZ), ("axis", 3, _XYZ), ("major radius", 1, "R"),
+                     ("minor radius", 1, "r")),
 }
 _HEADER = (("world window", 2, "w h"), ("viewpoint", 3, _XYZ))
 
@@ -86,7 +89,7 @@ SUPPORTED_KEYWORDS = KEYWORDS
 SUPPORTED_CODES = dict(CODES)
 _CODE_WORDS = {10: "point light", 11: "spotlight", 13: "sphere", 14: "plane",
                15: "finite plane", 16: "tiled plane", 17: "textured plane",
-               19: "procedural sphere", 20: "procedural plane",
+               19: "procedural sphere", 20: "procedural plane", 25: "torus (cd: lens)",
                26: "textured sphere"}
 _CODE_LIST = ", ".join(f"{c} {_CODE_WORDS[c]}" for c in sorted(CODES))
 
@@ -117,7 +120,6 @@ _UNSUPPORTED_CODES = {
     22: "cylinder",
     23: "cone",
     24: "hyperboloid",
-    25: "torus in nw; cd's lens is read",
     27: "triangle; disk in an older nw file",
     28: "displacement sphere",
     29: "disk",
@@ -245,6 +247,8 @@ def _build(ctx: _Ctx, kind: str, start: _Tok, values: list, where: list):
             return make_sphere(mat, tuple(g[0]), g[1][0], start.line)
         if kind == "plane":
             return make_plane(mat, tuple(g[0]), tuple(g[1]), start.line)
+        if kind == "torus":
+            return make_torus(mat, tuple(g[0]), tuple(g[1]), g[2][0], g[3][0], start.line)
         if kind == "fplane":
             return make_fplane(mat, tuple(g[0]), tuple(g[1]), tuple(g[2]), tuple(g[3]),
                                start.line)

@@ -110,6 +110,9 @@ def object_constants(scene: Scene) -> list[ObjectConstants]:
     out = []
     groups = {}                 # exact plane or sphere -> group number (same t on every ray)
     for i, o in enumerate(scene.objects):
+        if o.kind == "torus":
+            out.append(torus_constants(i, o, V, groups))
+            continue
         if isinstance(o, Sphere):
             Q = tuple(exact(c) - v for c, v in zip(o.center, V))
             r = exact(o.radius)
@@ -623,7 +626,10 @@ def sphere_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = F
     return (t, *c.split(), lf)
 
 
-OBJECT_T = {"sphere": sphere_t, "plane": plane_t, "fplane": fplane_t, "tplane": plane_t}
+from .shapes_torus import torus_constants, torus_t  # noqa: E402  (uses the helpers above)
+
+OBJECT_T = {"sphere": sphere_t, "plane": plane_t, "fplane": fplane_t, "tplane": plane_t,
+            "torus": torus_t}
 
 
 def object_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = False):

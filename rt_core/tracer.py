@@ -25,6 +25,7 @@ from .rules import Rules
 from .scene import Scene, SceneError, locate
 from .kinds import KIND_CODE, PLANE_KINDS
 from .shapes import ObjectConstants, least, numbers, object_constants, object_t
+from .shapes_torus import torus_surface
 
 backend.require("llvm")     # fail early, with a message, on an LLVM that would abort kernels
 
@@ -91,8 +92,8 @@ def prepare(scene: Scene, T: Types) -> KernelScene:
 def _overflow(scene: Scene, obj) -> SceneError:
     """The error for an object too far from the viewpoint for float64, at whichever of the
     two has the larger coordinate (the one at fault)."""
-    name = "center" if obj.kind == "sphere" else "point"
-    pos = obj.center if obj.kind == "sphere" else obj.point
+    name = "center" if obj.kind in ("sphere", "torus") else "point"
+    pos = obj.center if obj.kind in ("sphere", "torus") else obj.point
     i = max(range(3), key=lambda k: max(abs(pos[k]), abs(scene.viewpoint[k])))
     if abs(scene.viewpoint[i]) >= abs(pos[i]):
         line, col = scene.at_viewpoint(i)
@@ -413,6 +414,8 @@ def surface(ks: KernelScene, d, t, oid, hit, o=None):
             h = dr.gather(T.Float, ks.table("h"), idx, hit)
             u = dr.select(fp, dr.clip(u, 0, w), u)
             v = dr.select(fp, dr.clip(v, 0, h), v)
+    if "torus" in kinds:
+        normal, u, v = torus_surface(ks, d, t, q, idx, hit, kind, normal, u, v)
     normal = dr.select(hit, normal, zero)
     return normal, dr.select(hit, u, 0), dr.select(hit, v, 0)
 

@@ -644,7 +644,7 @@ COURSE_OUTCOMES = {
     "numeric/nw__spec3.txt": ("ok", 14, 6),
     "numeric/nw__specTile.txt": ("ok", 6, 4),
     "numeric/nw__spotlight.txt": ("ok", 3, 1),
-    "numeric/nw__t.txt": ("unsupported: 25 (torus in nw; cd's lens is read)", 12),
+    "numeric/nw__t.txt": ("ok", 2, 0),
     "numeric/nw__textest.txt": ("ok", 1, 1),
     "numeric/nw__tileplane.txt": ("ok", 1, 0),
     "numeric/nw__transparent.txt": ("ok", 2, 1),
