@@ -47,6 +47,7 @@ from rt_core.kinds import dispatch
 from rt_core.rules import Rules
 
 from .scenefile import read_text
+from .torus_exact import TorusT, conditions as torus_conditions, eval_torus, less as torus_less
 
 U = {"f32": 2.0 ** -24, "f64": 2.0 ** -53}
 K_ROUNDING = 16.0
@@ -96,8 +97,9 @@ def parse_exact(text: str) -> XScene:
     objs = []
     for o in f.objects:
         x = o.x
-        objs.append(XObject(o.kind, o.index, normal=x.get("normal", ()), point=x.get("point", ()),
-                            orient=x.get("orient", ()), size=x.get("size", ()),
+        objs.append(XObject(o.kind, o.index, normal=x.get("normal", x.get("axis", ())),
+                            point=x.get("point", ()), orient=x.get("orient", ()),
+                            size=x.get("size", x["major"] + x["minor"] if "major" in x else ()),
                             center=x.get("center", ()),
                             radius=x["radius"][0] if "radius" in x else None))
     return XScene(f.window, f.viewpoint, tuple(objs))
@@ -156,7 +158,8 @@ class _Prep:
 
     def __init__(self, obj: XObject, V: tuple, rules: Rules):
         self.obj, self.kind = obj, obj.kind
-        anchor = obj.center if obj.kind == "sphere" else obj.point
+        self.V = V
+        anchor = obj.center if obj.kind in ("sphere", "torus") else obj.point
         self.L = _lcm_den(*V, *anchor)                    # positions: integers / L
         self.Q = tuple(int((a - v) * self.L) for a, v in zip(anchor, V))
         self.VZ = int(V[2] * self.L)
@@ -195,6 +198,7 @@ DECISIONS = {
     "tplane": ("parallel", "t", "clip"),
     "fplane": ("parallel", "t", "clip", "u>=0", "u<=w", "v>=0", "v<=h"),
     "sphere": ("outline", "outside", "front", "clip"),
+    "torus": ("crossing",),
 }
 
 
@@ -290,7 +294,7 @@ def _eval_sphere(p: _Prep, D, Dd, rules: Rules):
 
 
 _EVAL = {"sphere": _eval_sphere, "plane": _eval_plane, "fplane": _eval_plane,
-         "tplane": _eval_plane}
+         "tplane": _eval_plane, "torus": eval_torus}
 
 
 # --- condition of every decided quantity (float64 dual numbers) -----------------------------------
@@ -510,6 +514,8 @@ def _representable(xs: XScene, obj: XObject, u: float) -> bool:
 
 
 def _tq_less(a, b) -> bool:
+    if isinstance(a, TorusT) or isinstance(b, TorusT):
+        return torus_less(a, b)
     return a[0] * b[1] < b[0] * a[1]
 
 
@@ -545,7 +551,8 @@ def trace_exact(xs: XScene, d: np.ndarray, rules: Rules = Rules(), rays=None) ->
                 t[i] = _ratio(*q)
             valid[i] = all(tests[k][0] for k in names)
         ov = ObjectVerdicts(p.kind, valid, t, tq, passed, margin)
-        ov.cond = _conditions(p.obj, V, d.astype(np.float64), rules)
+        ov.cond = (torus_conditions(p, d.astype(np.float64)) if p.kind == "torus" else
+                   _conditions(p.obj, V, d.astype(np.float64), rules))
         ov.representable = {u: _representable(xs, p.obj, u) for u in U.values()}
         verdicts.append(ov)
     hit = np.zeros(n, bool)

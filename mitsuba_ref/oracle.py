@@ -39,6 +39,7 @@ from rt_core.kinds import dispatch
 from rt_core.rules import Rules
 
 from .geometry import frame, normal, unit
+from .torus_oracle import torus_hits, torus_obj, torus_surface, torus_tests
 
 INF = math.inf
 OFF = 10000.0           # the notes' tile-parity offset
@@ -231,7 +232,7 @@ def _plane_obj(i, o):
 
 
 _PREPARE = {"sphere": _sphere_obj, "plane": _plane_obj, "fplane": _plane_obj,
-            "tplane": _plane_obj}
+            "tplane": _plane_obj, "torus": torus_obj}
 
 
 def _prepare(scene):
@@ -339,7 +340,7 @@ def sphere_hits(ob: _Obj, base, d, rules: Rules) -> Cand:
 
 
 HITS = {"plane": plane_hits, "fplane": fplane_hits, "tplane": tplane_hits,
-        "sphere": sphere_hits}
+        "sphere": sphere_hits, "torus": torus_hits}
 
 
 def tile_scale(tplane, rules: Rules = Rules()) -> float:
@@ -405,6 +406,8 @@ def _edge_margin(c: Cand, ob: _Obj, base, d, rules: Rules) -> float:
 def _tests(ob: _Obj, c: Cand, base, d, rules: Rules) -> list:
     """Every test of the object's verdict as (diagnostic, passed, margin), evaluated on the same
     numbers as the verdict (also the tests the literal code skipped after an earlier miss)."""
+    if ob.kind == "torus":
+        return torus_tests(ob, c, rules)
     out = []
     clip = rules.screen_clip != "off" and (ob.kind != "sphere" or rules.clip_spheres)
     if ob.kind == "sphere":
@@ -488,6 +491,8 @@ def trace(scene, base, dir, rules: Rules = Rules(), skip=None) -> Hit:
         hit.position, hit.err_position = vals(c.hitloc), errs(c.hitloc)
         if ob.kind == "sphere":
             n = unit3(diff3(c.hitloc, ob.center))
+        elif ob.kind == "torus":
+            n, hit.uv, hit.err_uv = torus_surface(ob, c)
         else:
             n = ob.normal
         hit.normal, hit.err_normal = vals(n), errs(n)

@@ -40,7 +40,7 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     from rt_core.exrio import atomic_write
     from rt_core.parser import parse_scene
-    from mitsuba_ref.convert import DEFAULT_MAX_DIST, scene_xml, sensor_setup
+    from mitsuba_ref.convert import DEFAULT_MAX_DIST, oracles_only, scene_xml, sensor_setup
 
     from rt_core.usererror import InputError
     parent = os.path.dirname(os.path.abspath(args.output))
@@ -57,6 +57,8 @@ def run(args) -> int:
                     rules=args.rules, max_dist=DEFAULT_MAX_DIST if args.max_dist is None else args.max_dist,
                     aovs=args.aovs)
     atomic_write(args.output, lambda tmp: Path(tmp).write_text(xml))
+    for line in oracles_only(scene):
+        print(f"rtval convert: warning: {line}", file=sys.stderr)
     print(f"{args.output}: {len(scene.objects)} shapes, {setup.columns}x{setup.rows}",
           file=sys.stderr)
     return 0

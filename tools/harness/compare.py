@@ -18,7 +18,7 @@ from rt_core.memory import compare_bytes, guard
 from rt_core.render import provenance, to_images, trace_geometry, write_images
 from rt_core.rules import Rules
 from rt_core.scene import Scene
-from mitsuba_ref.convert import plane_extent, sensor_setup
+from mitsuba_ref.convert import mitsuba_comparable, plane_extent, sensor_setup
 from mitsuba_ref.explain import CLASS_CODE, CLASSES, classify, depth_bound
 from mitsuba_ref.reference import MitsubaScene, render_camera, trace_rays
 
@@ -80,6 +80,7 @@ def compare(scene: Scene, columns: int, rows: int | None = None, precision: str 
     cam = make_camera(scene, columns, rows, sampling)
     guard(lambda px: compare_bytes(px, precision), "compare", cam.columns, cam.rows)
     note = ""
+    scene, note = mitsuba_comparable(scene, note)     # Mitsuba's shapes only, on both sides
     if mode == "camera":
         setup = sensor_setup(scene, cam.columns, cam.rows, sampling)
         if not setup.square:

@@ -125,6 +125,8 @@ def compare_shaded(scene: Scene, columns: int, rows: int | None = None,
     """rt_core's 8-bit course image (float64, exact decisions) against Mitsuba's.
     ``integrator``: the registered plugin name of the integrator to use (tests: a
     deliberately wrong one); default ``course``."""
+    from mitsuba_ref.convert import mitsuba_comparable
+    scene, _ = mitsuba_comparable(scene)       # Mitsuba's shapes only, on both sides
     cam = make_camera(scene, columns, rows, sampling, rules)
     t0 = time.perf_counter()
     ims, _ = render_image(scene, cam, backend.types("f64"), rules, geometry=False, shade=True,
