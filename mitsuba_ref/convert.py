@@ -63,6 +63,8 @@ def scene_scale(scene: Scene) -> float:
     for o in scene.objects:
         if o.kind == "sphere":
             r = max(r, math.sqrt(dot(sub(o.center, v), sub(o.center, v))) + o.radius)
+        elif o.kind == "torus":
+            r = max(r, math.sqrt(dot(sub(o.center, v), sub(o.center, v))) + o.major + o.minor)
         elif o.kind == "fplane":
             for c in corners(o):
                 r = max(r, math.sqrt(dot(sub(c, v), sub(c, v))))
