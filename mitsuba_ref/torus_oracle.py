@@ -10,9 +10,9 @@ whose real roots are found by numpy (the companion matrix's eigenvalues), each p
 Newton steps on f evaluated from w (f = (|w|² + R² − r²)² − 4R²ρ², ρ the distance from the
 axis); the hit is the smallest t > 0 where f changes sign (a tangency is a miss).
 
-Error bounds (units of u): t's is first order, KT·(f_abs + |∇f|·(|base| + |centre| +
-|t|·|d|))/|f'(t)| + |t|: the root's change when every input (viewpoint, ray, centre) moves
-by KT units and f's terms (f_abs, their absolute sum) are rounded; KT = 8 roundings.  The
+Error bounds (units of u): t's is first order, (KF·f_abs + |∇f|·δw)/|f'(t)| + |t|: the
+root's change when the ray point moves by δw (the running error bound of (base − centre) + t·d at
+that t, from the viewpoint's, the ray's and the centre's own bounds) and f's terms (f_abs, their absolute sum) are rounded KF = 4 times.  The
 decision's margin (``disc_margin``) is the least |f| at f's critical points that decide
 the verdict (before the hit; all of them for a miss) over that same bound of f.
 """
@@ -22,7 +22,7 @@ import math
 
 import numpy as np
 
-KT = 8.0
+KF = 4.0         # roundings of f's terms
 POLISH = 6
 
 
@@ -60,19 +60,20 @@ def _frame(A):
 
 
 def _f(ob, base, d, t):
-    """(f, f_abs, |∇f|) at the ray point of parameter t (floats)."""
+    """(f, f_abs, |∇f|) at the ray point of parameter t (floats), w = (base − centre) + t·d."""
     C, a = ob.center, ob.normal
-    w = tuple(base[i].v + t * d[i].v - C[i].v for i in range(3))
+    w = tuple((base[i].v - C[i].v) + t * d[i].v for i in range(3))
+    av = tuple(c.v for c in a)
     R, r = ob.radius.v, ob.minor.v
     ww = _dot(w, w)
-    h = _dot(w, tuple(c.v for c in a))
+    h = _dot(w, av)
     rho2 = max(ww - h * h, 0.0)
     s = ww + R * R - r * r
     f = s * s - 4 * R * R * rho2
     fabs = (ww + R * R + r * r) ** 2 + 4 * R * R * (ww + h * h)
-    # ∇f = 4 s w − 8R²(w − h â): |∇f| <= 4|s||w| + 8R²|w|
-    nw = math.sqrt(ww)
-    return f, fabs, 4 * abs(s) * nw + 8 * R * R * nw
+    # ∇f = 4 s w − 8R²(w − h â)
+    g = tuple(4 * s * w[i] - 8 * R * R * (w[i] - h * av[i]) for i in range(3))
+    return f, fabs, math.sqrt(_dot(g, g))
 
 
 def _poly(ob, base, d):
@@ -115,11 +116,14 @@ def _dfdt(ob, base, d, t):
 
 
 def _ferr(ob, base, d, t):
-    """f's error bound at t (units of u): its terms' roundings and the inputs' KT units."""
+    """f's error bound at t (units of u): the ray point's error δw (the inputs' own error
+    bounds, base + t·d − centre first order, plus the roundings of that sum) times |∇f|, and
+    KF roundings of f's terms."""
+    from .oracle import EF, diff3, scale3, sum3
     f, fabs, grad = _f(ob, base, d, t)
-    scale = (math.sqrt(sum(c.v * c.v for c in base)) + math.sqrt(sum(c.v * c.v for c in ob.center))
-             + abs(t) * math.sqrt(sum(c.v * c.v for c in d)))
-    return f, KT * (fabs + grad * scale)
+    w = sum3(diff3(base, ob.center), scale3(EF(t, 0.0), d))     # running error bounds
+    dw = math.sqrt(sum(c.e * c.e for c in w))
+    return f, KF * fabs + grad * dw
 
 
 def torus_hits(ob, base, d, rules):
@@ -183,6 +187,12 @@ def torus_surface(ob, c):
     lp = length3(wp)
     core = scale3(ob.radius / lp, wp)
     n = unit3(diff3(w, core))
+    # N = (w − R·unit(w⊥))/r moves by at most |δw|·(1 + R/|w⊥|)/r when w moves by δw
+    # (unit(w⊥) by at most |δw|/|w⊥|): that first-order bound, plus a few roundings,
+    # replaces the running bound (which counts correlated errors again at each step)
+    dw = math.sqrt(sum(e * e for e in (c.e for c in w)))
+    en = dw * (1 + ob.radius.v / lp.v) / ob.minor.v
+    n = tuple(EF(c.v, min(c.e, en + 4 * abs(c.v) + 4)) for c in n)
     x, y = ob.frame
     wx, wy = dot3(w, vecx(x)), dot3(w, vecx(y))
     u, eu = _atan2(wy, wx)

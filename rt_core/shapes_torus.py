@@ -169,7 +169,10 @@ def torus_t(d, o, obj, rules, vz: float, cert=False):
     cl, cm, ch = _critical(F, c2, c1)
     xs = [lo] + [dr.clip(c, lo, hi) for c in (cl, cm, ch)] + [hi]
     gs = [_g(x, c2, c1, c0) for x in xs]
-    s0 = gs[0] > 0
+    gs[4] = dr.abs(gs[4])           # the exit from the bounding sphere: g >= 0 there too
+    # entering the bounding sphere (not starting inside it), the ray starts outside the
+    # torus (g >= 0 there, 0 only on its outer equator): take that sign, not g's rounding
+    s0 = (gs[0] > 0) | (hb <= t0)
     found = dr.zeros(B_, dr.width(d))
     a, b, last = lo, lo, dr.zeros(dr.int32_array_t(F), dr.width(d))
     for i in range(1, 5):
