@@ -39,7 +39,9 @@ parses as its own course program read it
     A line with too few numbers is an error: no real file wraps a group over lines, and
     the programs that would allow it silently misread the following line.
   * An object starts with a line whose first number is its integer code: 10 point light,
-    13 sphere, 14 plane, 15 finite plane, 16 tiled plane.  A second number on the code line
+    13 sphere, 14 plane, 15 finite plane, 16 tiled plane, 25 nw's torus or cd's lens (the
+    lens with cd's header flags, or when the line after the centre has one number:
+    ``_shared_code_form``).  A second number on the code line
     is nw's refraction index (``13 1.33``): not supported.  The other codes the course used
     (11-12, 17-29 and cd's 9000/9001 header flags, which add fields to every material) are
     named in the "not supported" error.
