@@ -268,6 +268,8 @@ def compare_secondary(scene: Scene, columns: int, rows: int | None = None,
                       backend_name: str = "llvm") -> SecondaryComparison:
     """Shadow rays (primary hits and first reflection bounce, every light) and first-bounce
     reflection rays of rt_core's shading, each against Mitsuba."""
+    from mitsuba_ref.convert import mitsuba_comparable
+    scene, _ = mitsuba_comparable(scene)       # Mitsuba's shapes only, on both sides
     T = backend.types(precision, backend_name)
     cam = make_camera(scene, columns, rows, sampling)
     _, res = render_image(scene, cam, T, rules, geometry=False, shade=True,
