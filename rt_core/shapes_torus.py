@@ -181,19 +181,26 @@ def torus_t(d, o, obj, rules, vz: float, cert=False):
         b = dr.select(ch_, xs[i], b)
         last = dr.select(ch_, i, last)
         found |= ch_
-    # safeguarded Newton in [a, b]: g(a) has the sign s0, g(b) the other (or is 0)
-    x = 0.5 * (a + b)
-    for _ in range(ITERATIONS[_precision(F)]):
-        gx = _g(x, c2, c1, c0)
-        gp = _dg(x, c2, c1)
-        zero = gx == 0
-        same = ((gx > 0) == s0) & ~zero
-        a = dr.select(same | zero, x, a)
-        b = dr.select(same, b, x)
-        xn = x - gx / gp
-        lo_ab, hi_ab = dr.minimum(a, b), dr.maximum(a, b)
-        ok = (xn >= lo_ab) & (xn <= hi_ab) & dr.isfinite(xn)
-        x = dr.select(ok, xn, 0.5 * (a + b))
+    # safeguarded Newton in [a, b]: g(a) has the sign s0, g(b) the other (or is 0); only
+    # on rays with a bracket (a packet of rays without one skips it)
+    n_it = ITERATIONS[_precision(F)]
+
+    def refine(x, a, b, c2, c1, c0, s0):
+        for _ in range(n_it):
+            gx = _g(x, c2, c1, c0)
+            gp = _dg(x, c2, c1)
+            zero = gx == 0
+            same = ((gx > 0) == s0) & ~zero
+            a = dr.select(same | zero, x, a)
+            b = dr.select(same, b, x)
+            xn = x - gx / gp
+            lo_ab, hi_ab = dr.minimum(a, b), dr.maximum(a, b)
+            ok = (xn >= lo_ab) & (xn <= hi_ab) & dr.isfinite(xn)
+            x = dr.select(ok, xn, 0.5 * (a + b))
+        return x, a, b
+
+    x, a, b = dr.if_stmt((0.5 * (a + b), a, b, c2, c1, c0, s0), found & (inside > 0), refine,
+                         lambda x, a, b, *rest: (x, a, b), label="torus_refine")
     t = (t0 + x) * inv
     hit = found & (inside > 0) & (t > 0) & dr.isfinite(t)
     if not cert:
