@@ -74,6 +74,8 @@ def scene_scale(scene: Scene) -> float:
                 r = max(r, math.sqrt(dot(sub(c, v), sub(c, v))))
         elif o.kind == "disk":
             r = max(r, math.sqrt(dot(sub(o.center, v), sub(o.center, v))) + o.radius)
+        elif o.kind == "torus":
+            r = max(r, math.sqrt(dot(sub(o.center, v), sub(o.center, v))) + o.major + o.minor)
         elif o.kind == "fplane":
             for c in corners(o):
                 r = max(r, math.sqrt(dot(sub(c, v), sub(c, v))))
@@ -127,6 +129,7 @@ _SHAPES = {   # Mitsuba shape dict per kind
     # mitsuba_ref/convert_planar.py
     "disk": lambda o, v, R, T: {"type": "disk", "to_world": convert_planar.disk_to_world(o)},
     "triangle": lambda o, v, R, T: convert_planar.triangle_spec(o),
+    "torus": lambda o, v, R, T: None,       # Mitsuba has no torus: oracles only
 }
 
 

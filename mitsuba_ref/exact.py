@@ -49,6 +49,7 @@ from rt_core.rules import Rules
 from . import quadric
 from . import exact_planar
 from .scenefile import read_text
+from .torus_exact import TorusT, conditions as torus_conditions, eval_torus, less as torus_less
 
 U = {"f32": 2.0 ** -24, "f64": 2.0 ** -53}
 K_ROUNDING = 16.0
@@ -109,8 +110,9 @@ def parse_exact(text: str, code27: str = "auto") -> XScene:
     objs = []
     for o in f.objects:
         x = o.x
-        objs.append(XObject(o.kind, o.index, normal=x.get("normal", ()), point=x.get("point", ()),
-                            orient=x.get("orient", ()), size=x.get("size", ()),
+        objs.append(XObject(o.kind, o.index, normal=x.get("normal", x.get("axis", ())),
+                            point=x.get("point", ()), orient=x.get("orient", ()),
+                            size=x.get("size", x["major"] + x["minor"] if "major" in x else ()),
                             center=x.get("center", ()),
                             radius=x["radius"][0] if "radius" in x else None,
                             fields=tuple(x.items()) if o.kind in quadric.KINDS else (),
@@ -171,7 +173,8 @@ class _Prep:
 
     def __init__(self, obj: XObject, V: tuple, rules: Rules):
         self.obj, self.kind = obj, obj.kind
-        anchor = obj.center if obj.kind == "sphere" else obj.point
+        self.V = V
+        anchor = obj.center if obj.kind in ("sphere", "torus") else obj.point
         if obj.kind in exact_planar.DECISIONS:          # mitsuba_ref/exact_planar.py
             anchor = exact_planar.anchor(obj)
         self.L = _lcm_den(*V, *anchor)                    # positions: integers / L
@@ -218,6 +221,7 @@ DECISIONS = {
     "sphere": ("outline", "outside", "front", "clip"),
     "cylinder": quadric.DECISIONS, "cone": quadric.DECISIONS, "ellipsoid": quadric.DECISIONS,
     **exact_planar.DECISIONS,
+    "torus": ("crossing",),
 }
 
 
@@ -315,7 +319,8 @@ def _eval_sphere(p: _Prep, D, Dd, rules: Rules):
 
 _EVAL = {"sphere": _eval_sphere, "plane": _eval_plane, "fplane": _eval_plane,
          "tplane": _eval_plane, "cylinder": quadric.evaluate, "cone": quadric.evaluate,
-         "ellipsoid": quadric.evaluate, "triangle": _eval_plane, "disk": _eval_plane}
+         "ellipsoid": quadric.evaluate, "triangle": _eval_plane, "disk": _eval_plane,
+         "torus": eval_torus}
 
 
 # --- condition of every decided quantity (float64 dual numbers) -----------------------------------
@@ -543,6 +548,8 @@ def _representable(xs: XScene, obj: XObject, u: float) -> bool:
 
 
 def _tq_less(a, b) -> bool:
+    if isinstance(a, TorusT) or isinstance(b, TorusT):
+        return torus_less(a, b)
     return a[0] * b[1] < b[0] * a[1]
 
 
@@ -579,7 +586,8 @@ def trace_exact(xs: XScene, d: np.ndarray, rules: Rules = Rules(), rays=None) ->
                 t[i] = _ratio(*q)
             valid[i] = all(tests[k][0] for k in names)
         ov = ObjectVerdicts(p.kind, valid, t, tq, passed, margin)
-        ov.cond = _conditions(p.obj, V, d.astype(np.float64), rules)
+        ov.cond = (torus_conditions(p, d.astype(np.float64)) if p.kind == "torus" else
+                   _conditions(p.obj, V, d.astype(np.float64), rules))
         # (a quadric's decisions take square roots: exact inputs do not make them exact)
         ov.representable = {u: _representable(xs, p.obj, u) and p.kind not in quadric.KINDS
                             for u in U.values()}

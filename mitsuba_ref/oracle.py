@@ -41,6 +41,7 @@ from rt_core.rules import Rules
 from . import quadric
 from . import oracle_planar
 from .geometry import frame, normal, unit
+from .torus_oracle import torus_hits, torus_obj, torus_surface, torus_tests
 
 PLANE_KINDS = ("plane", "fplane", "tplane")
 
@@ -244,7 +245,8 @@ def _planar_obj(i, o):
 
 _PREPARE = {"sphere": _sphere_obj, "plane": _plane_obj, "fplane": _plane_obj,
             "tplane": _plane_obj, "cylinder": _quadric_obj, "cone": _quadric_obj,
-            "ellipsoid": _quadric_obj, "triangle": _planar_obj, "disk": _planar_obj}
+            "ellipsoid": _quadric_obj, "triangle": _planar_obj, "disk": _planar_obj,
+            "torus": torus_obj}
 
 
 def _prepare(scene):
@@ -371,7 +373,8 @@ def planar_hits(ob: _Obj, base, d, rules: Rules) -> Cand:
 
 HITS = {"plane": plane_hits, "fplane": fplane_hits, "tplane": tplane_hits,
         "sphere": sphere_hits, "cylinder": quadric_hits, "cone": quadric_hits,
-        "ellipsoid": quadric_hits, "triangle": planar_hits, "disk": planar_hits}
+        "ellipsoid": quadric_hits, "triangle": planar_hits, "disk": planar_hits,
+        "torus": torus_hits}
 
 
 def tile_scale(tplane, rules: Rules = Rules()) -> float:
@@ -437,6 +440,8 @@ def _edge_margin(c: Cand, ob: _Obj, base, d, rules: Rules) -> float:
 def _tests(ob: _Obj, c: Cand, base, d, rules: Rules) -> list:
     """Every test of the object's verdict as (diagnostic, passed, margin), evaluated on the same
     numbers as the verdict (also the tests the literal code skipped after an earlier miss)."""
+    if ob.kind == "torus":
+        return torus_tests(ob, c, rules)
     out = []
     clip = rules.screen_clip != "off" and (ob.kind in PLANE_KINDS or rules.clip_spheres)
     if ob.kind in quadric.KINDS:
@@ -540,6 +545,8 @@ def trace(scene, base, dir, rules: Rules = Rules(), skip=None) -> Hit:
             n = unit3(diff3(c.hitloc, ob.center))
         elif ob.kind in quadric.KINDS:
             n = quadric.normal(ob, c, unit3, diff3)
+        elif ob.kind == "torus":
+            n, hit.uv, hit.err_uv = torus_surface(ob, c)
         else:
             n = ob.normal
         hit.normal, hit.err_normal = vals(n), errs(n)

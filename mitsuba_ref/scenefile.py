@@ -22,7 +22,7 @@ from fractions import Fraction
 
 from rt_core.inputfile import read_input
 from rt_core.kinds import (CODE_TABLES, FORMS, HEADER_FLAGS, KEYWORDS, KINDS, LIGHTS,
-                           SHAPED_CODES, form_of_code, form_of_keyword)
+                           SHAPED_CODES, SHARED_CODES, form_of_code, form_of_keyword)
 from rt_core.kinds_planar import shaped_form
 
 # number groups after the type token: (field, count); None = not geometry (materials)
@@ -45,6 +45,8 @@ LAYOUT = {
                  ("point3", 3)),
     "disk": (("ambient", 3), ("diffuse", 3), ("specular", 3), ("center", 3), ("radius", 1),
              ("normal", 3)),
+    "torus": (("ambient", 3), ("diffuse", 3), ("specular", 3), ("center", 3), ("axis", 3),
+              ("major", 1), ("minor", 1)),
 }
 _NUM = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?\Z")
 
@@ -64,7 +66,7 @@ class Item:
         f = self.__dict__.get("f", {})
         if name in f:
             v = f[name]
-            return v[0] if name in ("radius", "theta") else v
+            return v[0] if name in ("radius", "theta", "major", "minor") else v
         raise AttributeError(name)
 
 
@@ -192,6 +194,14 @@ def _keyword(lines) -> File:
     return File(window, viewpoint, tuple(lights), tuple(objects), "keyword")
 
 
+def _lead(toks):
+    """The leading number tokens of a line."""
+    for t in toks:
+        if not _NUM.match(t):
+            return
+        yield t
+
+
 def _numeric(lines, code27: str = "auto", table: dict | None = None, name: str = "") -> File:
     """The numeric dialect with the notes' code table, or ``table`` (code -> (form, the
     groups' order)) named ``name``."""
@@ -245,6 +255,12 @@ def _numeric(lines, code27: str = "auto", table: dict | None = None, name: str =
             if shaped is None:
                 raise ValueError(f"line {lines[at][0]}: {count} numbers fit no layout of {code}")
             form = FORMS[shaped]
+        # code 25: cd's lens with cd's header flags, or a single number after the centre
+        # (nw's torus has its 3-number axis there): MAT 3 lines, the flags', the centre
+        after = idx + 3 + len(flags) + 1
+        if table is None and code in SHARED_CODES and (flags or (after < len(lines) and sum(
+                1 for _ in _lead(lines[after][1])) == 1)):
+            form = FORMS[SHARED_CODES[code]]
         extras = []
         if len(toks) > 1 and _NUM.match(toks[1]):        # nw's refraction index
             extras.append(("refraction index", _exact(toks[1])))

@@ -71,7 +71,9 @@ LAYOUT.update({k: ROW_SLOTS for k in QUADRICS})     # rt_core/shapes_quadric.py
 LAYOUT["triangle"] = LAYOUT["fplane"]
 LAYOUT["disk"] = ("qx", "qy", "qz", "nq", "nx", "ny", "nz", "g", "c", "xx", "xy", "xz", "radius",
                   "yx", "yy", "yz", "id", "grp", "bz", "bm")
-BOUNDED = ("sphere", "fplane", "triangle", "disk") + QUADRICS
+LAYOUT["torus"] = ("qx", "qy", "qz", "radius", "c", "nx", "ny", "nz", "w", "h", "id", "grp",
+                   "bo", "bs")
+BOUNDED = ("sphere", "fplane", "triangle", "disk", "torus") + QUADRICS
 
 
 def configure(ks, unroll_max: int | None = None, bins: bool | None = None,
@@ -150,7 +152,10 @@ class KindTable:
             return quadric_row_view(out, v, A3)
         for k in names[names.index("grp") + 1:]:      # the certified decisions' bounds
             setattr(out, k, wide[k] if k in wide else v[k])
-        if self.kind == "sphere":
+        if self.kind == "torus":
+            out.radius, out.c, out.size = v["radius"], v["c"], (v["w"], v["h"])
+            out.n = A3(v["nx"], v["ny"], v["nz"])
+        elif self.kind == "sphere":
             out.radius, out.c = v["radius"], v["c"]
         else:
             out.n, out.nq = A3(v["nx"], v["ny"], v["nz"]), v["nq"]
@@ -227,7 +232,7 @@ def never_hit(kind: str, consts) -> np.ndarray:
     (n·q = 0: t = 0).  Both signs are exact (host constants rounded once)."""
     if kind == "sphere":
         return np.array([not c.c > 0 for c in consts], bool)
-    if kind in QUADRICS:                 # an open quadric is seen from inside too
+    if kind in QUADRICS or kind == "torus":   # an open quadric is seen from inside too
         return np.zeros(len(consts), bool)
     return np.array([c.nq == 0 for c in consts], bool)
 
@@ -285,7 +290,7 @@ def _corners(kind: str, consts) -> np.ndarray:
     if kind in ("triangle", "disk"):
         from .shapes_planar import planar_corners
         return planar_corners(kind, consts)
-    if kind == "sphere":
+    if kind in ("sphere", "torus"):              # a torus: its bounding sphere
         s = np.array([(i, j, k) for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], np.float64)
         q = np.array([c.q for c in consts], np.float64)
         r = np.array([c.radius for c in consts], np.float64) * (1 + MARGIN)

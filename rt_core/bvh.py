@@ -65,7 +65,8 @@ NODE = 8
 # faster than one gather per constant on the LLVM backend)
 ROW = {"sphere": ("qx", "qy", "qz", "radius", "id"),
        "fplane": ("qx", "qy", "qz", "nx", "ny", "nz", "g", "w", "xx", "xy", "xz", "h",
-                  "yx", "yy", "yz", "id")}
+                  "yx", "yy", "yz", "id"),
+       "torus": ("qx", "qy", "qz", "radius", "c", "nx", "ny", "nz", "w", "h", "id")}
 ROW.update({k: ROW_SLOTS for k in QUADRICS})      # rt_core/shapes_quadric.py
 ROW["triangle"] = ROW["fplane"]                     # rt_core/shapes_planar.py
 ROW["disk"] = ("qx", "qy", "qz", "nx", "ny", "nz", "g", "c", "xx", "xy", "xz", "radius",
@@ -108,6 +109,13 @@ def object_boxes(kind: str, consts) -> tuple[np.ndarray, np.ndarray]:
         from .shapes_planar import planar_corners
         corners = planar_corners(kind, consts)
         return corners.min(1), corners.max(1)
+    if kind == "torus":
+        # the ring's extent along axis i is R·√(1 − â_i²), plus the tube's r
+        q = np.array([c.q for c in consts], np.float64).reshape(-1, 3)
+        a = np.array([c.n for c in consts], np.float64).reshape(-1, 3)
+        R, r = (np.array([c.size[j] for c in consts], np.float64)[:, None] for j in (0, 1))
+        ext = R * np.sqrt(np.clip(1 - a * a, 0, 1)) + r
+        return q - ext, q + ext
     raise ValueError(f"{kind} objects are unbounded: no BVH")
 
 
@@ -241,7 +249,10 @@ def row_view(T, kind: str, rows, k, active=True):
     out = SimpleNamespace(kind=kind, id=T.Int32(v["id"]), q=A3(v["qx"], v["qy"], v["qz"]))
     if kind in QUADRICS:
         return quadric_row_view(out, v, A3)
-    if kind == "sphere":
+    if kind == "torus":
+        out.radius, out.c, out.size = v["radius"], v["c"], (v["w"], v["h"])
+        out.n = A3(v["nx"], v["ny"], v["nz"])
+    elif kind == "sphere":
         out.radius = v["radius"]
     else:
         out.n, out.g = A3(v["nx"], v["ny"], v["nz"]), v["g"]

@@ -31,6 +31,7 @@ import numpy as np
 
 from .quadrics import KINDS as QUADRICS, coefficients, equation
 from . import decide_planar
+from .decide_torus import Root, TorusExact, torus_hit
 from .rules import Rules
 from .scene import Scene, exact
 
@@ -254,12 +255,18 @@ def surely_missed(objs, fE: np.ndarray) -> np.ndarray:
 
 
 def _less(a, b) -> int:
-    """sign(s_a − s_b) for s = α + β√D."""
+    """sign(s_a − s_b) for s = α + β√D (or a torus's Root)."""
+    if isinstance(a, Root):
+        return a.cmp_root(b) if isinstance(b, Root) else a.cmp_number(*b)
+    if isinstance(b, Root):
+        return -b.cmp_number(*a)
     return sgn_two_sqrt(a[0] - b[0], a[1], a[2], -b[1], b[2])
 
 
 def _to_float(s, EE) -> float:
     """t = s·|E| (the Euclidean distance), rounded to float64."""
+    if isinstance(s, Root):
+        return s.value(EE)
     with decimal.localcontext(_CTX):
         dec = lambda f: decimal.Decimal(f.numerator) / decimal.Decimal(f.denominator)
         v = dec(Fraction(s[0]))
@@ -302,7 +309,8 @@ class Prepared(list):
 def prepare(scene: Scene) -> Prepared:
     """The scene's objects as exact numbers, for any number of ``decide`` calls."""
     V = tuple(exact(c) for c in scene.viewpoint)
-    return Prepared(_Exact(o, V) for o in scene.objects)
+    return Prepared((TorusExact(o, V) if o.kind == "torus" else _Exact(o, V))
+                    for o in scene.objects)
 
 
 def decide_rays(scene: Scene, rules: Rules, rays, distance: bool = False, objs=None):
@@ -328,6 +336,7 @@ def decide_rays(scene: Scene, rules: Rules, rays, distance: bool = False, objs=N
             o = objs[j]
             s = (_sphere(o, E, EE, V[2], rules) if o.kind == "sphere"
                  else _quadric(o, E, V[2], rules) if o.kind in QUADRICS
+                 else torus_hit(o, E) if o.kind == "torus"
                  else _plane(o, E, EE, V[2], rules, tmin2))
             if s is None:
                 continue

@@ -31,6 +31,10 @@ KINDS = {
     "triangle": Kind("triangle", 27, True, True),
     # the plane through a centre, within a radius of it (README "Disk"; kinds_planar.py)
     "disk": Kind("disk", 29, True, True),
+    # nw's torus (nw__t.txt): centre, axis (normal of its plane), major radius R, minor r;
+    # the surface (|w|² + R² − r²)² = 4R²(|w|² − (w·â)²), w = x − centre (a ring torus,
+    # 0 < r < R).  Code 25 is also cd's lens: see SHARED_CODES
+    "torus": Kind("torus", 25, True, False),
 }
 LIGHTS = {"pointlight": 10, "spotlight": 11}
 
@@ -79,12 +83,23 @@ FORMS = {f.name: f for f in (
     Form("sphere_pixmap", "sphere", None, "sphere_pixmap",
          (("brightness", 1), ("forward", 3), ("texture", 0)),
          f"texture-mapped sphere: its texture is not applied, {_MAT_ONLY}"),
+    Form("torus", "torus", 25),
+    # cd's lens (code 25 in cd files): centre, radius.  cd's lens.c is a sphere hit only
+    # from inside (the negated near root) that refracts: traced here as the sphere
+    Form("lens", "sphere", None, None, (),
+         "cd's lens (code 25): traced as the sphere (centre, radius); cd's lens.c hits it "
+         f"only from inside and refracts, which is not implemented: {_MAT_ONLY}"),
     # nw's displacement sphere (dispsphere.c): a sphere whose hit distance nw shortens by
     # 0.1·(r + g + b) of the map's pixel at the hit; the map is not in the course corpus
     Form("dispsphere", "sphere", 28, None, (("displacement map", 0),),
          "displacement sphere: traced as its undisplaced sphere (nw subtracts 0.1·(r+g+b) of "
          f"the map's pixel from t; the map is not applied), {_MAT_ONLY}"),
 )}
+# code 25 is nw's torus and cd's lens: a file's 25 is the lens when it has cd's header flags
+# (9000/9001), or else when the line after the centre has one number (the lens's radius; the
+# torus has its axis there, 3 numbers).  Both readers apply this rule (rt_core/parser.py,
+# mitsuba_ref/scenefile.py)
+SHARED_CODES = {25: "lens"}
 # Other course years' code tables: code -> (form, the groups' names in the file's order, None
 # for the kind's own; a name the kind lacks is one number, recorded).  A numeric file that
 # CODES cannot read is read with the first of these that reads the whole file; the scene

@@ -40,7 +40,9 @@ parses as its own course program read it
     the programs that would allow it silently misread the following line.
   * An object starts with a line whose first number is its integer code: 10 point light,
     13 sphere, 14 plane, 15 finite plane, 16 tiled plane, 22 cylinder, 23 cone (nw's
-    layouts: rt_core/quadrics.py), 27 triangle, 29 disk.  Code 27 is
+    layouts: rt_core/quadrics.py), 25 nw's torus or cd's lens (the lens with cd's header
+    flags, or when the line after the centre has one number: ``_shared_code_form``),
+    27 triangle, 29 disk.  Code 27 is
     a disk (centre, radius, normal) in nw's older layout: a 27 whose second geometry line
     starts with 1 number (not 3) is read as a disk, unless the ``code27`` option forces
     either (rt_core/kinds_planar.py).  A second number on the code line
@@ -56,12 +58,14 @@ import math
 import re
 from dataclasses import dataclass
 from .inputfile import read_input
-from .kinds import CODE_TABLES, CODES, FORMS, HEADER_FLAGS, KEYWORDS, LIGHTS, SHAPED_CODES, Form
+from .kinds import (CODE_TABLES, CODES, FORMS, HEADER_FLAGS, KEYWORDS, LIGHTS, SHAPED_CODES,
+                    SHARED_CODES, Form)
 from .kinds_planar import CODE27_CHOICES, shaped_form
 from .planar import make_disk, make_triangle
 from .quadrics import make_cone, make_cylinder, make_ellipsoid
 from .scene import (GeometryError, Material, Num, PointLight, Scene, SceneError, SpotLight,
                     make_fplane, make_plane, make_sphere, make_tplane)
+from .torus import make_torus
 
 __all__ = ["parse_scene", "parse_text", "SUPPORTED_KEYWORDS", "SUPPORTED_CODES"]
 
@@ -92,6 +96,8 @@ _GROUPS = {
     "ellipsoid": _MAT + (("center", 3, _XYZ), ("semi-axes", 3, "a b c")),
     "triangle": _MAT + (("point 1", 3, _XYZ), ("point 2", 3, _XYZ), ("point 3", 3, _XYZ)),
     "disk": _MAT + (("center", 3, _XYZ), ("radius", 1, "r"), ("normal", 3, _XYZ)),
+    "torus": _MAT + (("center", 3, _XYZ), ("axis", 3, _XYZ), ("major radius", 1, "R"),
+                     ("minor radius", 1, "r")),
 }
 QUADRIC_MAKERS = {"cylinder": make_cylinder, "cone": make_cone, "ellipsoid": make_ellipsoid}
 _HEADER = (("world window", 2, "w h"), ("viewpoint", 3, _XYZ))
@@ -101,8 +107,9 @@ SUPPORTED_CODES = dict(CODES)
 _CODE_WORDS = {10: "point light", 11: "spotlight", 13: "sphere", 14: "plane",
                15: "finite plane", 16: "tiled plane", 17: "textured plane",
                19: "procedural sphere", 20: "procedural plane", 26: "textured sphere",
-               22: "cylinder", 23: "cone", 27: "triangle (a disk in nw's older layout)",
-               28: "displacement sphere", 29: "disk"}
+               22: "cylinder", 23: "cone", 25: "torus (cd: lens)",
+               27: "triangle (a disk in nw's older layout)", 28: "displacement sphere",
+               29: "disk"}
 _CODE_LIST = ", ".join(f"{c} {_CODE_WORDS[c]}" for c in sorted(CODES))
 
 # kinds the course used that this project does not implement
@@ -119,15 +126,14 @@ _UNSUPPORTED_KEYWORDS = {
     "cylinder": "cylinder",
     "cone": "cone",
     "hyperboloid": "hyperboloid",
-    "torus": "torus",
-    "lens": "lens",
+    "torus": "torus: only numeric code 25 is read",
+    "lens": "lens: only cd's numeric code 25 is read",
 }
 _UNSUPPORTED_CODES = {
     12: "projector",
     18: "reflective sphere",
     21: "paraboloid",
     24: "hyperboloid",
-    25: "torus in nw, lens in cd",
 }
 
 
@@ -257,6 +263,8 @@ def _build(ctx: _Ctx, kind: str, start: _Tok, values: list, where: list):
             return make_plane(mat, tuple(g[0]), tuple(g[1]), start.line)
         if kind in QUADRIC_MAKERS:
             return QUADRIC_MAKERS[kind](mat, *map(tuple, g), start.line)
+        if kind == "torus":
+            return make_torus(mat, tuple(g[0]), tuple(g[1]), g[2][0], g[3][0], start.line)
         if kind == "fplane":
             return make_fplane(mat, tuple(g[0]), tuple(g[1]), tuple(g[2]), tuple(g[3]),
                                start.line)
@@ -299,6 +307,9 @@ def _geometry_location(kind: str, msg: str, start: _Tok, g: list, where: list):
         return where[-1][next(i for i, c in enumerate(g[-1]) if not c > 0)]
     if msg.startswith("radius"):
         return where[4][0]
+    if kind == "torus":          # centre, axis, major radius, minor radius
+        return {"axis": where[4], "major": where[5], "minor": where[6]}.get(
+            msg.split()[0], [start])[0]
     return start
 
 
@@ -481,11 +492,12 @@ def _parse_numeric(ctx: _Ctx, table: dict | None = None):
             idx += 1
             _read_object(ctx, FORMS[name], start, group, word, lights, objects, order=order)
             continue
-        if code not in SUPPORTED_CODES:
+        lens = code in SHARED_CODES and _shared_code_form(content, idx, flags)
+        if code not in SUPPORTED_CODES and not lens:
             if code in _UNSUPPORTED_CODES:
                 raise _unsupported_code(ctx, code, start)
             raise ctx.error(f"unknown object code {code}; expected {_CODE_LIST}", start)
-        form = FORMS[SUPPORTED_CODES[code]]
+        form = FORMS[SHARED_CODES[code] if lens else SUPPORTED_CODES[code]]
         extras = []
         if code in SHAPED_CODES:          # 27: a triangle, or a disk in nw's older layout
             form = _shaped(ctx, code, content, idx, len(flags), lead_count, start)
@@ -520,6 +532,21 @@ def _shaped(ctx: _Ctx, code: int, content: list, idx: int, nflags: int, lead_cou
         raise ctx.error(f"{code}: its geometry line {geo + 1} must start with {layouts} "
                         f"numbers, found {found}; force a layout with --code27", where)
     return FORMS[name]
+def _shared_code_form(content: list, idx: int, flags) -> bool:
+    """Is the object whose code is on content[idx] written in the other course program's
+    layout (kinds.SHARED_CODES: 25 is cd's lens, not nw's torus)?  Yes with cd's header
+    flags; else by the line shape: the lens has one number (its radius) on the line after
+    the centre, the torus three (its axis)."""
+    if flags:
+        return True
+    after = idx + 1 + 3 + 1                 # code line, MAT (3 lines), centre
+    if after >= len(content):
+        return False                        # truncated: read as the torus, which reports it
+    toks = content[after]
+    k = 0
+    while k < len(toks) and _NUMBER.match(toks[k].text):
+        k += 1
+    return k == 1
 
 
 # --- public API ---------------------------------------------------------------------------

@@ -116,6 +116,9 @@ def object_constants(scene: Scene) -> list[ObjectConstants]:
         if o.kind in ("triangle", "disk"):          # rt_core/shapes_planar.py
             out.append(_planar().planar_constants(i, o, V, groups, scene.viewpoint[2]))
             continue
+        if o.kind == "torus":
+            out.append(torus_constants(i, o, V, groups))
+            continue
         if isinstance(o, Sphere):
             Q = tuple(exact(c) - v for c, v in zip(o.center, V))
             r = exact(o.radius)
@@ -631,6 +634,7 @@ def sphere_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = F
 
 from .quadrics import KINDS as QUADRIC_KINDS  # noqa: E402  (the quadrics' kernel uses the above)
 from .shapes_quadric import quadric_constants, quadric_t  # noqa: E402
+from .shapes_torus import torus_constants, torus_t  # noqa: E402  (uses the helpers above)
 
 
 def _planar():
@@ -644,7 +648,7 @@ def planar_t(*args, **kw):
 
 OBJECT_T = {"sphere": sphere_t, "plane": plane_t, "fplane": fplane_t, "tplane": plane_t,
             "cylinder": quadric_t, "cone": quadric_t, "ellipsoid": quadric_t,
-            "triangle": planar_t, "disk": planar_t}
+            "triangle": planar_t, "disk": planar_t, "torus": torus_t}
 
 
 def object_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = False):

@@ -26,6 +26,7 @@ from .scene import Scene, SceneError, locate
 from .kinds import KIND_CODE, PLANE_KINDS
 from .shapes import ObjectConstants, least, numbers, object_constants, object_t
 from .shapes_quadric import is_quadric, quadric_code, quadric_normal
+from .shapes_torus import torus_surface
 
 backend.require("llvm")     # fail early, with a message, on an LLVM that would abort kernels
 
@@ -425,6 +426,8 @@ def surface(ks: KernelScene, d, t, oid, hit, o=None):
             h = dr.gather(T.Float, ks.table("h"), idx, hit)
             u = dr.select(fp, dr.clip(u, 0, w), u)
             v = dr.select(fp, dr.clip(v, 0, h), v)
+    if "torus" in kinds:
+        normal, u, v = torus_surface(ks, d, t, q, idx, hit, kind, normal, u, v)
     normal = dr.select(hit, normal, zero)
     return normal, dr.select(hit, u, 0), dr.select(hit, v, 0)
 

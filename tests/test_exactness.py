@@ -107,6 +107,11 @@ def _near(xs, W, H, rel=1e-7):
     for o in xs.objects:
         fl = lambda v: np.array([float(c) for c in v])
         with np.errstate(all="ignore"):
+            if o.kind == "torus":
+                # no float screen: every torus decision near the picked pixels is exact
+                # (tests/test_torus.py checks every pixel); its t joins no tie screen
+                ts.append(np.full(len(d), np.nan))
+                continue
             if o.kind in quadric.KINDS:
                 # the decision nearest to flipping (outline or rim), in world units
                 t, ok, m, size = quadric.classify_eval(o, np.tile(V, (len(d), 1)), d, Rules())

@@ -57,9 +57,9 @@ def test02_given_files(tmp_path):
                                      "(supported codes: 10 point light, 11 spotlight, 13 sphere, "
                                      "14 plane, 15 finite plane, 16 tiled plane, 17 textured "
                                      "plane, 19 procedural sphere, 20 procedural plane, "
-                                     "22 cylinder, 23 cone, 26 textured sphere, 27 triangle (a "
-                                     "disk in nw's older layout), 28 displacement sphere, "
-                                     "29 disk)")
+                                     "22 cylinder, 23 cone, 25 torus (cd: lens), 26 textured "
+                                     "sphere, 27 triangle (a disk in nw's older layout), "
+                                     "28 displacement sphere, 29 disk)")
     for sub, src in (("a", "sphere.txt"), ("b", "plane.txt")):
         (tmp_path / sub).mkdir()
         (tmp_path / sub / "s.txt").write_text((REPO / "scenes" / src).read_text())

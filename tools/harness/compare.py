@@ -77,7 +77,7 @@ def compare(scene: Scene, columns: int, rows: int | None = None, precision: str 
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}")
     T = backend.types(precision, backend_name)
-    # kinds without a Mitsuba shape (cone, ellipsoid) are left out on both sides
+    # kinds without a Mitsuba shape (cone, ellipsoid, torus) are left out on both sides
     scene, subset_note = mitsuba_subset(scene)
     cam = make_camera(scene, columns, rows, sampling)
     guard(lambda px: compare_bytes(px, precision), "compare", cam.columns, cam.rows)

@@ -271,7 +271,7 @@ def compare_secondary(scene: Scene, columns: int, rows: int | None = None,
     """Shadow rays (primary hits and first reflection bounce, every light) and first-bounce
     reflection rays of rt_core's shading, each against Mitsuba."""
     T = backend.types(precision, backend_name)
-    # kinds without a Mitsuba shape (cone, ellipsoid) are left out on both sides
+    # kinds without a Mitsuba shape (cone, ellipsoid, torus) are left out on both sides
     scene, note = mitsuba_subset(scene)
     cam = make_camera(scene, columns, rows, sampling)
     _, res = render_image(scene, cam, T, rules, geometry=False, shade=True,
