@@ -119,9 +119,11 @@ _HOLD = {"depth": 0, "pending": []}
 @contextmanager
 def signals_held():
     """A block during which a signal handler that asks ``held`` defers itself (tools/cli.py's
-    SIGTERM, SIGHUP and SIGINT handlers): a temporary is created and registered in _LIVE
-    with no handler raising in between, where the file would exist under a name nobody
-    knows.  The deferred signal is raised again when the block ends."""
+    SIGTERM and SIGHUP handler): a temporary is created and registered in _LIVE with no
+    handler raising in between, where the file would exist under a name nobody knows.  The
+    deferred signal is raised again when the block ends.  (Ctrl-C keeps Python's own
+    handler: a KeyboardInterrupt in that window can still leave one temporary, which the
+    next run's ``remove_stale`` removes once this process is gone.)"""
     _HOLD["depth"] += 1
     try:
         yield

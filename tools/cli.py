@@ -34,13 +34,6 @@ def _terminate(signum, frame):
     raise Terminated(signum)
 
 
-def _interrupt(signum, frame):
-    from rt_core.outputs import held
-    if held(signum):
-        return
-    raise KeyboardInterrupt
-
-
 class Parser(argparse.ArgumentParser):
     def error(self, message):
         # one line, like every other error (the usage is one --help away)
@@ -123,8 +116,6 @@ def main(argv=None) -> int:
     from rt_core.outputs import cleanup
     for sig in (signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, _terminate)
-    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
-        signal.signal(signal.SIGINT, _interrupt)
     try:
         return int(args.func(args) or 0)
     except Terminated as e:
