@@ -223,11 +223,15 @@ def test06_unreachable_scheduler_is_one_line(tmp_path):
 
 
 def _rtval_sweep(tmp_path):
-    """A long sweep on a local cluster of 2 workers, in its own process group."""
+    """A long sweep on a local cluster of 2 workers, in its own process group, with Ctrl-C's
+    default action: a test run started in the background inherits SIGINT ignored, and a
+    Python started so keeps ignoring it (Unix's rule for background jobs), so Ctrl-C would
+    never reach rtval."""
     return subprocess.Popen([sys.executable, "-m", "tools.cli", "stability", "--families",
                              "straddle", "edges", "--seeds", "20", "-o", str(tmp_path),
                              "--workers", "2"], cwd=REPO, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+                            stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
 def _when_children(p, n: int) -> None:
