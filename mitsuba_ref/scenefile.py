@@ -213,11 +213,7 @@ def _numeric(lines, code27: str = "auto", table: dict | None = None, name: str =
             raise ValueError("truncated scene")
         no, toks = lines[idx]
         idx += 1
-        lead = []
-        for t in toks:
-            if not _NUM.match(t):
-                break
-            lead.append(t)
+        lead = list(_lead(toks))
         if len(lead) < n:
             raise ValueError(f"line {no}: expected {n} numbers")
         return tuple(_exact(t) for t in lead[:n])
@@ -249,8 +245,7 @@ def _numeric(lines, code27: str = "auto", table: dict | None = None, name: str =
             at = idx + 3 + len(flags) + geo
             if at >= len(lines):
                 raise ValueError("truncated scene")
-            count = next((i for i, t in enumerate(lines[at][1]) if not _NUM.match(t)),
-                         len(lines[at][1]))
+            count = len(list(_lead(lines[at][1])))
             shaped = shaped_form(code, count, code27)
             if shaped is None:
                 raise ValueError(f"line {lines[at][0]}: {count} numbers fit no layout of {code}")
@@ -258,8 +253,8 @@ def _numeric(lines, code27: str = "auto", table: dict | None = None, name: str =
         # code 25: cd's lens with cd's header flags, or a single number after the centre
         # (nw's torus has its 3-number axis there): MAT 3 lines, the flags', the centre
         after = idx + 3 + len(flags) + 1
-        if table is None and code in SHARED_CODES and (flags or (after < len(lines) and sum(
-                1 for _ in _lead(lines[after][1])) == 1)):
+        if table is None and code in SHARED_CODES and (flags or (
+                after < len(lines) and len(list(_lead(lines[after][1]))) == 1)):
             form = FORMS[SHARED_CODES[code]]
         extras = []
         if len(toks) > 1 and _NUM.match(toks[1]):        # nw's refraction index

@@ -422,17 +422,20 @@ def _no_word(ctx: _Ctx, what: str, name: str) -> SceneError:
 
 # --- numeric dialect ----------------------------------------------------------------------
 
+def lead_count(toks: list[_Tok]) -> int:
+    """How many tokens at the start of a line are numbers."""
+    k = 0
+    while k < len(toks) and _NUMBER.match(toks[k].text):
+        k += 1
+    return k
+
+
 def _parse_numeric(ctx: _Ctx, table: dict | None = None):
     """The numeric dialect with the notes' code table, or with ``table`` (code -> (form,
     the groups' order), one of kinds.CODE_TABLES)."""
     content = [toks for toks in ctx.lines if toks]
     idx = 0
 
-    def lead_count(toks: list[_Tok]) -> int:
-        k = 0
-        while k < len(toks) and _NUMBER.match(toks[k].text):
-            k += 1
-        return k
 
     def group(what: str, name: str, n: int, desc: str):
         nonlocal idx
@@ -542,11 +545,7 @@ def _shared_code_form(content: list, idx: int, flags) -> bool:
     after = idx + 1 + 3 + 1                 # code line, MAT (3 lines), centre
     if after >= len(content):
         return False                        # truncated: read as the torus, which reports it
-    toks = content[after]
-    k = 0
-    while k < len(toks) and _NUMBER.match(toks[k].text):
-        k += 1
-    return k == 1
+    return lead_count(content[after]) == 1
 
 
 # --- public API ---------------------------------------------------------------------------
