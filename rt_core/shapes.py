@@ -518,6 +518,16 @@ def _abs_cross(a, b):
     return type(a)(a.y * b.z + a.z * b.y, a.z * b.x + a.x * b.z, a.x * b.y + a.y * b.x)
 
 
+def frame_coords(d, obj):
+    """The fast path's frame coordinates of the hit times n·d (sign-folded):
+    su = s·ŷ·(q × d), sv = −s·x̂·(q × d) (the finite plane's, the triangle's, the disk's)."""
+    Array3 = type(d)
+    sg = _signed(obj)[0]
+    c = dr.cross(opaque3(Array3, obj.q), d)
+    return (dr.dot(opaque3(Array3, _fold(sg, obj.ydir)), c),
+            -dr.dot(opaque3(Array3, _fold(sg, obj.xdir)), c))
+
+
 def fplane_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = False):
     """plane_t, then the bounds test 0 <= u <= w, 0 <= v <= h (strict with open edges)."""
     F, B = _check(d)
@@ -527,10 +537,7 @@ def fplane_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = F
         t, den, dec, lf = _plane_fast(d, obj, rules, vz, cert)
         if dec is None:
             return _fast_result(t, dec, lf)
-        sg = _signed(obj)[0]
-        c = dr.cross(opaque3(Array3, obj.q), d)
-        su = dr.dot(opaque3(Array3, _fold(sg, obj.ydir)), c)
-        sv = -dr.dot(opaque3(Array3, _fold(sg, obj.xdir)), c)
+        su, sv = frame_coords(d, obj)
         w, h = obj.size
         wd, hd = opaque(F, w) * den, opaque(F, h) * den
         tm = dec.tamed

@@ -29,8 +29,8 @@ from .planar import AXES, disk_axis, triangle_normal_exact
 from .rules import Rules
 from .scene import exact
 from .shapes import (KB, KD, U64, ObjectConstants, _canonical, _check, _fast, _fast_result,
-                     _plane, _plane_bounds, _plane_fast, _scaled, _sg, _signed, _fold,
-                     cross_x, dot_x, least, opaque, opaque3, rounded)
+                     _plane, _plane_bounds, _plane_fast, _scaled, _sg, _fold,
+                     cross_x, dot_x, frame_coords, least, opaque, opaque3, rounded)
 
 
 def planar_constants(i: int, o, V, groups: dict, vz: float) -> ObjectConstants:
@@ -111,10 +111,7 @@ def planar_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert=False):
         t, den, dec, lf = _plane_fast(d, obj, rules, vz, cert)
         if dec is None:
             return _fast_result(t, dec, lf)
-        sg = _signed(obj)[0]
-        c = dr.cross(opaque3(Array3, obj.q), d)
-        su = dr.dot(opaque3(Array3, _fold(sg, obj.ydir)), c)
-        sv = -dr.dot(opaque3(Array3, _fold(sg, obj.xdir)), c)
+        su, sv = frame_coords(d, obj)
         f, three = _values(kind, su, sv, den, obj, F)
         if kind == "triangle":
             tm = dec.tamed
