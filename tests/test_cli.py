@@ -6,6 +6,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import json
+
 import numpy as np
 import pytest
 
@@ -77,6 +79,16 @@ def test06_validate_reports_progress_in_a_log(tmp_path):
     # rays, camera and the shaded course image
     assert "rtval validate: 3/3 comparisons (100%), 0 failed" in r.stderr
     assert "skipped: none" in r.stderr
+    # where the time went (tools/harness/timing.py): every phase that ran is counted, and the
+    # split in report.json is what the summary line prints
+    split = json.loads((tmp_path / "report.json").read_text())["time_split"]
+    rows = json.loads((tmp_path / "report.json").read_text())["results"]
+    for phase in ("rt_core", "mitsuba", "classify", "other"):
+        assert all(r["seconds"][phase] > 0 for r in rows), phase
+        assert split["seconds"][phase] == pytest.approx(
+            sum(r["seconds"][phase] for r in rows), abs=2e-3)
+    assert sum(split["share"].values()) == pytest.approx(1, abs=1e-3)
+    assert f"Mitsuba {100 * split['share']['mitsuba']:.0f}%" in r.stderr
 
 
 def test07_convert_takes_shade_like_render(tmp_path):

@@ -102,8 +102,10 @@ def run(args) -> int:
         page = comparisons_report(args.report, "rtval validate", results, skipped, meta=meta)
         print(f"report: {page}", file=sys.stderr)
     bad = [r for r in results if not r["ok"]]
+    from tools.harness.timing import split_line, time_split
     summary = (f"{len(results)} comparisons on {len(scenes)} scenes (skipped: "
-               f"{skip_counts(skipped)}): {len(bad)} failed. Report: {md}, {js}")
+               f"{skip_counts(skipped)}): {len(bad)} failed. Report: {md}, {js}\n"
+               + split_line(time_split(results)))
     if args.json:
         from rt_core.outputs import json_text
         from tools.harness.validate import report_data

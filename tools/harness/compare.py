@@ -21,6 +21,7 @@ from rt_core.scene import Scene
 from mitsuba_ref.convert import mitsuba_subset, plane_extent, sensor_setup
 from mitsuba_ref.explain import CLASS_CODE, CLASSES, classify, depth_bound
 from mitsuba_ref.reference import MitsubaScene, render_camera, trace_rays
+from .timing import Stopwatch
 
 MODES = ("rays", "camera")
 
@@ -43,6 +44,7 @@ class Comparison:
     sampling: str = "corners"
     rules: Rules = Rules()
     backend: str = "llvm"
+    seconds: dict = field(default_factory=dict)     # per phase (tools/harness/timing.py)
 
     @property
     def unexplained(self) -> int:
@@ -64,7 +66,7 @@ class Comparison:
                 "classes": self.counts, "explained": self.explained,
                 "unexplained": self.unexplained, "depth": self.depth,
                 "rt_core_ms": round(self.ms_ours, 3), "mitsuba_ms": round(self.ms_ref, 3),
-                "ok": self.ok, "note": self.note}
+                "seconds": self.seconds, "ok": self.ok, "note": self.note}
 
 
 def _numpy3(v) -> np.ndarray:
@@ -76,48 +78,54 @@ def compare(scene: Scene, columns: int, rows: int | None = None, precision: str 
             backend_name: str = "llvm") -> Comparison:
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}")
-    T = backend.types(precision, backend_name)
-    # kinds without a Mitsuba shape (cone, ellipsoid, torus) are left out on both sides
-    scene, subset_note = mitsuba_subset(scene)
-    cam = make_camera(scene, columns, rows, sampling)
-    guard(lambda px: compare_bytes(px, precision), "compare", cam.columns, cam.rows)
-    note = ""
-    if mode == "camera":
-        setup = sensor_setup(scene, cam.columns, cam.rows, sampling)
-        if not setup.square:
-            # Mitsuba's pixels are square: compare with rt_core on that same camera
-            note = setup.note
-            ww = scene.window[0]
-            h = cam.sx * ((cam.rows - 1) if sampling == "corners" else cam.rows)
-            scene = dataclasses.replace(scene, window=(ww, h))
-            cam = make_camera(scene, columns, cam.rows, sampling)
+    sw = Stopwatch()
+    with sw("other"):
+        T = backend.types(precision, backend_name)
+        # kinds without a Mitsuba shape (cone, ellipsoid, torus) are left out on both sides
+        scene, subset_note = mitsuba_subset(scene)
+        cam = make_camera(scene, columns, rows, sampling)
+        guard(lambda px: compare_bytes(px, precision), "compare", cam.columns, cam.rows)
+        note = ""
+        if mode == "camera":
+            setup = sensor_setup(scene, cam.columns, cam.rows, sampling)
+            if not setup.square:
+                # Mitsuba's pixels are square: compare with rt_core on that same camera
+                note = setup.note
+                ww = scene.window[0]
+                h = cam.sx * ((cam.rows - 1) if sampling == "corners" else cam.rows)
+                scene = dataclasses.replace(scene, window=(ww, h))
+                cam = make_camera(scene, columns, cam.rows, sampling)
     # ours (timed: steady state, i.e. the second call)
-    for _ in range(2):
-        t0 = time.perf_counter()
-        flat = trace_geometry(scene, cam, T, rules)
-        ms_ours = (time.perf_counter() - t0) * 1e3
-    ours = to_images(flat, cam)
-    d = _numpy3(primary_directions(scene, cam, T))
-    ms = MitsubaScene(scene, cam.columns, cam.rows, sampling, clip_spheres=rules.clip_spheres)
-    for _ in range(2):
-        t0 = time.perf_counter()
-        if mode == "rays":
-            ref = {k: v.reshape(cam.rows, cam.columns) for k, v in trace_rays(ms, d).items()}
-        else:
-            ref = render_camera(ms, d)
-        ms_ref = (time.perf_counter() - t0) * 1e3
-    flat_o = {k: v.ravel() for k, v in ours.items()}
-    flat_r = {k: v.ravel() for k, v in ref.items()}
-    extent = plane_extent(scene)
-    classes = classify(scene, d, flat_o, flat_r, rules, extent).reshape(cam.rows, cam.columns)
-    # depth error where both hit the same object
-    same = (flat_o["hit.mask"] > 0) & (flat_r["hit.mask"] > 0) & \
-           (flat_o["object.id"] == flat_r["object.id"]) & (classes.ravel() == 0)
-    t_o = flat_o["depth.Z"][same].astype(np.float64)
-    t_r = flat_r["depth.Z"][same].astype(np.float64)
-    rel = np.abs(t_o - t_r) / np.maximum(np.abs(t_r), 1e-300)
-    bound = depth_bound(scene, d[same], flat_o["object.id"][same].astype(np.int64), t_r,
-                        extent, rules)
+    with sw("rt_core"):
+        for _ in range(2):
+            t0 = time.perf_counter()
+            flat = trace_geometry(scene, cam, T, rules)
+            ms_ours = (time.perf_counter() - t0) * 1e3
+        ours = to_images(flat, cam)
+    with sw("other"):
+        d = _numpy3(primary_directions(scene, cam, T))
+    with sw("mitsuba"):
+        ms = MitsubaScene(scene, cam.columns, cam.rows, sampling, clip_spheres=rules.clip_spheres)
+        for _ in range(2):
+            t0 = time.perf_counter()
+            if mode == "rays":
+                ref = {k: v.reshape(cam.rows, cam.columns) for k, v in trace_rays(ms, d).items()}
+            else:
+                ref = render_camera(ms, d)
+            ms_ref = (time.perf_counter() - t0) * 1e3
+    with sw("classify"):
+        flat_o = {k: v.ravel() for k, v in ours.items()}
+        flat_r = {k: v.ravel() for k, v in ref.items()}
+        extent = plane_extent(scene)
+        classes = classify(scene, d, flat_o, flat_r, rules, extent).reshape(cam.rows, cam.columns)
+        # depth error where both hit the same object
+        same = (flat_o["hit.mask"] > 0) & (flat_r["hit.mask"] > 0) & \
+               (flat_o["object.id"] == flat_r["object.id"]) & (classes.ravel() == 0)
+        t_o = flat_o["depth.Z"][same].astype(np.float64)
+        t_r = flat_r["depth.Z"][same].astype(np.float64)
+        rel = np.abs(t_o - t_r) / np.maximum(np.abs(t_r), 1e-300)
+        bound = depth_bound(scene, d[same], flat_o["object.id"][same].astype(np.int64), t_r,
+                            extent, rules)
     depth = {"pixels": int(same.sum()),
              "max_rel": float(rel.max()) if len(rel) else 0.0,
              "p99_rel": float(np.percentile(rel, 99)) if len(rel) else 0.0,
@@ -126,7 +134,8 @@ def compare(scene: Scene, columns: int, rows: int | None = None, precision: str 
     counts = {c: int(np.count_nonzero(classes == i)) for i, c in enumerate(CLASSES)}
     note = "; ".join(n for n in (note, subset_note) if n)
     return Comparison(scene, mode, precision, cam.columns, cam.rows, classes, ours, ref, depth,
-                      ms_ours, ms_ref, note, counts, sampling, rules, backend_name)
+                      ms_ours, ms_ref, note, counts, sampling, rules, backend_name,
+                      sw.rounded())
 
 
 EVIDENCE = ("ours", "mitsuba", "diff", "classes")

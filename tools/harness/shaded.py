@@ -35,6 +35,7 @@ from rt_core.render import render_image
 from rt_core.rules import Rules
 from rt_core.scene import Scene
 from rt_core.shading import DEFAULT_MAX_DIST, quantize
+from .timing import Stopwatch
 
 SHADED_CLASSES = ("match", "rounding", "boundary", "wrong")
 SHADED_CODE = {c: i for i, c in enumerate(SHADED_CLASSES)}
@@ -63,6 +64,7 @@ class ShadedComparison:
     flip_mean: float = 0.0            # NVIDIA FLIP, Mitsuba's image the reference
     flip: np.ndarray | None = None    # FLIP's per-pixel error; None when the images are equal
     note: str = ""                    # objects left out of the comparison (quadrics)
+    seconds: dict = field(default_factory=dict)     # per phase (tools/harness/timing.py)
 
     @property
     def ok(self) -> bool:
@@ -77,7 +79,7 @@ class ShadedComparison:
                 "wrong": self.counts.get("wrong", 0), "worst": self.worst,
                 "flip_mean": self.flip_mean,
                 "rt_core_ms": round(self.ms_ours, 3), "mitsuba_ms": round(self.ms_ref, 3),
-                "ok": self.ok, "note": self.note}
+                "seconds": self.seconds, "ok": self.ok, "note": self.note}
 
 
 def mitsuba_course_image(scene: Scene, columns: int, rows: int, sampling: str = "corners",
@@ -126,42 +128,49 @@ def compare_shaded(scene: Scene, columns: int, rows: int | None = None,
     """rt_core's 8-bit course image (float64, exact decisions) against Mitsuba's.
     ``integrator``: the registered plugin name of the integrator to use (tests: a
     deliberately wrong one); default ``course``."""
-    # the course integrator shades the plane kinds and spheres only: quadrics are left out
-    from mitsuba_ref.convert import mitsuba_subset
-    scene, note = mitsuba_subset(scene, lambda k: k in ("sphere", "plane", "fplane", "tplane"))
-    cam = make_camera(scene, columns, rows, sampling, rules)
-    t0 = time.perf_counter()
-    ims, _ = render_image(scene, cam, backend.types("f64"), rules, geometry=False, shade=True,
-                          max_dist=max_dist)
-    ms_ours = (time.perf_counter() - t0) * 1e3
-    ours = quantize(np.stack([ims[c] for c in "RGB"], -1))
-    t0 = time.perf_counter()
-    I = mitsuba_course_image(scene, cam.columns, cam.rows, sampling, rules, max_dist,
-                             integrator)
-    ms_ref = (time.perf_counter() - t0) * 1e3
-    theirs = quantize32(I)
-    classes = classify_shaded(scene, ours, theirs, sampling, rules, max_dist)
-    wrong = classes == SHADED_CODE["wrong"]
-    if wrong.any():
-        # the geometry classifier on the primary rays (Mitsuba tracing rt_core's rays, as
-        # rtval compare --mode rays): a pixel whose first hit it explains (an edge, a tie, the
-        # clip, the stand-in plane's extent, a grazing or parallel ray) is a boundary pixel
-        from tools.harness.compare import compare
-        from mitsuba_ref.explain import CLASS_CODE
-        geo = compare(scene, cam.columns, cam.rows, "f64", "rays", sampling, rules).classes
-        explained = (geo != CLASS_CODE["agree"]) & (geo != CLASS_CODE["unexplained"])
-        classes[wrong & explained] = SHADED_CODE["boundary"]
-    counts = {c: int(np.count_nonzero(classes == i)) for i, c in enumerate(SHADED_CLASSES)}
-    ys, xs = np.nonzero(classes == SHADED_CODE["wrong"])
-    worst = [(int(x), int(y), ours[y, x].tolist(), theirs[y, x].tolist())
-             for y, x in list(zip(ys, xs))[:5]]
-    flip, flip_mean = None, 0.0
-    if (ours != theirs).any():          # FLIP of identical images is 0: not computed
-        from tools.harness.flip import flip_map
-        flip, flip_mean, _ = flip_map(theirs / np.float32(255), ours / np.float32(255))
+    sw = Stopwatch()
+    with sw("other"):
+        # the course integrator shades the plane kinds and spheres only: quadrics are left out
+        from mitsuba_ref.convert import mitsuba_subset
+        scene, note = mitsuba_subset(scene, lambda k: k in ("sphere", "plane", "fplane",
+                                                            "tplane"))
+        cam = make_camera(scene, columns, rows, sampling, rules)
+    with sw("rt_core"):
+        t0 = time.perf_counter()
+        ims, _ = render_image(scene, cam, backend.types("f64"), rules, geometry=False,
+                              shade=True, max_dist=max_dist)
+        ms_ours = (time.perf_counter() - t0) * 1e3
+        ours = quantize(np.stack([ims[c] for c in "RGB"], -1))
+    with sw("mitsuba"):
+        t0 = time.perf_counter()
+        I = mitsuba_course_image(scene, cam.columns, cam.rows, sampling, rules, max_dist,
+                                 integrator)
+        ms_ref = (time.perf_counter() - t0) * 1e3
+    with sw("classify"):
+        theirs = quantize32(I)
+        classes = classify_shaded(scene, ours, theirs, sampling, rules, max_dist)
+        wrong = classes == SHADED_CODE["wrong"]
+        if wrong.any():
+            # the geometry classifier on the primary rays (Mitsuba tracing rt_core's rays, as
+            # rtval compare --mode rays): a pixel whose first hit it explains (an edge, a tie,
+            # the clip, the stand-in plane's extent, a grazing or parallel ray) is a boundary
+            # pixel
+            from tools.harness.compare import compare
+            from mitsuba_ref.explain import CLASS_CODE
+            geo = compare(scene, cam.columns, cam.rows, "f64", "rays", sampling, rules).classes
+            explained = (geo != CLASS_CODE["agree"]) & (geo != CLASS_CODE["unexplained"])
+            classes[wrong & explained] = SHADED_CODE["boundary"]
+        counts = {c: int(np.count_nonzero(classes == i)) for i, c in enumerate(SHADED_CLASSES)}
+        ys, xs = np.nonzero(classes == SHADED_CODE["wrong"])
+        worst = [(int(x), int(y), ours[y, x].tolist(), theirs[y, x].tolist())
+                 for y, x in list(zip(ys, xs))[:5]]
+        flip, flip_mean = None, 0.0
+        if (ours != theirs).any():          # FLIP of identical images is 0: not computed
+            from tools.harness.flip import flip_map
+            flip, flip_mean, _ = flip_map(theirs / np.float32(255), ours / np.float32(255))
     return ShadedComparison(scene, cam.columns, cam.rows, ours, theirs, classes, counts,
                             ms_ours, ms_ref, sampling, rules, max_dist, worst, flip_mean, flip,
-                            note)
+                            note, sw.rounded())
 
 
 def classes_rgb(classes: np.ndarray) -> np.ndarray:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -102,15 +103,21 @@ def run_job(job: Job):
     """One comparison (in this process or on a Dask worker): its report row, and the
     comparison itself when its evidence is to be written (it failed, or ``keep_all``);
     evidence is written by the caller, never on a worker."""
+    t0 = time.perf_counter()
     if job.mode == "shaded":
         from tools.harness.shaded import compare_shaded
         cmp = compare_shaded(job.scene, job.columns)
     else:
         cmp = compare(job.scene, job.columns, None, job.precision, job.mode)
     row = cmp.summary()
+    # the job's time outside the comparison's own phases (imports, the summary) is "other"
+    row["seconds"] = dict(row["seconds"])
+    row["seconds"]["other"] += round(time.perf_counter() - t0 - sum(row["seconds"].values()), 4)
     if job.pictures:
         from .html_report import comparison_pictures
+        t1 = time.perf_counter()
         row["pictures"] = comparison_pictures(cmp)
+        row["seconds"]["write"] += round(time.perf_counter() - t1, 4)
     return row, (cmp if not cmp.ok or job.keep_all else None)
 
 
@@ -142,6 +149,7 @@ def validate(scenes, columns: int, precisions, modes, outdir: str, progress=None
     def each(i, out):
         row, cmp = out
         job = todo[i]
+        t0 = time.perf_counter()
         if job.mode == "shaded":
             if cmp is not None:
                 from tools.harness.shaded import write_shaded_evidence
@@ -153,6 +161,8 @@ def validate(scenes, columns: int, precisions, modes, outdir: str, progress=None
                                if not cmp.ok else
                                write_evidence(cmp, os.path.join(outdir, "exr"), stem,
                                               ("ours", "mitsuba")))
+        if "seconds" in row:
+            row["seconds"]["write"] += round(time.perf_counter() - t0, 4)
         if progress:
             progress(row)
         return row
@@ -167,7 +177,9 @@ def public(row: dict) -> dict:
 
 def report_data(results, skipped, meta: dict) -> dict:
     """What report.json holds and ``rtval validate --json`` prints."""
-    return {"meta": meta, "results": [public(r) for r in results],
+    from .timing import time_split
+    return {"meta": meta, "time_split": time_split(results),
+            "results": [public(r) for r in results],
             "skipped": [{"path": s.path, "category": s.category, "reason": s.reason}
                         for s in skipped]}
 
@@ -208,7 +220,9 @@ def write_report(results, skipped, outdir: str, meta: dict) -> tuple[str, str]:
                          f"{c['rounding']} | {c['boundary']} | {c['wrong']} | "
                          f"{r['rt_core_ms']:.2f} | {r['mitsuba_ms']:.2f} |")
     bad = [r for r in results if not r["ok"]]
-    lines += ["", f"{len(results)} comparisons, {len(bad)} failed."]
+    from .timing import split_line, time_split
+    lines += ["", f"{len(results)} comparisons, {len(bad)} failed.", "",
+              split_line(time_split(results)) + "."]
     if skipped:
         lines += ["", f"## Skipped: {skip_counts(skipped)}", ""]
         lines += [f"- {s.category}: {s.reason}" for s in sorted(skipped,
