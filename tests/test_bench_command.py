@@ -18,7 +18,7 @@ def test01_command_bench_splits_a_render_into_phases(tmp_path):
     assert r.returncode == 0, r.stderr
     res = json.loads(out.read_text())
     assert res["mode"] == "command" and {c["outputs"] for c in res["cases"]} == \
-        {"geometry", "shaded"}
+        {"geometry", "shaded", "course"}
     for c in res["cases"]:
         p = c["phases"]
         assert c["columns"] == 48 and c["runs"] == 1

@@ -408,15 +408,18 @@ def table(result: dict) -> str:
 
 COMMAND_COLUMNS = (1920, 7680)
 COMMAND_PHASES = ("import", "parse", "kernel", "write")
+# what a run writes: the geometry EXR; the course image (the PPM a course program writes) with
+# the shaded EXR beside it; the course image alone
+COMMAND_OUTPUTS = ("geometry", "shaded", "course")
 
 
 def command_bench(columns=COMMAND_COLUMNS, repeats: int = 3, scene: str | None = None,
-                  outputs=("geometry", "shaded"), progress=None) -> dict:
+                  outputs=COMMAND_OUTPUTS, progress=None) -> dict:
     """Wall time of whole ``rtval render`` runs (a new process each), split into phases:
     import (the interpreter's start, the CLI, rt_core, Dr.Jit, numpy, OpenEXR: the wall time
     before the scene is read), parse, kernel (camera, tracing, shading; Dr.Jit's kernel cache
-    warm), write (quantizing, provenance, the outputs).  ``outputs``: geometry (-o EXR) and/or shaded
-    (--ppm and -o EXR with R G B).  Medians and ranges of ``repeats`` runs, interleaved."""
+    warm), write (quantizing, provenance, the outputs).  ``outputs``: COMMAND_OUTPUTS' names.
+    Medians and ranges of ``repeats`` runs, interleaved."""
     import json
     import subprocess
     import sys
@@ -433,8 +436,8 @@ def command_bench(columns=COMMAND_COLUMNS, repeats: int = 3, scene: str | None =
                 for out in outputs:
                     phases = os.path.join(d, "phases.json")
                     exr, ppm = os.path.join(d, f"{c}.{out}.exr"), os.path.join(d, f"{c}.ppm")
-                    args = ["--columns", str(c), "-o", exr] + (["--ppm", ppm]
-                                                               if out == "shaded" else [])
+                    args = ["--columns", str(c)] + (["-o", exr] if out != "course" else []) \
+                        + (["--ppm", ppm] if out != "geometry" else [])
                     t0 = time.perf_counter()
                     r = subprocess.run([sys.executable, "-m", "tools.cli", "render", scene, *args],
                                        cwd=repo, capture_output=True, text=True,
@@ -448,7 +451,7 @@ def command_bench(columns=COMMAND_COLUMNS, repeats: int = 3, scene: str | None =
                         p = json.load(f)
                     p["import"] = wall - p["parse"] - p["kernel"] - p["write"]
                     p["wall"] = wall
-                    p["size_mb"] = os.path.getsize(exr) / 1e6
+                    p["size_mb"] = os.path.getsize(exr if out != "course" else ppm) / 1e6
                     for f in (exr, ppm):        # (not replaced by the next run: an unlink of
                         if os.path.exists(f):   # a large file is no part of a render)
                             os.unlink(f)
