@@ -91,7 +91,7 @@ def _classes(mi):
             self.kind = kind
             # a textured object: its ambient is brightness × its ``texture`` (a Mitsuba
             # bitmap, nearest texel, whose to_uv maps the shape's uv to the course's s, t)
-            self.texture = props.get("texture", None) if props.has_property("texture") \
+            self.texture = props.get("texture", None) if "texture" in props \
                 else None
             self.brightness = float(props.get("brightness", 1.0))
             self.ones = {"clipped": float(kind != "sphere"), "sphere": float(kind == "sphere"),

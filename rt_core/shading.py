@@ -128,7 +128,7 @@ def _texel(T, x, size, wrap):
     (``wrap``) or not; clamped to 0..size−1 either way."""
     x = dr.select(wrap, x - dr.floor(x), x)
     n = T.Float(size)
-    i = dr.clamp(dr.floor(x * n), 0, n - 1)
+    i = dr.clip(dr.floor(x * n), 0, n - 1)
     return T.UInt32(i)
 
 
@@ -146,7 +146,7 @@ def _texture_ambient(ks: KernelScene, tables: dict, idx, hit, u, v, normal, amb)
     a = dr.dot(normal, g("tex_side", T.Array3))
     b = dr.dot(normal, g("tex_fwd", T.Array3))
     lon = dr.atan2(a, b) * (0.5 / math.pi)
-    lat = dr.acos(dr.clamp(normal.y, -1, 1)) * (1 / math.pi)
+    lat = dr.acos(dr.clip(normal.y, -1, 1)) * (1 / math.pi)
     s = dr.select(sphere, lon, u / g("tex_sx"))
     t = dr.select(sphere, lat, v / g("tex_sy"))
     W, H = g("tex_w", T.UInt32), g("tex_h", T.UInt32)
