@@ -311,7 +311,7 @@ def tile_size(o, rules: Rules) -> tuple:
     return (w / math.sqrt(max(1.0 - c * c, 0.0)), float(h))
 
 
-def course_material(o, oid: int, rules: Rules) -> dict:
+def course_material(o, oid: int, rules: Rules, window=(1.0, 1.0)) -> dict:
     """The ``course_material`` BSDF of one object (mitsuba_ref/integrator.py): its MAT, kind,
     a sphere's centre and radius, a plane's normal as given (unit) and point, a tiled plane's
     frame, computed here."""
@@ -332,7 +332,62 @@ def course_material(o, oid: int, rules: Rules) -> dict:
         x, y, _ = frame(o)
         b.update({"xdir": list(x), "ydir": list(y),
                   "tile_size": [*tile_size(o, rules), 0.0], **_mat(o.background, "background_")})
+    if getattr(o, "texture", None) is not None:
+        b.update(texture_spec(o, window))
     return b
+
+
+def _extra(o, name):
+    return next(v for k, v in o.extras if k == name)
+
+
+def sphere_forward(o) -> tuple:
+    """A textured sphere's forward direction projected onto the xz plane, unit (s = 0 there):
+    sphere_pixmap's field, +z for nw's texsphere."""
+    f = [float(c) for c in _extra(o, "forward")] if o.form == "sphere_pixmap" else [0, 0, 1]
+    m = math.hypot(f[0], f[2])
+    return (f[0] / m, 0.0, f[2] / m)
+
+
+def textured_sphere(o, T) -> dict:
+    """A textured sphere whose Mitsuba uv is the course's (1 − s, t): local z = +y (v =
+    acos(d·ŷ)/π = t), local x = f̂, local y = ŷ × f̂ = −ŝ (u = atan2(−d·ŝ, d·f̂)/2π = 1 − s;
+    the texture's to_uv flips it back)."""
+    fx, _, fz = sphere_forward(o)
+    r, c = float(o.radius), [float(v) for v in o.center]
+    return {"type": "sphere", "to_world": T([[r * fx, r * fz, 0.0, c[0]],
+                                             [0.0, 0.0, r, c[1]],
+                                             [r * fz, -r * fx, 0.0, c[2]],
+                                             [0.0, 0.0, 0.0, 1.0]])}
+
+
+def texture_spec(o, window) -> dict:
+    """The course_material's texture: a Mitsuba ``bitmap`` of the file's texels (read by
+    mitsuba_ref/ppm.py), nearest texel, and the ``to_uv`` that makes the shape's uv the
+    course's s, t (README "Textures"): a rectangle's uv is (x/w, y/h) of its frame, so fit
+    mode is the identity (clamped), a repeat every (sx, sy) the scale (w/sx, h/sy)
+    (repeated); a sphere's (1 − s, t) (``textured_sphere``) flips u."""
+    import numpy as np
+    from mitsuba_ref.ppm import texels
+    mi = mitsuba()
+    bright = 1.0 if o.form in ("texplane", "texsphere") else float(_extra(o, "brightness"))
+    if o.kind == "sphere":
+        m, wrap = [[-1.0, 0, 0, 1.0], [0, 1.0, 0, 0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]], "repeat"
+    else:
+        w, h = (float(c) for c in o.size)
+        wrap = "repeat"
+        if o.form == "fplanetex":
+            sx, sy = (float(c) for c in _extra(o, "texture size"))
+        elif _extra(o, "tile mode") == 2:
+            sx, sy = (float(c) for c in window)
+        else:
+            sx, sy, wrap = w, h, "clamp"
+        m = [[w / sx, 0, 0, 0], [0, h / sy, 0, 0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]]
+    bitmap = mi.Bitmap(np.ascontiguousarray(texels(o.texture.path), np.float32))
+    return {"brightness": bright,
+            "texture": {"type": "bitmap", "bitmap": bitmap, "raw": True,
+                        "filter_type": "nearest", "wrap_mode": wrap,
+                        "to_uv": mi.ScalarTransform4f(m)}}
 
 
 def course_integrator(scene: Scene, columns: int, rows: int, sampling: str, rules: Rules,
@@ -375,7 +430,9 @@ def scene_dict(scene: Scene, columns: int, rows: int | None = None, sampling: st
             continue
         shape["id"] = sid
         if shading:
-            shape["bsdf"] = course_material(o, oid, rules)
+            if o.kind == "sphere" and getattr(o, "texture", None) is not None:
+                shape = dict(textured_sphere(o, T), id=sid)
+            shape["bsdf"] = course_material(o, oid, rules, scene.window)
         d[sid] = shape
     if shading:
         for i, light in enumerate(scene.lights):

@@ -89,6 +89,11 @@ def _classes(mi):
             dr.make_opaque(*self.vals.values())
             kind = props.get("kind", "sphere")
             self.kind = kind
+            # a textured object: its ambient is brightness × its ``texture`` (a Mitsuba
+            # bitmap, nearest texel, whose to_uv maps the shape's uv to the course's s, t)
+            self.texture = props.get("texture", None) if "texture" in props \
+                else None
+            self.brightness = float(props.get("brightness", 1.0))
             self.ones = {"clipped": float(kind != "sphere"), "sphere": float(kind == "sphere"),
                          "tiled": float(kind == "tplane"), "finite": float(kind == "fplane"),
                          "radius": float(props.get("radius", 0.0)),
@@ -265,6 +270,8 @@ def _classes(mi):
                 tab[k] = mi.Float([float(mats[i].ones[k]) if i in mats else 0.0
                                    for i in range(n)])
             dr.make_opaque(*tab.values())
+            self.textured = [(i, b) for i, b in sorted(mats.items())
+                             if getattr(b, "texture", None) is not None]
             return tab
 
         def _ids(self, si, hit):
@@ -394,6 +401,12 @@ def _classes(mi):
                 back = tiled & ~odd
                 bg = [mi.Color3f(att(k)) for k in BACKGROUND_FIELDS]
                 amb, dif, spec = (dr.select(back, b, f) for b, f in zip(bg, (amb, dif, spec)))
+            for cid, b in self.textured:
+                # the texture at Mitsuba's own uv of the hit (shape uv -> to_uv -> texel)
+                on = hit & (idx == cid)
+                if dr.any(on):
+                    texel = mi.Color3f(b.texture.eval(si, on))
+                    amb = dr.select(on, dr.opaque(mi.Float, b.brightness) * texel, amb)
             return amb, dif, spec, N
 
         def shade(self, scene, o, d, active=True):

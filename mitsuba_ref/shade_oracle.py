@@ -14,6 +14,8 @@ the decided quantity from its threshold over that quantity's error bound (as in 
            distance d
   tile     a tiled plane's parity: x = u/w, y = v/h against the integers
   maxdist  total_dist against MAX_DIST (whether the path goes on)
+  texel    a textured object's texel: s·W and t·H against the integers where the nearest
+           texel changes (README "Textures"; the texture read by mitsuba_ref/ppm.py)
 
 The light test c > 0 is not among them: the diffuse term is c·(...), continuous where c
 changes sign.  ``flags`` turns margins into per-pixel flags for one precision.
@@ -25,7 +27,7 @@ import math
 import numpy as np
 
 from rt_core.rules import Rules
-from mitsuba_ref import oracle, quadric
+from mitsuba_ref import oracle, ppm, quadric
 from mitsuba_ref.oracle import EF, diff3, dot3, length3, scale3, trace, unit3, vec
 
 INF = math.inf
@@ -41,7 +43,7 @@ U = {"f32": 2.0 ** -24, "f64": 2.0 ** -53}
 #     difference outside the flags, |I_rt_core − I_oracle| never exceeded 0.77·u·err.
 K_DECISION = 64.0
 K_VALUE = 8.0
-MARGINS = ("geo", "shadow", "tile", "maxdist")
+MARGINS = ("geo", "shadow", "tile", "maxdist", "texel")
 
 
 def _hit_margin(scene, h, base, d, skip, ties: bool = True, tmax: float = INF) -> float:
@@ -84,7 +86,7 @@ def _ef3(vals, errs):
 
 class _Pixel:
     def __init__(self):
-        self.geo = self.shadow = self.tile = self.maxdist = INF
+        self.geo = self.shadow = self.tile = self.maxdist = self.texel = INF
         self.bounces = 0
 
 
@@ -127,6 +129,8 @@ def ray_trace(scene, base, d, total_dist, skip, rules: Rules, max_dist: float, p
         if not oracle.tile_foreground(obj, h.uv[0], h.uv[1], rules):
             mat = obj.background
     I = [EF(a) for a in mat.ambient]
+    if getattr(obj, "texture", None) is not None:
+        I = _textured_ambient(scene, obj, h, N, px)
     for light in scene.lights:
         D = diff3(vec(light.center), H)
         dist = length3(D)
@@ -161,6 +165,73 @@ def ray_trace(scene, base, d, total_dist, skip, rules: Rules, max_dist: float, p
             Ir = ray_trace(scene, H, R, total_dist, h.id, rules, max_dist, px)
             I = [I[i] + EF(mat.specular[i]) * Ir[i] for i in range(3)]
     return tuple(I)
+
+
+def _extra(obj, name):
+    return next(v for k, v in obj.extras if k == name)
+
+
+def _atan2(a: EF, b: EF) -> EF:
+    """atan2 with a first-order bound: |∂/∂a|·e_a + |∂/∂b|·e_b plus one rounding."""
+    r2 = a.v * a.v + b.v * b.v
+    th = math.atan2(a.v, b.v)
+    e = (abs(b.v) * a.e + abs(a.v) * b.e) / r2 if r2 > 0 else INF
+    return EF(th, e + 2 * abs(th))
+
+
+def _acos(y: EF) -> EF:
+    c = min(1.0, max(-1.0, y.v))
+    s = math.sqrt(max(1.0 - c * c, 0.0))
+    e = y.e / s if s > 0 else INF
+    return EF(math.acos(c), e + 2 * math.acos(c))
+
+
+def _index(x: EF, n: int, wrap: bool, px: _Pixel) -> int:
+    """Nearest texel floor(x·n) (x wrapped into [0, 1) first, or clamped to 0..n−1); the
+    margin of x·n from the integers where the texel changes (all with ``wrap``, the inner
+    ones 1..n−1 without) goes into ``px.texel``."""
+    xn = x * EF(float(n), 0.0)
+    k = round(xn.v)
+    if wrap or 0 < k < n:
+        px.texel = min(px.texel, _int_margin(xn))
+    i = math.floor(xn.v)
+    return i % n if wrap else min(max(i, 0), n - 1)
+
+
+def _textured_ambient(scene, obj, h, N, px: _Pixel) -> list:
+    """brightness × texel of a textured object (README "Textures"), computed from the fields
+    as written and the file the scene's texture names (read here by mitsuba_ref/ppm.py)."""
+    tex = ppm.texels(obj.texture.path)
+    H, W = tex.shape[:2]
+    form = obj.form
+    bright = 1.0 if form in ("texplane", "texsphere") else float(_extra(obj, "brightness"))
+    if obj.kind == "sphere":
+        # d = unit(hit − centre) (the oracle's outward normal), forward projected onto xz
+        f = [float(c) for c in _extra(obj, "forward")] if form == "sphere_pixmap" \
+            else [0.0, 0.0, 1.0]
+        m = math.hypot(f[0], f[2])
+        fx, fz = f[0] / m, f[2] / m
+        along = N[0] * EF(fx) + N[2] * EF(fz)          # d·f̂
+        across = N[0] * EF(-fz) + N[2] * EF(fx)        # d·ŝ, ŝ = (−f̂z, 0, f̂x)
+        s = _atan2(across, along) / EF(2 * math.pi)
+        t = _acos(N[1]) / EF(math.pi)
+        col = _index(s, W, True, px)
+        row = _index(t, H, False, px)
+    else:
+        u = EF(h.uv[0], h.err_uv[0])
+        v = EF(h.uv[1], h.err_uv[1])
+        if form == "fplanetex":
+            sx, sy = _extra(obj, "texture size")
+            wrap = True
+        elif _extra(obj, "tile mode") == 2:
+            sx, sy = scene.window
+            wrap = True
+        else:
+            sx, sy = obj.size
+            wrap = False
+        col = _index(u / EF(float(sx)), W, wrap, px)
+        row = _index(v / EF(float(sy)), H, wrap, px)
+    return [EF(bright) * EF(float(c)) for c in tex[row, col]]
 
 
 def render_shade_oracle(scene, columns: int, rows: int | None = None,
@@ -216,7 +287,7 @@ def quantize(I: np.ndarray) -> np.ndarray:
 
 def flags(orc: dict, precision: str) -> dict:
     """Per-pixel flags (rows, columns) for a tracer in ``precision``: each discontinuous
-    decision that may flip ('geo', 'shadow', 'tile', 'maxdist', together 'jump'); 'quant': a
+    decision that may flip ('geo', 'shadow', 'tile', 'maxdist', 'texel', together 'jump'); 'quant': a
     channel within the intensity bound of an 8-bit level boundary (255·I near an integer);
     'any'."""
     u = U[precision]
@@ -225,6 +296,6 @@ def flags(orc: dict, precision: str) -> dict:
     bound = K_VALUE * u * orc["err"]
     near = np.abs(q - np.round(q)) < 255.0 * bound
     out["quant"] = np.any(near & (orc["I"] <= 1 + bound), -1)
-    out["jump"] = out["geo"] | out["shadow"] | out["tile"] | out["maxdist"]
+    out["jump"] = out["geo"] | out["shadow"] | out["tile"] | out["maxdist"] | out["texel"]
     out["any"] = out["jump"] | out["quant"]
     return out

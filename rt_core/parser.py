@@ -395,7 +395,7 @@ def _parse_keyword(ctx: _Ctx):
         if pos >= len(toks):
             raise _no_word(ctx, what, name)
         pos += 1
-        return toks[pos - 1].text
+        return Word.of(toks[pos - 1])
 
     window, viewpoint = _read_header(ctx, group)
     lights, objects = [], []
@@ -413,6 +413,19 @@ def _parse_keyword(ctx: _Ctx):
         form = next(f for f in FORMS.values() if f.keyword == kind)
         _read_object(ctx, form, start, group, word, lights, objects)
     return window, viewpoint, lights, objects
+
+
+class Word(str):
+    """A file-name field (a texture) as written, with where it is (``line``, ``col``) for
+    errors found later (a texture that cannot be found or read)."""
+    line: int | None = None
+    col: int | None = None
+
+    @classmethod
+    def of(cls, tok) -> "Word":
+        w = cls(tok.text)
+        w.line, w.col = tok.line, tok.col
+        return w
 
 
 def _no_word(ctx: _Ctx, what: str, name: str) -> SceneError:
@@ -460,7 +473,7 @@ def _parse_numeric(ctx: _Ctx, table: dict | None = None):
         if idx >= len(content):
             raise _no_word(ctx, what, name)
         idx += 1
-        return content[idx - 1][0].text
+        return Word.of(content[idx - 1][0])
 
     window, viewpoint = _read_header(ctx, group)
     lights, objects, flags = [], [], []

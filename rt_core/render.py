@@ -146,6 +146,10 @@ def provenance(scene: Scene, cam: Camera, precision: str, backend_name: str, rul
         attrs["rtval.stand_ins"] = "; ".join(stand_ins)
     if extras:
         attrs["rtval.extras"] = extras
+    from .textures import provenance_text
+    textures = provenance_text(scene)
+    if textures:
+        attrs["rtval.textures"] = textures
     attrs.update({f"rtval.{k}": str(v) for k, v in extra.items()})
     return attrs
 

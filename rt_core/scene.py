@@ -138,6 +138,7 @@ class Sphere:
     at: tuple = field(default=(), compare=False, repr=False)
     form: str = field(default="", compare=False)      # kinds.FORMS name when not the plain kind
     extras: tuple = field(default=(), compare=False)  # (field, value) the form adds, recorded
+    texture: object = field(default=None, compare=False, repr=False)  # textures.Texture, loaded
     kind = "sphere"
 
 
@@ -169,6 +170,7 @@ class FPlane:
     at: tuple = field(default=(), compare=False, repr=False)   # see locate()
     form: str = field(default="", compare=False)      # kinds.FORMS name when not the plain kind
     extras: tuple = field(default=(), compare=False)  # (field, value) the form adds, recorded
+    texture: object = field(default=None, compare=False, repr=False)  # textures.Texture, loaded
     kind = "fplane"
 
     @property
@@ -239,7 +241,7 @@ class Scene:
         from .kinds import FLAG_STAND_IN, FORMS, HEADER_FLAGS, TABLE_NOTES
         out = [TABLE_NOTES[self.table]] if self.table else []
         out += [f"line {o.line}: {FORMS[o.form].stand_in}" for o in self.objects
-               if o.form and FORMS[o.form].stand_in]
+               if o.form and FORMS[o.form].stand_in and getattr(o, "texture", None) is None]
         out += [f"line {o.line}: {o.note}" for o in self.objects if getattr(o, "note", "")]
         out += [FLAG_STAND_IN.format(f"header flag {f} ({HEADER_FLAGS[f]} after every MAT)")
                 for f in self.flags]

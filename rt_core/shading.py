@@ -38,6 +38,7 @@ from .scene import sub, unit
 from .kinds import KIND_CODE
 from .shapes import opaque3
 from .jitlog import NullLog
+from .textures import MODE_CODE, Texture
 from .tracer import KernelScene, closest_hit, occluded, surface
 
 # Path length at which reflection stops (the notes' MAX_DIST; the course programs used 20 to
@@ -94,8 +95,66 @@ def _material_tables(ks: KernelScene, rules: Rules = Rules()):
     size = [_tile_size(o, rules) if o.kind == "tplane" else (1.0, 1.0) for o in objs]
     tables = {"ambient": col("ambient"), "diffuse": col("diffuse"), "specular": col("specular"),
               "tile_w": T.Float([s[0] for s in size]), "tile_h": T.Float([s[1] for s in size])}
+    tex = [getattr(o, "texture", None) for o in objs]
+    if any(t is not None for t in tex):
+        tables.update(_texture_tables(T, tex))
     dr.make_opaque(*tables.values())        # data, not literals, even for one object
     return tables
+
+
+def _texture_tables(T, tex: list) -> dict:
+    """Per-object texture parameters (mode 0: none) and every texture's texels, one flat
+    Array3 (texture k from its offset, row by row)."""
+    none = Texture("", "", "", 1, 1, "fit")
+    ts = [t or none for t in tex]
+    offs, n = [], 0
+    for t in tex:
+        offs.append(n)
+        n += t.width * t.height if t is not None else 0
+    flat = np.concatenate([t.texels.reshape(-1, 3) for t in tex if t is not None])
+    vec = lambda name: T.Array3(*([getattr(t, name)[i] for t in ts] for i in range(3)))
+    return {"tex_mode": T.UInt32([MODE_CODE[t.mode] if t is not None else 0 for t in tex]),
+            "tex_off": T.UInt32(offs),
+            "tex_w": T.UInt32([t.width for t in ts]), "tex_h": T.UInt32([t.height for t in ts]),
+            "tex_sx": T.Float([t.scale[0] for t in ts]),
+            "tex_sy": T.Float([t.scale[1] for t in ts]),
+            "tex_b": T.Float([t.brightness for t in ts]),
+            "tex_fwd": vec("forward"), "tex_side": vec("side"),
+            "texels": T.Array3(*(T.Float(list(map(float, flat[:, i]))) for i in range(3)))}
+
+
+def _texel(T, x, size, wrap):
+    """Nearest texel index along one axis: floor(x·size), x wrapped into [0, 1) first
+    (``wrap``) or not; clamped to 0..size−1 either way."""
+    x = dr.select(wrap, x - dr.floor(x), x)
+    n = T.Float(size)
+    i = dr.clip(dr.floor(x * n), 0, n - 1)
+    return T.UInt32(i)
+
+
+def _texture_ambient(ks: KernelScene, tables: dict, idx, hit, u, v, normal, amb):
+    """The ambient reflectivity of textured objects: brightness × texel at (s, t)
+    (rt_core/textures.py), the MAT's elsewhere."""
+    T = ks.T
+    F = T.Float
+    g = lambda k, t=F: dr.gather(t, tables[k], idx, hit)
+    mode = g("tex_mode", T.UInt32)
+    on = hit & (mode != 0)
+    sphere = mode == MODE_CODE["sphere"]
+    # planes: frame coordinates over the scale; spheres: longitude from the forward vector
+    # towards the side vector, latitude from +y (d = the outward unit normal = unit(H − c))
+    a = dr.dot(normal, g("tex_side", T.Array3))
+    b = dr.dot(normal, g("tex_fwd", T.Array3))
+    lon = dr.atan2(a, b) * (0.5 / math.pi)
+    lat = dr.acos(dr.clip(normal.y, -1, 1)) * (1 / math.pi)
+    s = dr.select(sphere, lon, u / g("tex_sx"))
+    t = dr.select(sphere, lat, v / g("tex_sy"))
+    W, H = g("tex_w", T.UInt32), g("tex_h", T.UInt32)
+    col = _texel(T, s, W, mode != MODE_CODE["fit"])
+    row = _texel(T, t, H, mode == MODE_CODE["repeat"])
+    k = g("tex_off", T.UInt32) + row * W + col
+    texel = dr.gather(T.Array3, tables["texels"], k, on)
+    return dr.select(on, g("tex_b") * texel, amb)
 
 
 def _tile_size(o, rules: Rules):
@@ -117,7 +176,8 @@ def _odd_floor(x):
     return f - 2 * dr.floor(0.5 * f)
 
 
-def material(ks: KernelScene, tables: dict, oid, hit, u, v, rules: Rules = Rules()):
+def material(ks: KernelScene, tables: dict, oid, hit, u, v, rules: Rules = Rules(),
+             normal=None):
     """(ambient, diffuse, specular) at each hit; zeros on a miss.  A tiled plane's MAT by tile
     parity: floor(OFF + u/w) + floor(OFF + v/h) odd -> foreground.  OFF = 10000 is even, so
     the parity is that of floor(u/w) + floor(v/h); leaving OFF out keeps float32 from rounding
@@ -136,8 +196,13 @@ def material(ks: KernelScene, tables: dict, oid, hit, u, v, rules: Rules = Rules
             odd = (_odd_floor(u / w) + _odd_floor(v / h)) == 1
         # (the count as data: scenes of other sizes share the kernel)
         idx = dr.select(tiled & ~odd, idx + dr.opaque(T.UInt32, len(ks.scene.objects)), idx)
-    return tuple(dr.gather(T.Array3, tables[k], idx, hit)
-                 for k in ("ambient", "diffuse", "specular"))
+    amb, dif, spec = (dr.gather(T.Array3, tables[k], idx, hit)
+                      for k in ("ambient", "diffuse", "specular"))
+    if "texels" in tables:
+        # (by object id: a tiled plane is never textured)
+        amb = _texture_ambient(ks, tables, T.UInt32(dr.select(hit, oid, 0)), hit, u, v,
+                               normal, amb)
+    return amb, dif, spec
 
 
 def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_MAX_DIST, *,
@@ -186,7 +251,7 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
         normal, u, v = surface(ks, d, t, oid, hit, o)
         total = t if dist is None else dist + t
         H = d * t if o is None else dr.fma(d, t, o)         # hit point, relative
-        amb, dif, spec = material(ks, tables, oid, hit, u, v, rules)
+        amb, dif, spec = material(ks, tables, oid, hit, u, v, rules, normal)
         ex = extra(t, oid, hit, normal, u, v) if extra is not None and bounce == 0 else {}
         rec = {} if bounce < record else None       # this bounce's shadow rays, recorded
         # one shadow ray per light from each hit that faces it: diffuse where unblocked

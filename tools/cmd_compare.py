@@ -4,7 +4,7 @@ from __future__ import annotations
 import json
 import sys
 
-from .options import add_image_options, add_max_dist
+from .options import add_image_options, add_max_dist, add_texture_dir
 
 
 def add_parser(sub) -> None:
@@ -24,6 +24,7 @@ def add_parser(sub) -> None:
                         "(±1 at an 8-bit level), boundary (a decision within float32's bound, "
                         "from the float64 shading oracle) or wrong; exit 1 on a wrong pixel")
     add_max_dist(p, "--shaded: reflections stop at this path length (default 1000)")
+    add_texture_dir(p)
     p.add_argument("--evidence", default="out/compare", metavar="DIR",
                    help="where evidence EXRs go on failure (default out/compare)")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
@@ -97,7 +98,9 @@ def _run_shaded(args, scene) -> int:
     from tools.harness.html_report import comparison_pictures
     from tools.harness.shaded import compare_shaded, write_shaded_evidence
     from tools.harness.validate import public, stem_of
+    from rt_core.textures import attach
     max_dist = DEFAULT_MAX_DIST if args.max_dist is None else args.max_dist
+    scene = attach(scene, args.texture_dir)       # the shaded image needs the textures
     cmp = compare_shaded(scene, args.columns, args.rows, args.sampling, args.rules or Rules(),
                          max_dist)
     row = cmp.summary()

@@ -11,7 +11,8 @@ import os
 import tempfile
 import sys
 
-from .options import add_code27, add_image_options, add_max_dist, positive_int
+from .options import (add_code27, add_image_options, add_max_dist, add_texture_dir,
+                      positive_int)
 
 
 def add_parser(sub) -> None:
@@ -42,6 +43,7 @@ def add_parser(sub) -> None:
                    help="shade even when only -o is given (adds R, G, B to the EXR)")
     add_max_dist(p, "reflections stop once a path is this long (the notes' MAX_DIST; "
                     "default 1000)")
+    add_texture_dir(p)
     p.add_argument("--compression", choices=("piz", "zip", "zstd", "htj2k", "none"),
                    default="piz", help="EXR compression, all lossless (default piz: read by "
                                        "every OpenEXR; zstd and htj2k are faster and smaller "
@@ -146,6 +148,9 @@ def run(args) -> int:
     for _, path in outs:
         _check_writable(path)
     scene = parse_scene(args.scene, code27=args.code27)
+    if shade:                   # textures are read only where shading needs them
+        from rt_core.textures import attach
+        scene = attach(scene, args.texture_dir)
     phase("parse")
     T = backend.types(args.precision, args.backend)
     cam = make_camera(scene, args.columns, args.rows, args.sampling, rules)

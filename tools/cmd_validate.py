@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import sys
 
-from .options import add_parallel, positive_int
+from .options import add_parallel, add_texture_dir, positive_int
 
 
 def add_parser(sub) -> None:
@@ -29,6 +29,7 @@ def add_parser(sub) -> None:
     p.add_argument("--json", action="store_true",
                    help="print the results as JSON on stdout (what report.json holds) "
                         "instead of the table")
+    add_texture_dir(p)
     p.add_argument("--shaded-columns", type=int, default=48, metavar="N",
                    help="also compare each scene's shaded course image with Mitsuba's 'course' "
                         "integrator at N columns (rtval compare --shaded; default 48; 0: off; "
@@ -69,11 +70,16 @@ def run(args) -> int:
         check_target(args.report, {"-o": args.output})
     paths = args.scenes or default_scene_paths()
     scenes, skipped = load_supported(paths, explicit=bool(args.scenes))
+    if args.shaded_columns > 0:         # the shaded comparisons need the textures
+        from tools.harness.validate import attach_textures
+        scenes, no_texture = attach_textures(scenes, args.texture_dir)
+        skipped += no_texture
     precisions = ("f32", "f64") if args.precision == "both" else (args.precision,)
     modes = ("rays", "camera") if args.mode == "both" else (args.mode,)
     for s in skipped:
         print(f"skipped ({s.category}): {s.reason}", file=sys.stderr)
-    total = len(scenes) * (len(precisions) * len(modes) + (args.shaded_columns > 0))
+    total = len(scenes) * (len(precisions) * len(modes) + (args.shaded_columns > 0)) \
+        - sum(s.category == "texture" for s in skipped)
     plan = plan_of(args).resolve(total, seconds_per_comparison(args.columns))
     if sys.stderr.isatty():
         bar = tqdm(total=total, file=sys.stderr, unit="cmp")

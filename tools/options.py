@@ -97,6 +97,14 @@ def add_code27(p: argparse.ArgumentParser) -> None:
                         "older layout); default auto: by the line shape (README \"Triangle\")")
 
 
+def add_texture_dir(p: argparse.ArgumentParser) -> None:
+    """--texture-dir DIR (repeatable): where the textures a scene names are looked for
+    first; then the scene file's own directory (rt_core/textures.py)."""
+    p.add_argument("--texture-dir", action="append", default=[], metavar="DIR",
+                   help="look for the scene's texture files (PPM) here first, then next to "
+                        "the scene; repeatable; needed only for shaded outputs")
+
+
 def add_max_dist(p: argparse.ArgumentParser, help: str) -> None:
     """--max-dist D: the notes' MAX_DIST, where reflections stop (None: the default, 1000)."""
     p.add_argument("--max-dist", type=nonneg_float, default=None, metavar="D", help=help)

@@ -38,9 +38,35 @@ def skip_counts(skipped) -> str:
     """'12 course files unsupported (object kinds rtval does not implement), 5 malformed'."""
     if not skipped:
         return "none"
-    n = {c: sum(s.category == c for s in skipped) for c in ("unsupported", "malformed")}
+    n = {c: sum(s.category == c for s in skipped)
+         for c in ("unsupported", "malformed", "texture")}
     return (f"{n['unsupported']} course files unsupported (object kinds rtval does not "
-            f"implement), {n['malformed']} malformed (errors in the file itself)")
+            f"implement), {n['malformed']} malformed (errors in the file itself)"
+            + (f", {n['texture']} shaded comparisons without their texture file"
+               if n["texture"] else ""))
+
+
+def attach_textures(scenes, dirs=()):
+    """(scenes, skipped): each scene with its textures loaded (rt_core/textures.py: the
+    ``dirs``, then the scene's directory).  A scene whose texture cannot be found or read
+    keeps none: its geometry comparisons run as always, its shaded comparison is skipped
+    (category "texture", the reason naming the file; ``jobs`` leaves it out)."""
+    from rt_core.imageio import ImageError
+    from rt_core.textures import attach
+    out, skipped = [], []
+    for sc in scenes:
+        try:
+            out.append(attach(sc, dirs))
+        except (SceneError, ImageError) as e:
+            out.append(sc)
+            skipped.append(Skipped(str(sc.path), f"shaded comparison skipped: {e}", "texture"))
+    return out, skipped
+
+
+def lacks_texture(scene) -> bool:
+    """Has the scene a textured object whose texture is not loaded?"""
+    from rt_core.textures import textured
+    return any(o.texture is None for _, o in textured(scene))
 
 
 def load_supported(paths, explicit: bool):
@@ -87,7 +113,7 @@ def jobs(scenes, columns: int, precisions, modes, evidence: str = "failures",
             for precision in precisions:
                 out.append(Job(scene, mode, precision, columns,
                                evidence == "all" and precision == precisions[0], pictures))
-        if shaded_columns:
+        if shaded_columns and not lacks_texture(scene):
             out.append(Job(scene, "shaded", "f64", shaded_columns, pictures=pictures))
     return out
 
