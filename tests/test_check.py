@@ -27,13 +27,16 @@ REPO = Path(__file__).resolve().parents[1]
 CT = REPO / "tests" / "ctracer"
 COURSE = REPO.parent / "shared" / "course-scenes"
 # the C test tracer reads the course's original kinds; scenes with kinds it does not have
-# (triangle, disk: tests/test_planar.py; quadrics; torus) or cd's lens form are left out here
+# (triangle, disk: tests/test_planar.py; quadrics; torus), cd's lens form and the textured
+# forms (tests/test_textures.py) are left out here
 CT_KINDS = {"sphere", "plane", "fplane", "tplane"}
 
 
 def _ct_scene(path) -> bool:
     from rt_core.parser import parse_scene
-    return all(o.kind in CT_KINDS and o.form != "lens" for o in parse_scene(path).objects)
+    from rt_core.textures import TEXTURED
+    return all(o.kind in CT_KINDS and o.form not in ("lens", *TEXTURED)
+               for o in parse_scene(path).objects)
 
 
 SCENES = [p for p in sorted((REPO / "scenes").glob("*.txt")) + sorted((CT / "scenes").glob(

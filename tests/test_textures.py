@@ -188,3 +188,40 @@ def test08_validate_skips_the_shaded_comparison_without_texture(tmp_path):
     assert not skipped
     assert [j.mode for j in jobs(scenes, 16, ("f32",), ("rays",), shaded_columns=16)] == \
         ["rays", "shaded"]
+
+
+def test09_check_and_gallery_need_the_textures(tmp_path):
+    """rtval check compares a tracer's image with the textured course image, so it needs the
+    textures: without them, an error naming the file (the tracer is not even run); with
+    --texture-dir, the check passes.  gallery: a named scene without its texture is an
+    error; --texture-dir finds it."""
+    scene = tmp_path / "textured.txt"
+    shutil.copy(BUNDLED[0], scene)              # its textures stay in scenes/textures
+    img = tmp_path / "ours.ppm"
+    assert cli("render", BUNDLED[0], "--columns", 40, "--ppm", img).returncode == 0
+    r = cli("check", BUNDLED[0], img)
+    assert r.returncode == 0 and "pass" in r.stdout, r.stdout + r.stderr
+    r = cli("check", scene, img)
+    assert r.returncode == 2 and "not found" in r.stderr and "--texture-dir" in r.stderr, \
+        r.stdout + r.stderr
+    r = cli("check", scene, img, "--texture-dir", REPO / "scenes")
+    assert r.returncode == 0 and "pass" in r.stdout, r.stdout + r.stderr
+    # the check's verdict rests on the texture: another texture of the same name fails it
+    other = tmp_path / "other" / "textures"
+    other.mkdir(parents=True)
+    for f in (REPO / "scenes" / "textures").iterdir():
+        shutil.copy(f, other / f.name)
+    tiles = other / "tiles4x3.ppm"
+    ppm6(tiles, 255 - (textures.read_ppm(str(tiles)) * 255).round().astype(int))
+    r = cli("check", scene, img, "--texture-dir", other.parent)
+    assert r.returncode == 1 and "FAIL" in r.stdout, r.stdout + r.stderr
+    ran = tmp_path / "ran"
+    r = cli("check", "--run", f"touch {ran}; cp {img} {{out}} # {{scene}}", "--columns", 40,
+            scene)
+    assert r.returncode == 1 and "not found" in r.stdout, r.stdout + r.stderr
+    assert not ran.exists()                     # the tracer was not run for nothing
+    r = cli("gallery", "-o", tmp_path / "g", "--columns", 16, scene)
+    assert r.returncode == 2 and "not found" in r.stderr.strip().splitlines()[-1]
+    r = cli("gallery", "-o", tmp_path / "g", "--columns", 16, scene,
+            "--texture-dir", REPO / "scenes")
+    assert r.returncode == 0, r.stderr

@@ -5,7 +5,8 @@ from __future__ import annotations
 import json
 import sys
 
-from .options import add_max_dist, add_parallel, add_rules, nonneg_float, positive_int
+from .options import (add_max_dist, add_parallel, add_rules, add_texture_dir, nonneg_float,
+                      positive_int)
 
 
 def add_parser(sub) -> None:
@@ -29,6 +30,7 @@ def add_parser(sub) -> None:
     add_rules(p, "fix the rules instead of inferring them (edges, screen_clip, ties, t_min, "
                  "clip_spheres, reflect, rows, tile_add_first, tile_project)")
     add_max_dist(p, "fix the reflection cut-off instead of inferring it")
+    add_texture_dir(p)
     p.add_argument("--hits", metavar="FILE",
                    help="a hit dump of the image: 'column row object t' per pixel")
     p.add_argument("--timeout", type=nonneg_float, default=60.0, metavar="S",
@@ -46,7 +48,7 @@ def run(args) -> int:
     from rt_core.errors import InputError
     from rt_core.outputs import atomic_write
     from tools.harness.check import check_image, check_run, junit_xml, text_report
-    kw = {"rules": args.rules, "max_dist": args.max_dist}
+    kw = {"rules": args.rules, "max_dist": args.max_dist, "texture_dirs": args.texture_dir}
     if args.report:                     # refused before the runs, not after them
         from tools.harness.html_report import check_target
         check_target(args.report)

@@ -10,7 +10,7 @@ import html
 import sys
 from pathlib import Path
 
-from .options import positive_int
+from .options import add_texture_dir, positive_int
 
 REPO = Path(__file__).resolve().parents[1]
 SOURCES = (("scenes", REPO / "scenes"), ("course", REPO.parent / "shared" / "course-scenes"))
@@ -32,6 +32,8 @@ def add_parser(sub) -> None:
     p.add_argument("--columns", type=positive_int, default=160,
                    help="image width in pixels (default 160)")
     p.add_argument("--precision", choices=("f32", "f64"), default="f32")
+    add_texture_dir(p, "; in the default list a scene whose texture is not found is shaded "
+                       "with its MAT, and its caption says so")
     p.add_argument("--json", action="store_true",
                    help="print what was written as JSON on stdout (each scene's PNG, size "
                         "and reflection bounces, the skipped files and why, provenance) "
@@ -69,6 +71,8 @@ def run(args) -> int:
     from rt_core.shading import DEFAULT_MAX_DIST
     from rt_core.scene import SceneError
     from rt_core.shading import quantize
+    from rt_core.imageio import ImageError
+    from rt_core.textures import attach
 
     outdir = Path(args.output)
     if outdir.exists() and not outdir.is_dir():
@@ -76,13 +80,23 @@ def run(args) -> int:
     T = backend.types(args.precision)
     done, skipped = [], []
     for name, path in scene_files(args.scenes):
+        note = ""
         try:
             scene = parse_scene(str(path))
+            try:
+                scene = attach(scene, args.texture_dir)
+            except (SceneError, ImageError) as e:
+                if args.scenes:
+                    raise          # a scene named on the command line renders as asked
+                # the default list: the geometry still renders; the MAT stands in (its
+                # stand-in note stays in the PNG's provenance) and the caption says why
+                note = f"{e}: shaded with its MAT"
+                print(f"rtval gallery: {note}", file=sys.stderr)
             cam = make_camera(scene, args.columns)
             guard(lambda px: render_bytes(px, args.precision, True, False, px), "render",
                   cam.columns, cam.rows)
             images, res = render_image(scene, cam, T, geometry=False, shade=True)
-        except (SceneError, InputError) as e:
+        except (SceneError, InputError, ImageError) as e:
             if args.scenes:
                 raise              # a scene named on the command line must render
             why = str(e) if isinstance(e, SceneError) else f"{path}: {e}"
@@ -95,7 +109,7 @@ def run(args) -> int:
         write_png(str(outdir / file), pixels,
                   provenance(scene, cam, args.precision, "llvm", Rules(), shading="on",
                              max_dist=repr(DEFAULT_MAX_DIST)))
-        done.append((name, file, pixels, res.bounces))
+        done.append((name, file, pixels, res.bounces, note))
     page = outdir / "index.html"
     sheet = outdir / "contact.png"
     atomic_write(str(page), lambda tmp: Path(tmp).write_text(_html(done, skipped, args)))
@@ -111,8 +125,9 @@ def run(args) -> int:
                      **versions()},
             "page": str(page), "contact_sheet": str(sheet),
             "scenes": [{"name": n, "png": str(outdir / f), "columns": int(p.shape[1]),
-                        "rows": int(p.shape[0]), "reflection_bounces": int(b)}
-                       for n, f, p, b in done],
+                        "rows": int(p.shape[0]), "reflection_bounces": int(b),
+                        **({"texture_missing": t} if t else {})}
+                       for n, f, p, b, t in done],
             "skipped": [{"name": n, "reason": e} for n, e in skipped]}), end="")
         return 0
     print(page)
@@ -125,7 +140,8 @@ def _html(done, skipped, args) -> str:
     figs = "\n".join(
         f'<figure><img src="{html.escape(f)}" alt="{html.escape(n)}">'
         f"<figcaption>{html.escape(n)}<br>{p.shape[1]}×{p.shape[0]}, "
-        f"{b} reflection bounces</figcaption></figure>" for n, f, p, b in done)
+        f"{b} reflection bounces" + (f"<br><i>{html.escape(t)}</i>" if t else "")
+        + "</figcaption></figure>" for n, f, p, b, t in done)
     skips = "\n".join(f"<li><b>{html.escape(n)}</b>: {html.escape(e)}</li>" for n, e in skipped)
     return f"""<!DOCTYPE html>
 <html><head><meta charset="utf-8"><title>rtval gallery</title>
@@ -149,11 +165,11 @@ def _contact_sheet(done, columns: int):
     from PIL import Image, ImageDraw
     n = max(len(done), 1)
     per_row = min(THUMBS_PER_ROW, n)
-    cell_h = max((p.shape[0] for _, _, p, _ in done), default=1) + LABEL_HEIGHT
+    cell_h = max((p.shape[0] for _, _, p, *_ in done), default=1) + LABEL_HEIGHT
     sheet = Image.new("RGB", (per_row * columns, ((n + per_row - 1) // per_row) * cell_h),
                       (32, 32, 32))
     draw = ImageDraw.Draw(sheet)
-    for i, (name, _, pixels, _) in enumerate(done):
+    for i, (name, _, pixels, *_) in enumerate(done):
         x, y = (i % per_row) * columns, (i // per_row) * cell_h
         sheet.paste(Image.fromarray(pixels), (x, y))
         label = name.rsplit("/", 1)[-1]

@@ -97,12 +97,12 @@ def add_code27(p: argparse.ArgumentParser) -> None:
                         "older layout); default auto: by the line shape (README \"Triangle\")")
 
 
-def add_texture_dir(p: argparse.ArgumentParser) -> None:
+def add_texture_dir(p: argparse.ArgumentParser, more: str = "") -> None:
     """--texture-dir DIR (repeatable): where the textures a scene names are looked for
     first; then the scene file's own directory (rt_core/textures.py)."""
     p.add_argument("--texture-dir", action="append", default=[], metavar="DIR",
                    help="look for the scene's texture files (PPM) here first, then next to "
-                        "the scene; repeatable; needed only for shaded outputs")
+                        "the scene; repeatable; needed only for shaded outputs" + more)
 
 
 def add_max_dist(p: argparse.ArgumentParser, help: str) -> None:

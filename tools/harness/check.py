@@ -335,10 +335,11 @@ def _value(rules, md, name):
 def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
                 rows: int | None = None, rules=None, max_dist: float | None = None,
                 hits_path=None, theirs: np.ndarray | None = None,
-                scene=None) -> SceneCheck:
+                scene=None, texture_dirs=()) -> SceneCheck:
     """Check one image of one scene.  ``rules``/``max_dist`` given: no inference of those.
-    ``theirs``, ``scene``: the image and the parsed scene, already read (``check_run`` on a
-    Dask worker, which need not see the files); ``hits_path``: a hit dump's path, or what
+    ``theirs``, ``scene``: the image and the parsed scene with its textures, already read
+    (``check_run`` on a Dask worker, which need not see the files); ``texture_dirs``: where
+    a textured scene's PPMs are looked for first (rt_core/textures.py); ``hits_path``: a hit dump's path, or what
     ``read_hits`` made of it (arrays, or the exception it raised)."""
     from rt_core.imageio import ImageError, read_image
     from rt_core.memory import check_bytes, guard
@@ -356,6 +357,11 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
     except OSError as exc:
         res.reason = f"{scene_path}: {(exc.strerror or str(exc)).lower()}"
         return res
+    why = _textures_missing(scene, texture_dirs)
+    if isinstance(why, str):
+        res.reason = why
+        return res
+    scene = why
     try:
         img = theirs if theirs is not None else read_image(image_path)
     except ImageError as exc:
@@ -415,12 +421,27 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
     return res
 
 
+def _textures_missing(scene, dirs):
+    """The scene with its textures loaded, or why they cannot be (one line): without its
+    textures rtval's image of a textured scene is not the course's, so there is nothing to
+    check against (an error, not the user's fault: --texture-dir)."""
+    from rt_core.imageio import ImageError
+    from rt_core.scene import SceneError
+    from rt_core.textures import attach
+    try:
+        return attach(scene, dirs)
+    except (SceneError, ImageError) as exc:
+        return f"{exc}; rtval needs the textures to know the course image"
+
+
 def provenance(scene, img: np.ndarray) -> dict:
     """The scene's and the image's sha256, the reference (rt_core float64, exact decisions,
     corner sampling) and the versions that made the verdict."""
     import hashlib
     from rt_core.render import extras_text, versions
+    from rt_core.textures import provenance_text
     return {"scene_sha256": scene.sha256, "dialect": scene.dialect,
+            "textures": provenance_text(scene),
             "image_sha256": hashlib.sha256(np.ascontiguousarray(img).tobytes()).hexdigest(),
             "reference": "rt_core float64, exact decisions, corner sampling",
             "boundary": "mitsuba_ref.shade_oracle float64 margins < 64 u",
@@ -659,6 +680,10 @@ def _check_runs(pool, work, template, scenes, columns, rows, timeout, kw):
         except OSError as exc:
             jobs.append((s, None, SceneCheck(str(s), None, "error",
                                              f"{s}: {(exc.strerror or str(exc)).lower()}")))
+            continue
+        sc = _textures_missing(sc, kw.get("texture_dirs", ()))
+        if isinstance(sc, str):                 # not worth running the tracer
+            jobs.append((s, None, SceneCheck(str(s), None, "error", sc)))
             continue
         h = rows if rows is not None else sc.default_rows(columns)
         sub = os.path.join(work, str(k))

@@ -264,7 +264,8 @@ def comparison_row(row: dict, rows_given: int | None = None) -> Row:
 
 
 def check_command(r, run: str | None = None, rows: int | None = None, rules=None,
-                  max_dist=None, hits: str | None = None, timeout: float | None = None) -> str:
+                  max_dist=None, hits: str | None = None, timeout: float | None = None,
+                  texture_dirs=()) -> str:
     """The ``rtval check`` command that redoes one scene's check."""
     if run:
         words = ["rtval", "check", "--run", run, "--columns", r.columns or "N"]
@@ -281,6 +282,8 @@ def check_command(r, run: str | None = None, rows: int | None = None, rules=None
         words += ["--rules", rules.describe()]
     if max_dist is not None:
         words += ["--max-dist", repr(max_dist)]
+    for d in texture_dirs:
+        words += ["--texture-dir", d]
     return _q(*words)
 
 
