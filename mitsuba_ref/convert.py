@@ -526,7 +526,7 @@ def _xml_value(name: str, v, indent: str) -> list:
 TAGS = {"rectangle": "shape", "sphere": "shape", "cylinder": "shape", "disk": "shape", "ply": "shape", "perspective": "sensor", "stratified":
         "sampler", "hdrfilm": "film", "box": "rfilter", "aov": "integrator", "path": "integrator",
         "course": "integrator", "course_material": "bsdf", "diffuse": "bsdf", "point": "emitter",
-        "spot": "emitter", "rgb": "rgb"}
+        "spot": "emitter", "rgb": "rgb", "bitmap": "texture"}
 POINTS = ("center", "position", "viewpoint", "point", "p0", "p1")
 
 
@@ -545,19 +545,34 @@ def _xml_object(d: dict, indent: str, name: str | None = None) -> list:
     return lines + [f"{indent}</{tag}>"]
 
 
+def _texture_files(d: dict, stem: str) -> dict:
+    """Each course_material's in-memory bitmap replaced by a file name beside the XML: name ->
+    the mi.Bitmap to write there."""
+    out = {}
+    for key, shape in d.items():
+        tex = shape.get("bsdf", {}).get("texture") if isinstance(shape, dict) else None
+        if tex is not None and "bitmap" in tex:
+            name = f"{stem}.{key}_texture.exr"
+            out[name] = tex.pop("bitmap")
+            tex["filename"] = name
+    return out
+
+
 def scene_xml(scene: Scene, columns: int, rows: int | None = None, sampling: str = "corners",
               shading: bool = False, rules: Rules | None = None,
               max_dist: float = DEFAULT_MAX_DIST, aovs: bool = False,
               files: dict | None = None, stem: str = "scene") -> str:
     """The same scene as ``scene_dict``, as Mitsuba 3 XML (``mi.load_file`` accepts it once
     mitsuba_ref has registered its plugins: ``rtval render --mitsuba``).  Triangles refer
-    to PLY files ``<stem>.obj<id>_triangle.ply`` beside the XML, added to ``files`` (name ->
-    text) for the caller to write."""
+    to PLY files ``<stem>.obj<id>_triangle.ply`` beside the XML, and textures to EXR files
+    ``<stem>.obj<id>_texture.exr`` (their texels, float32: a PPM's maxval need not be 255),
+    added to ``files`` (name -> text, or the texture's mi.Bitmap) for the caller to write."""
     d = scene_dict(scene, columns, rows, sampling, shading, rules=rules, max_dist=max_dist,
                    aovs=aovs, meshes=False)
-    plys = convert_planar.ply_files(d, stem)
+    plys = {**convert_planar.ply_files(d, stem), **_texture_files(d, stem)}
     if plys and files is None:
-        raise ValueError("this scene has triangles: pass files= to receive their PLY files")
+        raise ValueError("this scene has triangles or textures: pass files= to receive the "
+                         "files they refer to")
     if files is not None:
         files.update(plys)
     s = sensor_setup(scene, columns, rows, sampling)

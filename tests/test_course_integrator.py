@@ -151,11 +151,14 @@ def test05_clip_inside_one_scene():
     assert (I[..., 2] > 0.05).any() and (I[..., 1] > 0.05).any()
 
 
-def test06_xml_renders_like_the_dict(tmp_path):
+@pytest.mark.parametrize("name", ["shade_tiles", "textured"])
+def test06_xml_renders_like_the_dict(tmp_path, name):
     """rtval convert --shading writes XML that rtval render --mitsuba renders to the same
-    8-bit image as the dict scene (compare_shaded's), with provenance in the PNG."""
+    8-bit image as the dict scene (compare_shaded's), with provenance in the PNG; a textured
+    scene's texels go to EXR files beside the XML."""
+    from rt_core.textures import attach
     from tools.harness.shaded import quantize32
-    path = ROOT / "scenes" / "shade_tiles.txt"
+    path = ROOT / "scenes" / f"{name}.txt"
     xml = tmp_path / "tiles.xml"
     r = _rtval("convert", path, "--columns", W, "--shading", "-o", xml)
     assert r.returncode == 0, r.stderr
@@ -164,10 +167,11 @@ def test06_xml_renders_like_the_dict(tmp_path):
     r = _rtval("render", "--mitsuba", xml, "--ppm", ppm, "--png", png)
     assert r.returncode == 0, r.stderr
     from rt_core.imageio import read_image
-    sc = parse_scene(path)
+    sc = attach(parse_scene(path))
     want = quantize32(mitsuba_course_image(sc, W, sc.default_rows(W)))
     assert np.array_equal(read_image(str(ppm)), want)
     assert b"rtval.integrator" in png.read_bytes()
+    assert len(list(tmp_path.glob("tiles.xml.*_texture.exr"))) == 2 * (name == "textured")
 
 
 def test07_render_mitsuba_refuses_what_it_cannot_do(tmp_path):

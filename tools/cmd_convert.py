@@ -5,7 +5,7 @@ import sys
 import os
 from pathlib import Path
 
-from .options import add_code27, add_max_dist, add_rules, positive_int
+from .options import add_code27, add_max_dist, add_rules, add_texture_dir, positive_int
 
 
 def add_parser(sub) -> None:
@@ -33,6 +33,7 @@ def add_parser(sub) -> None:
                  "render)")
     add_max_dist(p, "--shading: reflections stop at this path length (default 1000)")
     add_code27(p)
+    add_texture_dir(p)
     p.add_argument("-o", "--output", required=True, metavar="OUT.xml",
                    help="the Mitsuba 3 XML scene to write")
     p.set_defaults(func=run, usage_error=p.error)
@@ -54,14 +55,22 @@ def run(args) -> int:
         print(f"rtval convert: warning: {setup.note}", file=sys.stderr)
     if not course and (args.rules or args.max_dist is not None):
         args.usage_error("--rules and --max-dist go with --shading or --aovs")
-    plys: dict = {}                         # triangles: a PLY file each, beside the XML
+    if args.shading:                        # the course image needs the textures
+        from rt_core.textures import attach
+        scene = attach(scene, args.texture_dir)
+    plys: dict = {}                         # triangles, textures: a file each, beside the XML
     xml = scene_xml(scene, args.columns, args.rows, args.sampling, args.shading,
                     rules=args.rules, max_dist=DEFAULT_MAX_DIST if args.max_dist is None else args.max_dist,
                     aovs=args.aovs, files=plys, stem=Path(args.output).name)
     for note in oracle_only(scene, course):
         print(f"rtval convert: note: {note}", file=sys.stderr)
-    for name, text in plys.items():
-        atomic_write(os.path.join(parent, name), lambda tmp, text=text: Path(tmp).write_text(text))
+    for name, data in plys.items():
+        if isinstance(data, str):
+            atomic_write(os.path.join(parent, name),
+                         lambda tmp, text=data: Path(tmp).write_text(text))
+        else:                               # a texture's texels (mi.Bitmap)
+            atomic_write(os.path.join(parent, name),
+                         lambda tmp, bm=data: bm.write(tmp, type(bm).FileFormat.OpenEXR))
     atomic_write(args.output, lambda tmp: Path(tmp).write_text(xml))
     print(f"{args.output}: {len(scene.objects)} shapes, {setup.columns}x{setup.rows}",
           file=sys.stderr)
