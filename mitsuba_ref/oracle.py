@@ -64,6 +64,18 @@ def _pow2(x: "EF") -> bool:
     return x.e == 0.0 and (x.v == 0.0 or math.frexp(abs(x.v))[0] == 0.5)
 
 
+def _ef(v: float, e: float) -> "EF":
+    """An EF from a float64 value and its bound, without __init__'s checks (the arithmetic's
+    results: the oracle spends most of its time making these)."""
+    r = _new(EF)
+    r.v = v
+    r.e = e
+    return r
+
+
+_new = object.__new__
+
+
 class EF:
     """``v``: the float64 value; ``e``: bound on its rounding error, in units of u.
 
@@ -84,33 +96,48 @@ class EF:
 
     @staticmethod
     def of(x) -> "EF":
-        return x if isinstance(x, EF) else EF(x, 0.0)
+        return x if type(x) is EF else EF(x, 0.0)
 
     def __add__(self, o):
-        o = EF.of(o)
+        if type(o) is not EF:
+            o = EF(o, 0.0)
         v = self.v + o.v
-        if self.v == 0.0 and self.e == 0.0:
-            return EF(v, o.e)
-        if o.v == 0.0 and o.e == 0.0:
-            return EF(v, self.e)
-        return EF(v, self.e + o.e + abs(v))
+        if self.e == 0.0 and self.v == 0.0:
+            return _ef(v, o.e)
+        if o.e == 0.0 and o.v == 0.0:
+            return _ef(v, self.e)
+        return _ef(v, self.e + o.e + abs(v))
 
     __radd__ = __add__
 
     def __sub__(self, o):
-        return self + (-EF.of(o))
+        # self + (−o), written out
+        if type(o) is not EF:
+            o = EF(o, 0.0)
+        v = self.v + -o.v
+        if self.e == 0.0 and self.v == 0.0:
+            return _ef(v, o.e)
+        if o.e == 0.0 and o.v == 0.0:
+            return _ef(v, self.e)
+        return _ef(v, self.e + o.e + abs(v))
 
     def __rsub__(self, o):
         return EF.of(o) - self
 
     def __neg__(self):
-        return EF(-self.v, self.e)
+        return _ef(-self.v, self.e)
 
     def __mul__(self, o):
-        o = EF.of(o)
-        v = self.v * o.v
-        e = abs(self.v) * o.e + abs(o.v) * self.e
-        return EF(v, e if _pow2(self) or _pow2(o) else e + abs(v))
+        if type(o) is not EF:
+            o = EF(o, 0.0)
+        a, b = self.v, o.v
+        v = a * b
+        e = abs(a) * o.e + abs(b) * self.e
+        # a rounding unless one factor is an exact power of two (_pow2, inlined)
+        if (self.e == 0.0 and (a == 0.0 or math.frexp(abs(a))[0] == 0.5)) or \
+                (o.e == 0.0 and (b == 0.0 or math.frexp(abs(b))[0] == 0.5)):
+            return _ef(v, e)
+        return _ef(v, e + abs(v))
 
     __rmul__ = __mul__
 
@@ -118,7 +145,7 @@ class EF:
         o = EF.of(o)
         q = self.v / o.v
         e = (self.e + abs(q) * o.e) / abs(o.v)
-        return EF(q, e if _pow2(o) else e + abs(q))
+        return _ef(q, e if _pow2(o) else e + abs(q))
 
     def __rtruediv__(self, o):
         return EF.of(o) / self

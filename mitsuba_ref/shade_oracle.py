@@ -22,6 +22,7 @@ changes sign.  ``flags`` turns margins into per-pixel flags for one precision.
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -60,14 +61,21 @@ def _hit_margin(scene, h, base, d, skip, ties: bool = True, tmax: float = INF) -
     for i, o in enumerate(scene.objects):
         if o.kind != "sphere" or i == skip:
             continue
-        q = diff3(vec(o.center), base)
+        c, r = _sphere_inputs(tuple(o.center), o.radius)
+        q = diff3(c, base)
         along = dot3(q, d)
-        r = EF(o.radius)
         if along.v + r.v < 0 or along.v - r.v > min(tw, tmax):
             continue                     # behind the ray, or beyond what decides it
         p = length3(diff3(q, scale3(along, d)))
         m = min(m, _margin(p.v - r.v, p.e + r.e))
     return m
+
+
+@functools.lru_cache(maxsize=4096)
+def _sphere_inputs(center: tuple, radius):
+    """A sphere's centre and radius as inputs rounded once (EF; never modified), made once per
+    sphere rather than once per ray."""
+    return vec(center), EF(radius)
 
 
 def _margin(slack: float, err: float) -> float:
