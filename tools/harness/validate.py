@@ -92,29 +92,33 @@ def stem_of(path: str) -> str:
 
 @dataclass(frozen=True)
 class Job:
-    """One comparison of a validation run: ``mode`` rays, camera (at ``precision``) or
-    shaded (the course image at ``columns``); ``keep_all``: its evidence is written even when
-    it passes (``--evidence all``, first precision)."""
+    """The comparisons of a validation run that share their work: ``modes`` (rays, camera)
+    at ``precision``, which trace rt_core once and load Mitsuba's scene once between them
+    (``compare``'s cache), or ("shaded",): the course image at ``columns``.  ``keep_all``:
+    their evidence is written even when they pass (``--evidence all``, first precision)."""
     scene: Scene
-    mode: str
+    modes: tuple
     precision: str
     columns: int
     keep_all: bool = False
-    pictures: bool = False       # the row gets its PNGs for the HTML report
+    pictures: bool = False       # the rows get their PNGs for the HTML report
+
+    @property
+    def mode(self) -> str:
+        return "shaded" if self.modes == ("shaded",) else "+".join(self.modes)
 
 
 def jobs(scenes, columns: int, precisions, modes, evidence: str = "failures",
          shaded_columns: int = 0, pictures: bool = False) -> list:
-    """The run's comparisons in report order: per scene, every mode and precision, then the
-    shaded course image."""
+    """The run's jobs: per scene, one per precision (its modes together), then the shaded
+    course image."""
     out = []
     for scene in scenes:
-        for mode in modes:
-            for precision in precisions:
-                out.append(Job(scene, mode, precision, columns,
-                               evidence == "all" and precision == precisions[0], pictures))
+        for precision in precisions:
+            out.append(Job(scene, tuple(modes), precision, columns,
+                           evidence == "all" and precision == precisions[0], pictures))
         if shaded_columns and not lacks_texture(scene):
-            out.append(Job(scene, "shaded", "f64", shaded_columns, pictures=pictures))
+            out.append(Job(scene, ("shaded",), "f64", shaded_columns, pictures=pictures))
     return out
 
 
@@ -125,26 +129,30 @@ def seconds_per_comparison(columns: int) -> float:
     return 0.15 * max(1.0, (columns / 160) ** 2)
 
 
-def run_job(job: Job):
-    """One comparison (in this process or on a Dask worker): its report row, and the
-    comparison itself when its evidence is to be written (it failed, or ``keep_all``);
-    evidence is written by the caller, never on a worker."""
-    t0 = time.perf_counter()
-    if job.mode == "shaded":
-        from tools.harness.shaded import compare_shaded
-        cmp = compare_shaded(job.scene, job.columns)
-    else:
-        cmp = compare(job.scene, job.columns, None, job.precision, job.mode)
-    row = cmp.summary()
-    # the job's time outside the comparison's own phases (imports, the summary) is "other"
-    row["seconds"] = dict(row["seconds"])
-    row["seconds"]["other"] += round(time.perf_counter() - t0 - sum(row["seconds"].values()), 4)
-    if job.pictures:
-        from .html_report import comparison_pictures
-        t1 = time.perf_counter()
-        row["pictures"] = comparison_pictures(cmp)
-        row["seconds"]["write"] += round(time.perf_counter() - t1, 4)
-    return row, (cmp if not cmp.ok or job.keep_all else None)
+def run_job(job: Job) -> list:
+    """A job's comparisons (in this process or on a Dask worker): for each, its report row,
+    and the comparison itself when its evidence is to be written (it failed, or
+    ``keep_all``); evidence is written by the caller, never on a worker."""
+    out, cache = [], {}
+    for mode in job.modes:
+        t0 = time.perf_counter()
+        if mode == "shaded":
+            from tools.harness.shaded import compare_shaded
+            cmp = compare_shaded(job.scene, job.columns)
+        else:
+            cmp = compare(job.scene, job.columns, None, job.precision, mode, cache=cache)
+        row = cmp.summary()
+        # the time outside the comparison's own phases (imports, the summary) is "other"
+        row["seconds"] = dict(row["seconds"])
+        row["seconds"]["other"] += round(time.perf_counter() - t0
+                                         - sum(row["seconds"].values()), 4)
+        if job.pictures:
+            from .html_report import comparison_pictures
+            t1 = time.perf_counter()
+            row["pictures"] = comparison_pictures(cmp)
+            row["seconds"]["write"] += round(time.perf_counter() - t1, 4)
+        out.append((row, cmp if not cmp.ok or job.keep_all else None))
+    return out
 
 
 def validate(scenes, columns: int, precisions, modes, outdir: str, progress=None,
@@ -172,28 +180,40 @@ def validate(scenes, columns: int, precisions, modes, outdir: str, progress=None
             old.unlink()
     todo = jobs(scenes, columns, precisions, modes, evidence, shaded_columns, pictures)
 
-    def each(i, out):
-        row, cmp = out
+    def each(i, outs):
         job = todo[i]
-        t0 = time.perf_counter()
-        if job.mode == "shaded":
-            if cmp is not None:
-                from tools.harness.shaded import write_shaded_evidence
-                row["evidence"] = write_shaded_evidence(cmp, os.path.join(outdir, "failures"),
-                                                        stem_of(job.scene.path))
-        elif cmp is not None:
-            stem = f"{stem_of(job.scene.path)}.{job.mode}.{job.precision}"
-            row["evidence"] = (write_evidence(cmp, os.path.join(outdir, "failures"), stem)
-                               if not cmp.ok else
-                               write_evidence(cmp, os.path.join(outdir, "exr"), stem,
-                                              ("ours", "mitsuba")))
-        if "seconds" in row:
+        rows = []
+        for row, cmp in outs:
+            t0 = time.perf_counter()
+            if row["mode"] == "shaded":
+                if cmp is not None:
+                    from tools.harness.shaded import write_shaded_evidence
+                    row["evidence"] = write_shaded_evidence(
+                        cmp, os.path.join(outdir, "failures"), stem_of(job.scene.path))
+            elif cmp is not None:
+                stem = f"{stem_of(job.scene.path)}.{row['mode']}.{job.precision}"
+                row["evidence"] = (write_evidence(cmp, os.path.join(outdir, "failures"), stem)
+                                   if not cmp.ok else
+                                   write_evidence(cmp, os.path.join(outdir, "exr"), stem,
+                                                  ("ours", "mitsuba")))
             row["seconds"]["write"] += round(time.perf_counter() - t0, 4)
-        if progress:
-            progress(row)
-        return row
-    return run_cases(run_job, todo, plan or SERIAL, each,
-                     seconds_per_case=seconds_per_comparison(columns))
+            if progress:
+                progress(row)
+            rows.append(row)
+        return rows
+    per_job = sum(len(j.modes) for j in todo) / max(len(todo), 1)
+    done = run_cases(run_job, todo, plan or SERIAL, each,
+                     seconds_per_case=per_job * seconds_per_comparison(columns))
+    # report order: per scene, every mode and precision (as given), then the shaded image
+    order = {m: k for k, m in enumerate((*modes, "shaded"))}
+    prec = {p: k for k, p in enumerate(precisions)}
+    keyed = [(n, order[r["mode"]], prec.get(todo[n].precision, 0), r)
+             for n, rows in enumerate(done) for r in rows]
+    first = {}                              # a scene's first job: where its rows go
+    for n, j in enumerate(todo):
+        first.setdefault(id(j.scene), n)
+    keyed.sort(key=lambda k: (first[id(todo[k[0]].scene)], k[1], k[2]))
+    return [k[3] for k in keyed]
 
 
 def public(row: dict) -> dict:
