@@ -118,7 +118,7 @@ VARIANTS = [
     ("course_ties_last", CT / "scenes" / "ties.txt", "ties", "last"),
     ("course_tmin", CT / "scenes" / "tmin.txt", "t_min", 1e-4),
     ("course_clip_spheres", CT / "scenes" / "clip_sphere.txt", "clip_spheres", True),
-    ("course_reflect_segment", REPO / "scenes" / "shade_mirrors.txt", "reflect", "segment"),
+    ("course_reflect_segment", CT / "scenes" / "reflect.txt", "reflect", "segment"),
     ("course_rows_shifted", REPO / "scenes" / "shade_tiles.txt", "rows", "shifted"),
     ("course_tile_noproject", CT / "scenes" / "tiles_tilted.txt", "tile_project", False),
     ("course_tile_add_first", REPO / "scenes" / "shade_tiles.txt", "tile_add_first", True),
