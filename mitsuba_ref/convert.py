@@ -157,18 +157,14 @@ def mitsuba_subset(scene: Scene, keep=lambda kind: True):
     return dataclasses.replace(scene, objects=kept), note
 
 
-def oracle_only(scene: Scene, shading: bool = False) -> list:
+def oracle_only(scene: Scene) -> list:
     """One line per object left out of the Mitsuba scene: no Mitsuba equivalent (compared
-    against the oracles only), or, with ``shading``, a quadric (the ``course`` integrator
-    shades plane kinds and spheres only)."""
+    against the oracles only; the ``course`` integrator shades every shape the scene has)."""
     out = []
     for o in scene.objects:
         if dispatch(_SHAPES, o.kind)(o, scene.viewpoint, 1.0, lambda m: m) is None:
             out.append(f"line {o.line}: {o.kind} has no Mitsuba shape; left out of the "
                        "Mitsuba scene (checked against rtval's oracles only)")
-        elif shading and o.kind in quadric.KINDS:
-            out.append(f"line {o.line}: {o.kind}: the course integrator does not shade it; "
-                       "left out of the Mitsuba scene (checked against rtval's oracles only)")
     return out
 
 
@@ -313,11 +309,16 @@ def tile_size(o, rules: Rules) -> tuple:
 
 def course_material(o, oid: int, rules: Rules, window=(1.0, 1.0)) -> dict:
     """The ``course_material`` BSDF of one object (mitsuba_ref/integrator.py): its MAT, kind,
-    a sphere's centre and radius, a plane's normal as given (unit) and point, a tiled plane's
-    frame, computed here."""
+    a sphere's centre and radius, a cylinder's base centre, unit axis and radius, a plane's
+    normal as given (unit) and point, a tiled plane's frame, computed here."""
     b = {"type": "course_material", "kind": o.kind, "course_id": oid, **_mat(o.material)}
     if o.kind == "sphere":
         b["center"], b["radius"] = [float(c) for c in o.center], float(o.radius)
+    elif o.kind == "cylinder":              # the axial range is Mitsuba's cylinder's
+        p0, axis, r, _ = quadric.fields(o)
+        b["center"] = [float(c) for c in p0]
+        b["axis"] = list(unit(tuple(float(c) for c in axis)))
+        b["radius"] = float(r)
     elif o.kind == "triangle":              # its normal and anchor from the points
         b["normal"] = list(unit(convert_planar.triangle_normal(o)))
         b["point"] = [float(c) for c in convert_planar.points(o)[0]]
@@ -426,7 +427,7 @@ def scene_dict(scene: Scene, columns: int, rows: int | None = None, sampling: st
             continue
         sid = shape_id(oid, o.kind)
         shape = dispatch(_SHAPES, o.kind)(o, scene.viewpoint, R, T)
-        if shape is None or (shading and o.kind in quadric.KINDS):   # oracle_only() says so
+        if shape is None:                   # oracle_only() says so
             continue
         shape["id"] = sid
         if shading:
@@ -591,7 +592,7 @@ def scene_xml(scene: Scene, columns: int, rows: int | None = None, sampling: str
                      " mitsuba_ref.convert.mitsuba()) -->")
     if s.note:
         lines.append(f"<!-- WARNING: {s.note} -->")
-    lines += [f"<!-- {note} -->" for note in oracle_only(scene, shading or aovs)]
+    lines += [f"<!-- {note} -->" for note in oracle_only(scene)]
     lines.append('<scene version="3.0.0">')
     for k, v in d.items():
         if k != "type":

@@ -13,13 +13,17 @@ written here with Mitsuba's own queries and nothing from rt_core:
 * **Closest hit** (``_closest``): ``scene.ray_intersect``; a hit the course does not count is
   stepped over and the ray goes on from it (``si.spawn_ray``): plane kinds with the hit in
   front of the window (z > 0, or z >= 0 with screen_clip=">=") or t <= t_min, and spheres
-  only with clip_spheres.  One scene: spheres and planes clip differently inside it.
+  and cylinders only with clip_spheres.  One scene: spheres and planes clip differently
+  inside it.  A reflection ray steps over the object it leaves, as the course skips it (a
+  cylinder's inside wall reflects back into the cylinder).
 * **Shadows**: one ray per light toward it (``si.spawn_ray_to``, which leaves the surface
   itself, as the course skips the object a ray leaves), blocked by the first counted hit.
 * **Hit points and normals**: Mitsuba decides which surface a ray meets; where on it comes
   from the course geometry its material carries (``_point``): a plane's equation, a
-  sphere's centre and radius.  A plane kind's normal is as given in the file (never
-  flipped), a sphere's the outward one.  A tiled plane picks its MAT by the parity of
+  sphere's centre and radius, a cylinder's base centre, unit axis and radius (the root
+  nearer Mitsuba's own t: Mitsuba decides near or far wall, and the axial range).  A
+  plane kind's normal is as given in the file (never flipped), a sphere's and a cylinder's
+  the outward one (the gradient: on a cylinder's inside wall too, as the course).  A tiled plane picks its MAT by the parity of
   floor(u/w) + floor(v/h), with u, v from its point and frame.
 * **Camera**: one ray per pixel from the viewpoint through the course's sample (corner grid
   or centres), built here from the integrator's parameters: the course image itself, also
@@ -73,8 +77,9 @@ def _classes(mi):
 
     class CourseMaterial(mi.BSDF):
         """A course MAT (ambient, diffuse, specular: RGB, unbounded) and what the integrator
-        needs of the shape: ``kind`` ("sphere", "plane", "fplane", "tplane"), its
-        ``course_id``, a sphere's centre and radius, a plane kind's normal as given (unit)
+        needs of the shape: ``kind`` ("sphere", "cylinder", "plane", "fplane", "tplane",
+        "disk", "triangle"), its ``course_id``, a sphere's centre and radius, a cylinder's
+        base centre (``center``), unit ``axis`` and radius, a plane kind's normal as given (unit)
         and point, a finite or tiled plane's frame (and size, or tile size and background
         MAT).  The integrator reads these values once per render into tables by course id
         (``_tables``) and, per hit, only ``eval_attribute_1("course_id")``; other code can
@@ -84,7 +89,8 @@ def _classes(mi):
             mi.BSDF.__init__(self, props)
             vec = lambda k: mi.Color3f(props.get(k, mi.ScalarColor3f(0.0)))
             self.vals = {k: vec(k) for k in MATERIAL_FIELDS + BACKGROUND_FIELDS +
-                         ("normal", "point", "xdir", "ydir", "tile_size", "size", "center")}
+                         ("normal", "point", "xdir", "ydir", "tile_size", "size", "center",
+                          "axis")}
             # opaque: scene numbers are kernel data, so the next scene reuses the kernels
             dr.make_opaque(*self.vals.values())
             kind = props.get("kind", "sphere")
@@ -94,7 +100,10 @@ def _classes(mi):
             self.texture = props.get("texture", None) if "texture" in props \
                 else None
             self.brightness = float(props.get("brightness", 1.0))
-            self.ones = {"clipped": float(kind != "sphere"), "sphere": float(kind == "sphere"),
+            # clipped: a plane kind (the screen clip always, t_min); spheres and cylinders
+            # are clipped only with clip_spheres
+            self.ones = {"clipped": float(kind not in ("sphere", "cylinder")),
+                         "cylinder": float(kind == "cylinder"),
                          "tiled": float(kind == "tplane"), "finite": float(kind == "fplane"),
                          "radius": float(props.get("radius", 0.0)),
                          "course_id": float(props.get("course_id", -1))}
@@ -183,8 +192,8 @@ def _classes(mi):
 
         def geometry(self, scene, o, d):
             """The primary rays' channels in GEOMETRY's order and rtval's conventions:
-            depth = distance from the viewpoint, a plane's normal as given or the sphere's
-            outward one, the world position, a finite or tiled plane's lasthit as uv (a
+            depth = distance from the viewpoint, a plane's normal as given or the sphere's or
+            cylinder's outward one, the world position, a finite or tiled plane's lasthit as uv (a
             finite plane's kept in [0, w] × [0, h]); zeros and id −1 on a miss."""
             n = dr.width(d)
             o = mi.Point3f(o) + dr.zeros(mi.Vector3f, n)
@@ -193,7 +202,7 @@ def _classes(mi):
             idx = self._ids(si, hit)
             att = one = lambda k: self._get(k, idx, hit)
             planar = one("clipped") > 0.5
-            N = dr.select(planar, att("normal"), dr.normalize(p - mi.Point3f(att("center"))))
+            N = self._normal(att, p)
             rel = p - mi.Point3f(att("point"))
             lasthit = planar & ((one("tiled") > 0.5) | (one("finite") > 0.5))
             u = dr.select(lasthit, dr.dot(rel, att("xdir")), 0.0)
@@ -284,12 +293,41 @@ def _classes(mi):
 
         # --- the course's hit rule -----------------------------------------------------------
 
+        def _normal(self, att, p):
+            """The course normal at hit points p (att: the hits' material values): a plane
+            kind's as given; a sphere's or cylinder's the outward one, the part of p − centre
+            across the axis (a sphere's axis is 0), on a cylinder's inside wall too."""
+            w = p - mi.Point3f(att("center"))
+            a = att("axis")
+            return dr.select(att("clipped") > 0.5, att("normal"),
+                             dr.normalize(w - dr.dot(w, a) * a))
+
+        def _cylinder_t(self, get, o, d, t_mitsuba):
+            """t of a cylinder hit from its base centre c, unit axis â and radius r, the
+            root nearer Mitsuba's ``t_mitsuba`` (Mitsuba decides the wall and the axial
+            range).  Across the axis (q = c − o, x⊥ = x − (x·â)â): A t² − 2B t + C = 0 with
+            A = |d⊥|², B = d⊥·q⊥, C = (|q⊥| − r)(|q⊥| + r), and the discriminant without
+            cancellation, B² − AC = (r√A − |d⊥×q⊥|)(r√A + |d⊥×q⊥|); roots C/q' and q'/A,
+            q' = B + sign(B)·√disc (Mitsuba's float32 roots in its own frame cancel near the
+            outline)."""
+            a = get("axis")
+            q = get("center") - mi.Vector3f(o)
+            qp, dp = q - dr.dot(q, a) * a, d - dr.dot(d, a) * a
+            r = get("radius")
+            A, B = dr.dot(dp, dp), dr.dot(dp, qp)
+            ra, cn, qn = r * dr.sqrt(A), dr.norm(dr.cross(dp, qp)), dr.norm(qp)
+            qq = B + dr.mulsign(dr.sqrt(dr.maximum((ra - cn) * (ra + cn), 0)), B)
+            r1, r2 = ((qn - r) * (qn + r)) / qq, qq / A
+            t = dr.select(dr.abs(r1 - t_mitsuba) <= dr.abs(r2 - t_mitsuba), r1, r2)
+            return dr.select(dr.isfinite(t) & (t > 0), t, t_mitsuba)
+
         def _point(self, si, o, d):
-            """(t, hit point, is a plane kind) of a hit: for plane kinds from the plane's
-            equation, t = n·(P − o)/(n·d) with the material's point and normal, rather than
-            Mitsuba's point on the rectangle, which for the large stand-in of an infinite
+            """(t, hit point, is a plane kind, course id) of a hit: for plane kinds from the
+            plane's equation, t = n·(P − o)/(n·d) with the material's point and normal, rather
+            than Mitsuba's point on the rectangle, which for the large stand-in of an infinite
             plane is off by ~2⁻²⁴ of its half-size (R = 64 × the scene's scale): Mitsuba
-            decides which surface the ray meets, the plane equation where on it."""
+            decides which surface the ray meets, the plane equation where on it; a sphere's
+            and a cylinder's t likewise from their centre, (axis) and radius."""
             valid = si.is_valid()
             idx = self._ids(si, valid)
             get = lambda k: self._get(k, idx, valid)
@@ -306,11 +344,12 @@ def _classes(mi):
             b, cn, qn = dr.dot(q, d), dr.norm(dr.cross(q, d)), dr.norm(q)
             sd = dr.sqrt(dr.maximum((r - cn) * (r + cn), 0))
             c = (qn - r) * (qn + r)
+            t_mitsuba = dr.dot(si.p - o, d)
             t_sphere = dr.select(c > 0, c / (b + sd), b + sd)
-            t_sphere = dr.select(dr.isfinite(t_sphere) & (t_sphere > 0), t_sphere,
-                                 dr.dot(si.p - o, d))
-            t = dr.select(planar, t_plane, t_sphere)
-            return t, dr.fma(d, t, o), planar
+            t_sphere = dr.select(dr.isfinite(t_sphere) & (t_sphere > 0), t_sphere, t_mitsuba)
+            t_cyl = self._cylinder_t(get, o, d, t_mitsuba)
+            t = dr.select(planar, t_plane, dr.select(get("cylinder") > 0.5, t_cyl, t_sphere))
+            return t, dr.fma(d, t, o), planar, idx
 
         def _counts(self, t, p, planar):
             """Does the course count this hit (the screen clip, t > t_min for plane kinds)?"""
@@ -322,20 +361,23 @@ def _classes(mi):
                 ok &= ~(planar & (t <= dr.opaque(mi.Float, self.t_min)))
             return ok
 
-        def _closest(self, scene, o, d, active, maxt=None, start=None):
-            """The closest counted hit along o + t·d (t < maxt): (si, t, hit).  A hit not
+        def _closest(self, scene, o, d, active, maxt=None, start=None, leave=None):
+            """The closest counted hit along o + t·d (t < maxt): (si, t, p, hit).  A hit not
             counted is stepped over (the ray goes on from it); t is measured from o.
             ``start``: where the search begins (a spawned origin just off the surface the
-            ray leaves), default o."""
+            ray leaves), default o; ``leave``: the course id of the object the ray leaves
+            (stepped over, as the course skips it), default none."""
             start = o if start is None else start
             ray = mi.Ray3f(start, d)
             if maxt is not None:
                 ray.maxt = maxt                 # (Ray3f's third argument is the time)
             si = scene.ray_intersect(ray, active)
             hit = active & si.is_valid()
-            t, p, planar = self._point(si, o, d)
+            t, p, planar, idx = self._point(si, o, d)
             for _ in range(MAX_SKIPS):
                 skip = hit & ~self._counts(t, p, planar)
+                if leave is not None:
+                    skip |= hit & (idx == leave)
                 if not dr.any(skip):
                     break
                 nxt = si.spawn_ray(d)
@@ -344,7 +386,7 @@ def _classes(mi):
                 si2 = scene.ray_intersect(nxt, skip)
                 si = dr.select(skip, si2, si)
                 hit = dr.select(skip, si2.is_valid(), hit)
-                t, p, planar = self._point(si, o, d)
+                t, p, planar, idx = self._point(si, o, d)
             return si, t, p, hit
 
         # --- the shading ---------------------------------------------------------------------
@@ -387,8 +429,7 @@ def _classes(mi):
             idx = self._ids(si, hit)
             att = lambda k: self._get(k, idx, hit)
             amb, dif, spec = (mi.Color3f(att(k)) for k in MATERIAL_FIELDS)
-            sphere = att("sphere") > 0.5
-            N = dr.select(sphere, dr.normalize(p - mi.Point3f(att("center"))), att("normal"))
+            N = self._normal(att, p)
             tiled = att("tiled") > 0.5
             if dr.any(tiled & hit):
                 rel = p - mi.Point3f(att("point"))
@@ -420,9 +461,10 @@ def _classes(mi):
             live = mi.Bool(active) & dr.full(mi.Bool, True, n)
             o = mi.Point3f(o) + dr.zeros(mi.Vector3f, n)
             start = o
+            leave = None
             bounces = 0
             while True:
-                si, t, p, hit = self._closest(scene, o, d, live, start=start)
+                si, t, p, hit = self._closest(scene, o, d, live, start=start, leave=leave)
                 total_here = total + t
                 amb, dif, spec, N = self._material(si, p, hit)
                 I = mi.Color3f(amb)
@@ -447,13 +489,14 @@ def _classes(mi):
                 # the next segment starts at the hit point (its t is measured from there);
                 # the search starts just off the surface it leaves (the course skips it)
                 start = dr.select(go, si.spawn_ray(R).o, start)
+                leave = self._ids(si, go)
                 o, d = dr.select(go, p, o), dr.select(go, R, d)
                 weight = weight * spec
                 total = total_here
                 live = go
                 bounces += 1
                 # one evaluation per bounce: the next bounce's kernels start from data
-                dr.eval(image, weight, total, o, d, start, live)
+                dr.eval(image, weight, total, o, d, start, live, leave)
             return image
 
     def _odd(f):

@@ -306,6 +306,7 @@ class Cand:
     ndotd: EF | None = None
     disc: EF | None = None
     why: str = ""            # for a miss: 'parallel', 'tmin', 'clip', 'edge', 'disc'
+    outline: EF | None = None    # a cylinder's outline, well conditioned (quadric.outline)
 
 
 def _clipped(z: EF, rules: Rules) -> bool:
@@ -382,7 +383,8 @@ def sphere_hits(ob: _Obj, base, d, rules: Rules) -> Cand:
 
 def quadric_hits(ob: _Obj, base, d, rules: Rules) -> Cand:
     """Cylinder, cone, ellipsoid (mitsuba_ref/quadric.py)."""
-    return quadric.hits(ob, base, d, rules, Cand, EF, esqrt, (dot3, diff3, sum3, scale3))
+    return quadric.hits(ob, base, d, rules, Cand, EF, esqrt,
+                        (dot3, diff3, sum3, scale3, cross3, length3))
 
 
 def planar_hits(ob: _Obj, base, d, rules: Rules) -> Cand:
@@ -472,7 +474,7 @@ def _tests(ob: _Obj, c: Cand, base, d, rules: Rules) -> list:
     out = []
     clip = rules.screen_clip != "off" and (ob.kind in PLANE_KINDS or rules.clip_spheres)
     if ob.kind in quadric.KINDS:
-        out.append(("disc_margin", c.disc.v > 0.0, _margin(c.disc.v, c.disc.e)))
+        out.append(("disc_margin", c.disc.v > 0.0, quadric.outline_margin(c, _margin)))
         if c.disc.v > 0.0:
             out.append(("tmin_margin", c.t.v > 0.0, _margin(c.t.v, c.t.e)))
             if c.newhit and c.t.v > 0.0:

@@ -86,18 +86,46 @@ def _of(ob):
     return (ob.center, ob.point, *ob.size)
 
 
+def outline(ob, w0, d, EF, ops):
+    """A cylinder's outline decision in a well-conditioned form (None for the other kinds):
+    r|d×a| − |det(d, a, w0)|, whose sign is the discriminant's (β² − 4αγ = 4|a|²(r|d×a| −
+    |det|)(r|d×a| + |det|): |det|/|d×a| is the distance of the ray's line from the axis).
+    The notes' β² − 4αγ cancels far from the ray's origin, so its bound says little there."""
+    if ob.kind != "cylinder":
+        return None
+    dot3, _, _, _, cross3, length3 = ops
+    _, a, r, _ = _of(ob)
+    x = cross3(d, a)
+    det = dot3(x, w0)
+    return r * length3(x) - EF(abs(det.v), det.e)
+
+
+def outline_margin(c, margin) -> float:
+    """The margin of a quadric's outline decision: the discriminant's, or for a cylinder the
+    larger of it and ``outline``'s where their signs agree (each bounds the same sign), the
+    smaller where they do not."""
+    m = margin(c.disc.v, c.disc.e)
+    o = getattr(c, "outline", None)
+    if o is None:
+        return m
+    mo = margin(o.v, o.e)
+    return max(m, mo) if (o.v > 0.0) == (c.disc.v > 0.0) else min(m, mo)
+
+
 def hits(ob, base, d, rules, Cand, EF, esqrt, ops):
-    """The oracle's Cand for a quadric: the course's quadratic, literally."""
-    dot3, diff3, sum3, scale3 = ops
+    """The oracle's Cand for a quadric: the course's quadratic, literally (and a cylinder's
+    ``outline`` for the margin of its discriminant's sign)."""
+    dot3, diff3, sum3, scale3 = ops[:4]
     m, c, a, e, hh = _form(ob.kind, _of(ob))
     w0 = diff3(base, ob.center)
     A = _mul(m, c, a, d, d)
     B = 2.0 * _mul(m, c, a, d, w0)
     C = _mul(m, c, a, w0, w0) - e
     disc = B * B - 4.0 * A * C
+    line = outline(ob, w0, d, EF, ops)
     if not disc.v > 0.0:
         t = -B / (2.0 * A)
-        return Cand(False, t, sum3(base, scale3(t, d)), disc=disc, why="disc")
+        return Cand(False, t, sum3(base, scale3(t, d)), disc=disc, why="disc", outline=line)
     s = esqrt(disc)
     r1, r2 = (-B - s) / (2.0 * A), (-B + s) / (2.0 * A)
     roots = sorted((r1, r2), key=lambda x: x.v)
@@ -105,7 +133,8 @@ def hits(ob, base, d, rules, Cand, EF, esqrt, ops):
     for t in (roots if hh is not None else roots[:1]):
         hit = sum3(base, scale3(t, d))
         y = dot3(diff3(hit, ob.center), a)
-        cand = Cand(t.v > 0.0, t, hit, disc=disc, why="" if t.v > 0.0 else "tmin")
+        cand = Cand(t.v > 0.0, t, hit, disc=disc, why="" if t.v > 0.0 else "tmin",
+                    outline=line)
         cand.newhit = (y, hh) if hh is not None else ()
         if cand.ok and hh is not None and not (y.v >= 0.0 and y.v <= math.sqrt(hh.v)):
             cand.ok, cand.why = False, "edge"

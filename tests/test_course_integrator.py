@@ -95,6 +95,12 @@ def _broken(kind: str):
                 return mi.Bool(False)
             return base.blocked(self, scene, sray, cast)
 
+        def _normal(self, att, p):
+            N = base._normal(self, att, p)
+            if kind == "cylinder_normal":                       # inward on every cylinder
+                return dr.select(att("cylinder") > 0.5, -N, N)
+            return N
+
     name = f"course_broken_{kind}"
     mi.register_integrator(name, lambda props: Broken(props))
     return name
@@ -102,6 +108,7 @@ def _broken(kind: str):
 
 SHADOWS = ROOT / "scenes" / "shade_shadows.txt"
 MIRRORS = ROOT / "scenes" / "shade_mirrors.txt"
+CYLINDERS = ROOT / "scenes" / "cylinders.txt"
 
 
 @pytest.mark.parametrize("kind, path", [("inverse_square", SHADOWS), ("no_shadow", SHADOWS),
@@ -151,7 +158,7 @@ def test05_clip_inside_one_scene():
     assert (I[..., 2] > 0.05).any() and (I[..., 1] > 0.05).any()
 
 
-@pytest.mark.parametrize("name", ["shade_tiles", "textured"])
+@pytest.mark.parametrize("name", ["shade_tiles", "textured", "cylinders"])
 def test06_xml_renders_like_the_dict(tmp_path, name):
     """rtval convert --shading writes XML that rtval render --mitsuba renders to the same
     8-bit image as the dict scene (compare_shaded's), with provenance in the PNG; a textured
@@ -286,3 +293,26 @@ def test13_geometry_classifier_decides_what_the_oracle_cannot(tmp_path):
     assert cmp.ok and cmp.counts["boundary"] > 0, cmp.counts
     oracle_only = classify_shaded(sc, cmp.ours, cmp.theirs, "corners", cmp.rules, cmp.max_dist)
     assert (oracle_only == SHADED_CODE["wrong"]).sum() == cmp.counts["boundary"]
+
+
+def test14_the_cylinder_is_in_the_shaded_comparison():
+    """Issue 13: the course integrator shades the cylinder, so the shaded comparison keeps it
+    on both sides: the note names nothing, Mitsuba's image differs from the one without the
+    cylinders (where they are seen, their shadows and reflections), and those pixels agree
+    with rt_core's."""
+    import dataclasses
+    from tools.harness.shaded import quantize32
+    sc = parse_scene(CYLINDERS)
+    cmp = compare_shaded(sc, W)
+    assert cmp.ok and cmp.note == "", (cmp.counts, cmp.note)
+    bare = dataclasses.replace(sc, objects=tuple(o for o in sc.objects if o.kind != "cylinder"))
+    without = quantize32(mitsuba_course_image(bare, W, cmp.rows))
+    changed = (without != cmp.theirs).any(-1)
+    assert changed.sum() > 0.05 * W * cmp.rows, changed.sum()      # 55 of 768 here
+    assert (cmp.classes[changed] == SHADED_CODE["match"]).mean() > 0.9, cmp.counts
+
+
+def test15_a_cylinder_shading_error_is_wrong():
+    """The cylinder's normal turned inward (lit and unlit sides swap): wrong pixels."""
+    cmp = compare_shaded(parse_scene(CYLINDERS), 2 * W, integrator=_broken("cylinder_normal"))
+    assert not cmp.ok and cmp.counts["wrong"] >= 5, cmp.counts

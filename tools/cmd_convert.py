@@ -62,7 +62,7 @@ def run(args) -> int:
     xml = scene_xml(scene, args.columns, args.rows, args.sampling, args.shading,
                     rules=args.rules, max_dist=DEFAULT_MAX_DIST if args.max_dist is None else args.max_dist,
                     aovs=args.aovs, files=plys, stem=Path(args.output).name)
-    for note in oracle_only(scene, course):
+    for note in oracle_only(scene):
         print(f"rtval convert: note: {note}", file=sys.stderr)
     for name, data in plys.items():
         if isinstance(data, str):

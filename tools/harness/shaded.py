@@ -38,6 +38,9 @@ from rt_core.shading import DEFAULT_MAX_DIST, quantize
 from .timing import Stopwatch
 
 SHADED_CLASSES = ("match", "rounding", "boundary", "wrong")
+# the object kinds the shaded comparison keeps (the others are left out on both sides, named
+# in its note)
+SHADED_KINDS = ("sphere", "plane", "fplane", "tplane", "cylinder")
 SHADED_CODE = {c: i for i, c in enumerate(SHADED_CLASSES)}
 # named colours of the classes image (evidence, HTML report): those of rtval check's classes
 SHADED_COLOURS = {"match": (48, 48, 48), "rounding": (70, 110, 230), "boundary": (240, 200, 40),
@@ -63,7 +66,7 @@ class ShadedComparison:
     worst: list = field(default_factory=list)   # a few wrong pixels: (x, y, ours, theirs)
     flip_mean: float = 0.0            # NVIDIA FLIP, Mitsuba's image the reference
     flip: np.ndarray | None = None    # FLIP's per-pixel error; None when the images are equal
-    note: str = ""                    # objects left out of the comparison (quadrics)
+    note: str = ""                    # objects left out of the comparison
     seconds: dict = field(default_factory=dict)     # per phase (tools/harness/timing.py)
 
     @property
@@ -130,10 +133,9 @@ def compare_shaded(scene: Scene, columns: int, rows: int | None = None,
     deliberately wrong one); default ``course``."""
     sw = Stopwatch()
     with sw("other"):
-        # the course integrator shades the plane kinds and spheres only: quadrics are left out
+        # the kinds compared: those below (cones, ellipsoids, the torus have no Mitsuba shape)
         from mitsuba_ref.convert import mitsuba_subset
-        scene, note = mitsuba_subset(scene, lambda k: k in ("sphere", "plane", "fplane",
-                                                            "tplane"))
+        scene, note = mitsuba_subset(scene, lambda k: k in SHADED_KINDS)
         cam = make_camera(scene, columns, rows, sampling, rules)
     with sw("rt_core"):
         t0 = time.perf_counter()
