@@ -295,17 +295,19 @@ def test13_geometry_classifier_decides_what_the_oracle_cannot(tmp_path):
     assert (oracle_only == SHADED_CODE["wrong"]).sum() == cmp.counts["boundary"]
 
 
-def test14_the_cylinder_is_in_the_shaded_comparison():
-    """Issue 13: the course integrator shades the cylinder, so the shaded comparison keeps it
-    on both sides: the note names nothing, Mitsuba's image differs from the one without the
-    cylinders (where they are seen, their shadows and reflections), and those pixels agree
-    with rt_core's."""
+@pytest.mark.parametrize("path,kinds", [(CYLINDERS, ("cylinder",)),
+                                        (ROOT / "scenes" / "planar.txt", ("triangle", "disk"))])
+def test14_the_kind_is_in_the_shaded_comparison(path, kinds):
+    """Issue 13: the course integrator shades the cylinder, the triangle and the disk, so the
+    shaded comparison keeps them on both sides: the note names nothing, Mitsuba's image
+    differs from the one without them (where they are seen, their shadows and reflections),
+    and those pixels agree with rt_core's."""
     import dataclasses
     from tools.harness.shaded import quantize32
-    sc = parse_scene(CYLINDERS)
+    sc = parse_scene(path)
     cmp = compare_shaded(sc, W)
     assert cmp.ok and cmp.note == "", (cmp.counts, cmp.note)
-    bare = dataclasses.replace(sc, objects=tuple(o for o in sc.objects if o.kind != "cylinder"))
+    bare = dataclasses.replace(sc, objects=tuple(o for o in sc.objects if o.kind not in kinds))
     without = quantize32(mitsuba_course_image(bare, W, cmp.rows))
     changed = (without != cmp.theirs).any(-1)
     assert changed.sum() > 0.05 * W * cmp.rows, changed.sum()      # 55 of 768 here

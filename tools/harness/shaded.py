@@ -40,7 +40,7 @@ from .timing import Stopwatch
 SHADED_CLASSES = ("match", "rounding", "boundary", "wrong")
 # the object kinds the shaded comparison keeps (the others are left out on both sides, named
 # in its note)
-SHADED_KINDS = ("sphere", "plane", "fplane", "tplane", "cylinder")
+SHADED_KINDS = ("sphere", "plane", "fplane", "tplane", "cylinder", "triangle", "disk")
 SHADED_CODE = {c: i for i, c in enumerate(SHADED_CLASSES)}
 # named colours of the classes image (evidence, HTML report): those of rtval check's classes
 SHADED_COLOURS = {"match": (48, 48, 48), "rounding": (70, 110, 230), "boundary": (240, 200, 40),
