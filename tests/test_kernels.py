@@ -187,11 +187,11 @@ def test05_bins_are_conservative_where_objects_project(monkeypatch):
     assert (b < grid.nbins).mean() > 0.99, "almost every camera ray falls in a grid bin"
     listed = {}
     for kind, tab in tabs.items():
-        off = tab.offsets.numpy()
-        rows = tab.rows.numpy().reshape(-1, len(accel.LAYOUT[kind]))
+        start, end = tab.offsets.numpy().reshape(-1, 4)[:, :2].T
+        rows = tab.rows.numpy().reshape(-1, accel.stride(kind))
         idcol = accel.LAYOUT[kind].index("id")
         for k in range(grid.nbins + 1):
-            listed.setdefault(k, set()).update(rows[off[k]:off[k + 1], idcol].astype(int))
+            listed.setdefault(k, set()).update(rows[start[k]:end[k], idcol].astype(int))
     hit = np.flatnonzero(oid >= 0)
     assert len(hit) > 0.3 * len(oid)
     missing = [i for i in hit if oid[i] not in listed[b[i]]]
