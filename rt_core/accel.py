@@ -177,7 +177,8 @@ class KindTable:
         gather (Dr.Jit leaves out the blocks of it that no computation uses)."""
         names = LAYOUT[self.kind]
         wide = self.wide or {}
-        g = dr.gather(packet_type(T), self.rows, k, shape=(stride(self.kind), dr.width(k)))
+        g = dr.gather(packet_type(T), self.rows, T.UInt32(k),
+                      shape=(stride(self.kind), dr.width(k)))
         v = {name: g[j] for j, name in enumerate(names) if name not in wide}
         A3 = T.Array3
         out = SimpleNamespace(kind=self.kind, id=T.Int32(v["id"]), grp=T.Int32(v["grp"]),
@@ -433,25 +434,28 @@ def ray_bins(ks, grid: Grid, d):
     by = dr.floor(dr.fma(d.y, s, dr.opaque(F, vy - grid.y0)) * dr.opaque(F, 1.0 / grid.bh))
     inside = (s > 0) & (bx >= 0) & (bx < dr.opaque(F, grid.nbx)) & (by >= 0) & \
         (by < dr.opaque(F, grid.nby))
-    b = U(dr.select(inside, by, 0)) * dr.opaque(U, grid.nbx) + U(dr.select(inside, bx, 0))
-    return dr.select(inside, b, dr.opaque(U, grid.nbins))
+    # (signed conversions and arithmetic: AVX2 has no unsigned ones; every number is < 2³¹)
+    I = T.Int32
+    b = I(dr.select(inside, by, 0)) * dr.opaque(I, grid.nbx) + I(dr.select(inside, bx, 0))
+    return U(dr.select(inside, b, dr.opaque(I, grid.nbins)))
 
 
 # --- the loops ----------------------------------------------------------------------------------
 
 def _range(ks, kind: str, d, o):
-    """(table, start, end): the rows start..end-1 of the table that each ray visits."""
-    U = ks.T.UInt32
+    """(table, start, end): the rows start..end-1 of the table that each ray visits, as
+    Int32 (a signed comparison ends the loop: AVX2 has no unsigned one; rows < 2³¹)."""
+    I = ks.T.Int32
     use = o is None and ks.__dict__.get("_accel_opts", {}).get("bins", True)
     b = binned(ks, dr.width(d)) if use else None
     if b is None:
         tab = tables(ks)[kind]
-        return tab, dr.zeros(U, dr.width(d)), dr.opaque(U, tab.count, dr.width(d))
+        return tab, dr.zeros(I, dr.width(d)), dr.opaque(I, tab.count, dr.width(d))
     grid, tabs = b
     tab = tabs[kind]
     se = dr.gather(ks.T.module.ArrayXu, tab.offsets, ray_bins(ks, grid, d),
                    shape=(4, dr.width(d)))
-    return tab, U(se[0]), U(se[1])
+    return tab, I(se[0]), I(se[1])
 
 
 def closest_kind(ks, kind: str, d, o, rules: Rules, skip, st, scale: float = 0.0):
