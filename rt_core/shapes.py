@@ -588,12 +588,7 @@ def sphere_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = F
 
     The discriminant is taken as a·r² − |q' × d|² = (r√a − |q'×d|)(r√a + |q'×d|) (|q'×d|/√a
     is the distance of the centre from the ray line), and the near root as c/(b' + √disc)
-    when b' > 0, so neither cancels.
-
-    Unrolled (host constants), rays from the viewpoint skip the rest of the test (two square
-    roots and a division) in a packet whose every ray certainly misses (``_sphere_cull``):
-    most packets miss most of the spheres there, unlike in a bin's loop (rt_core/accel.py),
-    where the branch cost more than it saved."""
+    when b' > 0, so neither cancels."""
     F, B = _check(d)
     q = opaque3(type(d), obj.q)
     r = opaque(F, obj.radius)
@@ -604,43 +599,9 @@ def sphere_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = F
         qn = dr.norm(q)
         c = (qn - r) * (qn + r)
     a = dr.squared_norm(d)
-    sn = dr.squared_norm(dr.cross(q, d))    # |q×d|²
-    ra = r * dr.sqrt(a)
-    bo = _scaled(obj.bo, cert) if cert else None    # NaN when c <= 0: never passes
-
-    def rest(*_):
-        return _sphere_rest(d, o, obj, rules, vz, cert, F, q, c, sn, ra, bo)
-    if o is not None or not SPHERE_CULL or not isinstance(obj.c, (int, float)):
-        return rest()
-    # a culled ray: t 0, no hit (certified: neither certain nor possible, lf 0)
-    none = (dr.zeros(F), dr.zeros(B)) + ((dr.zeros(B), dr.zeros(F)) if cert else ())
-    return dr.if_stmt((), ~_sphere_cull(F, sn, ra, bo), rest, lambda *_: none,
-                      label="sphere_test")
-
-
-# Rays from the viewpoint: the sphere test behind a packet-wide branch (``_sphere_cull``)
-# (measured: README "Speed")
-SPHERE_CULL = True
-# the cull's relative margin on |q×d|²: far above the few roundings (2⁻²⁴ each in float32)
-# that separate the cull's products from the test's values
-CULL_MARGIN = 2.0 ** -18
-
-
-def _sphere_cull(F, sn, ra, bo):
-    """Rays that certainly miss, decided without a square root: |q×d|² >= x²(1 + m), with
-    x = r√a as the test computes it (uncertified: then |q×d| >= r√a, so the computed
-    discriminant (r√a − |q×d|)(r√a + |q×d|) is <= 0) or x = r√a + bo (certified: then
-    r√a − |q×d| <= −bo, so the outline test fails even 'possibly').  With x, x² and the
-    margin each rounded once, x²(1 + m) rounded is still >= x²(1 + m/2) and the correctly
-    rounded √(|q×d|²) >= x; a NaN anywhere compares false, so the ray is tested."""
-    x = ra if bo is None else ra + (dr.opaque(F, bo) if isinstance(bo, (int, float)) else bo)
-    return sn >= (x * x) * dr.opaque(F, 1 + CULL_MARGIN)
-
-
-def _sphere_rest(d, o, obj, rules: Rules, vz: float, cert, F, q, c, sn, ra, bo):
-    """sphere_t past |q×d|² and r√a."""
     bh = dr.dot(q, d)                       # −b/2 of the course's quadratic
-    cn = dr.sqrt(sn)                        # |d| × distance of the centre from the ray line
+    cn = dr.norm(dr.cross(q, d))            # |d| × distance of the centre from the ray line
+    ra = r * dr.sqrt(a)
     disc = (ra - cn) * (ra + cn)
     # √max(disc, 0) as a select (dr.maximum costs ~8 instructions, see ``least``); a NaN
     # disc gives 0 here, and a miss either way (disc > 0 fails)
@@ -669,12 +630,41 @@ def _sphere_rest(d, o, obj, rules: Rules, vz: float, cert, F, q, c, sn, ra, bo):
     bs = opaque(F, _scaled(obj.bs, cert))
     lf = dr.fma(-bs, inv, 1 - KB * U64)
     c = _Cert(True, True)
+    bo = _scaled(obj.bo, cert)              # NaN when c <= 0: never passes
     # outline r√a − |q×d| > 0 and front q·d > 0 share their bound: one test on the least
     c.test(F, least(ra - cn, bh, tame(obj, vz)), bo, True)
     if rules.clip_spheres and rules.screen_clip != "off":
         zb = dr.fma(dr.abs(t), dr.abs(d.z), dr.opaque(F, abs(vz))) * (KB * U64) + t * dr.fma(bs, inv, KB * U64)
         _clip_test(c, F, z, zb, rules)
     return (t, *c.split(), lf)
+
+
+# The unrolled sphere tests of camera rays (tracer.closest_hit) sit behind a packet-wide
+# branch on ``sphere_live``: most packets miss most spheres there (measured: README "Speed").
+# CULL_MARGIN: the relative margin on |q×d|², far above the few roundings (2⁻²⁴ each in
+# float32) that separate its comparison's values from the sphere test's own
+CULL_MARGIN = 2.0 ** -18
+
+
+def sphere_live(d, obj: ObjectConstants, cert=False):
+    """Rays from the viewpoint that may hit sphere ``obj`` (host constants): all but those
+    that ``sphere_t`` certainly finds missing, decided without a square root."""
+    F, B = _check(d)
+    q = opaque3(type(d), obj.q)
+    sn = dr.squared_norm(dr.cross(q, d))            # |q×d|²
+    ra = opaque(F, obj.radius) * dr.sqrt(dr.squared_norm(d))
+    return ~_sphere_miss(F, sn, ra, _scaled(obj.bo, cert) if cert else None)
+
+
+def _sphere_miss(F, sn, ra, bo):
+    """|q×d|² >= x²(1 + m), with x = r√a as sphere_t computes it (uncertified: then
+    |q×d| >= r√a, so its discriminant (r√a − |q×d|)(r√a + |q×d|) is <= 0, a miss) or
+    x = r√a + bo (certified: then r√a − |q×d| <= −bo, and the outline test fails even
+    'possibly').  With x, x², the margin's product and |q×d|² each rounded a few times
+    (relative 2⁻²⁴ each in float32), x²(1 + m) as computed is still >= x²(1 + m/2) and
+    sphere_t's rounded |q×d| >= x; a NaN anywhere compares false: the ray is tested."""
+    x = ra if bo is None else ra + (dr.opaque(F, bo) if isinstance(bo, (int, float)) else bo)
+    return sn >= (x * x) * dr.opaque(F, 1 + CULL_MARGIN)
 
 
 from .quadrics import KINDS as QUADRIC_KINDS  # noqa: E402  (the quadrics' kernel uses the above)

@@ -310,16 +310,16 @@ def test09_looped_rows_and_bins_are_packet_gathers(precision):
 
 @pytest.mark.parametrize("precision", PRECISIONS)
 def test10_unrolled_spheres_branch_past_certain_misses(precision, monkeypatch):
-    """Unrolled sphere tests of camera rays sit behind a packet-wide branch (shapes.sphere_t's
-    cull), one per sphere; a looped sphere kind has none (its bins' rays mostly hit).  That
-    the cull drops no hit is test01's: the unrolled and the looped search agree bit for
-    bit."""
+    """Unrolled sphere tests of camera rays sit behind a packet-wide branch (tracer.closest_hit
+    on shapes.sphere_live), one per sphere; a looped sphere kind has none (its bins' rays
+    mostly hit).  That the branch drops no hit is test01's: the unrolled and the looped
+    search agree bit for bit."""
     T = types(precision)
     ir = hit_kernel(scene_of(spheres(3)), T)["ir"].getvalue()
-    assert ir.count("Symbolic conditional: sphere_test") == 3
+    assert ir.count("Symbolic conditional: sphere_object") == 3
     monkeypatch.setattr(accel, "UNROLL_MAX", LOOPED)
     ir = hit_kernel(scene_of(spheres(3)), T)["ir"].getvalue()
-    assert "sphere_test" not in ir and "closest_sphere" in ir
+    assert "sphere_object" not in ir and "closest_sphere" in ir
 
 
 def test11_certified_cull_keeps_unsure_rays():
