@@ -17,7 +17,7 @@ import drjit as dr
 import numpy as np
 import pytest
 
-from rt_core import accel, backend
+from rt_core import accel, backend, tracer
 from rt_core.camera import make_camera, primary_directions
 from rt_core.jitlog import KernelLog
 from rt_core.render import render_geometry
@@ -315,10 +315,13 @@ def test10_unrolled_spheres_branch_past_certain_misses(precision, monkeypatch):
     mostly hit).  That the branch drops no hit is test01's: the unrolled and the looped
     search agree bit for bit."""
     T = types(precision)
-    ir = hit_kernel(scene_of(spheres(3)), T)["ir"].getvalue()
-    assert ir.count("Symbolic conditional: sphere_object") == 3
+    n = tracer.SPHERE_BRANCH_MIN
+    ir = hit_kernel(scene_of(spheres(n)), T)["ir"].getvalue()
+    assert ir.count("Symbolic conditional: sphere_object") == n
+    ir = hit_kernel(scene_of(spheres(n - 1)), T)["ir"].getvalue()
+    assert "sphere_object" not in ir
     monkeypatch.setattr(accel, "UNROLL_MAX", LOOPED)
-    ir = hit_kernel(scene_of(spheres(3)), T)["ir"].getvalue()
+    ir = hit_kernel(scene_of(spheres(n)), T)["ir"].getvalue()
     assert "sphere_object" not in ir and "closest_sphere" in ir
 
 
@@ -329,7 +332,10 @@ def test11_certified_cull_keeps_unsure_rays():
     flag the same rays and give the same answers."""
     T = types("f64")
     sphere = make_sphere(GREY, (0.3, -0.2, -5.0), 1.3)
-    scene = Scene((8.0, 6.0), (0.0, 0.0, 10.0), (), (sphere,))
+    # and spheres away from these rays, so that the unrolled kernel has its branches
+    others = tuple(make_sphere(GREY, (4.0 * k, 30.0, -5.0), 1.0)
+                   for k in range(tracer.SPHERE_BRANCH_MIN - 1))
+    scene = Scene((8.0, 6.0), (0.0, 0.0, 10.0), (), (sphere,) + others)
     q = np.array(sphere.center) - np.array(scene.viewpoint)
     L = np.linalg.norm(q)
     u = q / L
