@@ -12,8 +12,9 @@ Rays from the viewpoint (``o is None``, the camera's rays) share their origin, s
 only be hit by rays that cross the window plane z = 0 inside its projection from the viewpoint.
 A grid of bins covers the window; each bin lists, per kind and in ascending object id, the
 objects whose (conservatively enlarged) projected bounding box overlaps it, as copies of their
-table rows, so a ray reads its bin's rows in sequence.  With ~32 bins per object a camera ray
-visits 2-4 rows in the benchmark scenes (tools/harness/bench.py) whatever N: time grows as
+table rows, so a ray reads its bin's rows in sequence.  With up to 512 bins per object (one
+per 64 rays at most) a camera ray visits 1.2-3.5 rows in the benchmark scenes
+(tools/harness/bench.py) whatever N: time grows as
 ~N^0.1-0.3 from 16 to 1024 objects, against N^1 for the unrolled or unbinned search.  A ray computes its
 bin from its own direction and loops over that bin's list only; rays that cross the plane
 outside the grid (or not at all) take a last bin that lists every object.  The per-object test
@@ -52,15 +53,20 @@ UNROLL_MAX = 8
 # planes, ~48 spheres).
 SECONDARY_FACTOR = 3
 # Bins per looped object (bounded kinds), at most one per RAYS_PER_BIN rays of the first
-# batch traced, and at most MAX_BINS.
-BINS_PER_OBJECT = 32
+# batch traced, and at most MAX_BINS.  Finer bins list fewer rows a ray misses (spheres, 16
+# objects: 1.41 rows a ray at 32 bins per object, 1.20 at 512; 64: 2.54, 2.16) and were
+# 10-15% faster in-process; one bin per 16 rays was slower again.
+BINS_PER_OBJECT = 512
 RAYS_PER_BIN = 64
 MAX_BINS = 1 << 16
 MARGIN = 2.0 ** -12
 # Per-kind constants that the hit functions read (shapes.object_t), in the order of a row;
-# the object id rides along as a float (exact below 2**24).  (Scalar gathers: Dr.Jit's
-# packet gathers of Array4f were no faster here, and chose between packet and scalar code
-# from call to call, which broke kernel reuse.)
+# the object id rides along as a float (exact below 2**24).  A table stores each row
+# zero-padded to stride(kind) numbers, a power of two, and a loop reads a row with one packet
+# gather (``KindTable.view``): Dr.Jit loads each 8-number block of it that the kernel uses
+# with one vector load per lane.  Separate scalar gathers cost ~3x more: LLVM's znver3
+# target scalarizes every masked gather into 8 branches and inserts (measured: README
+# "Speed").
 LAYOUT = {"sphere": ("qx", "qy", "qz", "radius", "c", "id", "grp", "bo", "bs"),
           "plane": ("qx", "qy", "qz", "nq", "nx", "ny", "nz", "g", "id", "grp", "bz"),
           "fplane": ("qx", "qy", "qz", "nq", "nx", "ny", "nz", "g", "w", "xx", "xy", "xz", "h",
@@ -74,6 +80,32 @@ LAYOUT["disk"] = ("qx", "qy", "qz", "nq", "nx", "ny", "nz", "g", "c", "xx", "xy"
 LAYOUT["torus"] = ("qx", "qy", "qz", "radius", "c", "nx", "ny", "nz", "w", "h", "id", "grp",
                    "bo", "bs")
 BOUNDED = ("sphere", "fplane", "triangle", "disk", "torus") + QUADRICS
+
+
+def stride(kind: str) -> int:
+    """Numbers per table row: LAYOUT[kind]'s, padded to a power of two (a packet)."""
+    return 1 << (len(LAYOUT[kind]) - 1).bit_length()
+
+
+def device_array(Type, a: np.ndarray):
+    """An opaque Dr.Jit array of Type holding host array ``a``, at a 64-byte aligned address.
+    (Dr.Jit maps a numpy array of its own dtype without copying, and gathers packets only from
+    aligned memory: from a numpy buffer that happens to be unaligned, it silently falls back to
+    scalar gathers and compiles another kernel.)"""
+    dtype = np.dtype(dr.type_v(Type).name.lower())        # float32, float64, uint32
+    flat = np.ascontiguousarray(a, dtype).ravel()
+    raw = np.empty(flat.nbytes + 64, np.uint8)
+    start = -raw.ctypes.data % 64
+    out = raw[start:start + flat.nbytes].view(dtype)
+    out[:] = flat
+    arr = Type(out)
+    dr.make_opaque(arr)
+    return arr
+
+
+def packet_type(T):
+    """The dynamic-size array type of a packet gather of T's floats."""
+    return getattr(T.module, "ArrayXf" if T.precision == "f32" else "ArrayXf64")
 
 
 def configure(ks, unroll_max: int | None = None, bins: bool | None = None,
@@ -130,8 +162,10 @@ class KindTable:
     its rows in sequence, without an index list)."""
     kind: str
     count: int
-    rows: object                 # Float[rows * len(LAYOUT[kind])]
-    offsets: object = None       # UInt32[nbins + 2]: bin b is rows offsets[b]..offsets[b+1]
+    rows: object                 # Float[rows * stride(kind)]
+    # UInt32[4 * (nbins + 1)]: bin b is rows offsets[4b]..offsets[4b + 1] (each bin's start
+    # and end side by side, padded to a packet of 4: one vector load)
+    offsets: object = None
     # bins (rays from the viewpoint): the largest of each certified bound over the rows, a
     # bound of every row's (a larger bound is still a bound): host numbers, not gathered
     wide: dict | None = None
@@ -139,12 +173,13 @@ class KindTable:
     tame: bool = False           # every row's numbers within shapes.TAME (shapes.least)
 
     def view(self, T, k):
-        """The constants of row k (per ray), in the form shapes.object_t reads."""
+        """The constants of row k (per ray), in the form shapes.object_t reads: one packet
+        gather (Dr.Jit leaves out the blocks of it that no computation uses)."""
         names = LAYOUT[self.kind]
-        base = k * len(names)
         wide = self.wide or {}
-        v = {name: dr.gather(T.Float, self.rows, base + j) for j, name in enumerate(names)
-             if name not in wide}
+        g = dr.gather(packet_type(T), self.rows, T.UInt32(k),
+                      shape=(stride(self.kind), dr.width(k)))
+        v = {name: g[j] for j, name in enumerate(names) if name not in wide}
         A3 = T.Array3
         out = SimpleNamespace(kind=self.kind, id=T.Int32(v["id"]), grp=T.Int32(v["grp"]),
                               q=A3(v["qx"], v["qy"], v["qz"]))
@@ -199,12 +234,14 @@ def fold_signs(kind: str, rows: np.ndarray) -> bool:
 def _upload(ks, kind: str, rows: np.ndarray, offsets=None, wide=None,
             folded: bool = False) -> KindTable:
     T = ks.T
-    flat = T.Float(rows.ravel())
-    dr.make_opaque(flat)
+    padded = np.zeros((len(rows), stride(kind)))
+    padded[:, :rows.shape[1]] = rows
+    flat = device_array(T.Float, padded)
     off = None
     if offsets is not None:
-        off = T.UInt32(offsets)
-        dr.make_opaque(off)
+        se = np.zeros((len(offsets) - 1, 4), np.uint32)
+        se[:, 0], se[:, 1] = offsets[:-1], offsets[1:]
+        off = device_array(T.UInt32, se)
     bounds = [j for j, name in enumerate(LAYOUT[kind]) if name in BOUND_FIELDS]
     tame = bool((np.abs(np.delete(rows, bounds, axis=1)) <= TAME).all())
     return KindTable(kind, len(ks.by_kind[kind]), flat, off, wide, folded, tame)
@@ -397,24 +434,28 @@ def ray_bins(ks, grid: Grid, d):
     by = dr.floor(dr.fma(d.y, s, dr.opaque(F, vy - grid.y0)) * dr.opaque(F, 1.0 / grid.bh))
     inside = (s > 0) & (bx >= 0) & (bx < dr.opaque(F, grid.nbx)) & (by >= 0) & \
         (by < dr.opaque(F, grid.nby))
-    b = U(dr.select(inside, by, 0)) * dr.opaque(U, grid.nbx) + U(dr.select(inside, bx, 0))
-    return dr.select(inside, b, dr.opaque(U, grid.nbins))
+    # (signed conversions and arithmetic: AVX2 has no unsigned ones; every number is < 2³¹)
+    I = T.Int32
+    b = I(dr.select(inside, by, 0)) * dr.opaque(I, grid.nbx) + I(dr.select(inside, bx, 0))
+    return U(dr.select(inside, b, dr.opaque(I, grid.nbins)))
 
 
 # --- the loops ----------------------------------------------------------------------------------
 
 def _range(ks, kind: str, d, o):
-    """(table, start, end): the rows start..end-1 of the table that each ray visits."""
-    U = ks.T.UInt32
+    """(table, start, end): the rows start..end-1 of the table that each ray visits, as
+    Int32 (a signed comparison ends the loop: AVX2 has no unsigned one; rows < 2³¹)."""
+    I = ks.T.Int32
     use = o is None and ks.__dict__.get("_accel_opts", {}).get("bins", True)
     b = binned(ks, dr.width(d)) if use else None
     if b is None:
         tab = tables(ks)[kind]
-        return tab, dr.zeros(U, dr.width(d)), dr.opaque(U, tab.count, dr.width(d))
+        return tab, dr.zeros(I, dr.width(d)), dr.opaque(I, tab.count, dr.width(d))
     grid, tabs = b
     tab = tabs[kind]
-    k = ray_bins(ks, grid, d)
-    return tab, dr.gather(U, tab.offsets, k), dr.gather(U, tab.offsets, k + 1)
+    se = dr.gather(ks.T.module.ArrayXu, tab.offsets, ray_bins(ks, grid, d),
+                   shape=(4, dr.width(d)))
+    return tab, I(se[0]), I(se[1])
 
 
 def closest_kind(ks, kind: str, d, o, rules: Rules, skip, st, scale: float = 0.0):

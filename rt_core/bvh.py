@@ -46,7 +46,7 @@ import numpy as np
 
 from types import SimpleNamespace
 
-from .accel import pack
+from .accel import device_array, pack, packet_type
 from .shapes import object_t
 from .quadrics import KINDS as QUADRICS
 from .shapes_quadric import ROW_SLOTS, quadric_boxes, row_view as quadric_row_view
@@ -243,7 +243,7 @@ class KindBVH:
 def row_view(T, kind: str, rows, k, active=True):
     """Row k of a table of ``rows(kind, ...)`` (per ray), as shapes.object_t reads an
     object's constants for rays with an origin: one packet gather."""
-    g = dr.gather(_arrayx(T), rows, k, active, shape=(_width(kind), dr.width(k)))
+    g = dr.gather(packet_type(T), rows, k, active, shape=(_width(kind), dr.width(k)))
     v = dict(zip(ROW[kind], g))
     A3 = T.Array3
     out = SimpleNamespace(kind=kind, id=T.Int32(v["id"]), q=A3(v["qx"], v["qy"], v["qz"]))
@@ -281,16 +281,9 @@ def trees(ks) -> dict:
     return cache["bvh"]
 
 
-def _arrayx(T):
-    """The dynamic-size array of T's floats (the type of a packet gather)."""
-    return getattr(T.module, "ArrayXf" if T.precision == "f32" else "ArrayXf64")
-
-
 def _upload(T, a: np.ndarray):
-    """A flat opaque Dr.Jit array of a host table, in Dr.Jit's own (aligned) memory."""
-    out = T.Float(a.ravel().tolist())
-    dr.make_opaque(out)
-    return out
+    """A flat opaque Dr.Jit array of a host table, aligned for packet gathers."""
+    return device_array(T.Float, a)
 
 
 # --- the kernel -------------------------------------------------------------------------------
@@ -321,7 +314,7 @@ def visit(T, rays: _Rays, nodes, node, limit, active):
     """(enter, a, b) for each ray at ``node``: whether the widened box holds a point of the
     ray with 0 <= t <= limit, and the node's link fields."""
     U = T.UInt32
-    g = dr.gather(_arrayx(T), nodes, rays.base + node, active,
+    g = dr.gather(packet_type(T), nodes, rays.base + node, active,
                   shape=(NODE, dr.width(node)))
     tn, tf = dr.zeros(T.Float, 1), limit
     for i in range(3):

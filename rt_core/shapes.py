@@ -639,6 +639,34 @@ def sphere_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = F
     return (t, *c.split(), lf)
 
 
+# The unrolled sphere tests of camera rays (tracer.closest_hit) sit behind a packet-wide
+# branch on ``sphere_live``: most packets miss most spheres there (measured: README "Speed").
+# CULL_MARGIN: the relative margin on |q×d|², far above the few roundings (2⁻²⁴ each in
+# float32) that separate its comparison's values from the sphere test's own
+CULL_MARGIN = 2.0 ** -18
+
+
+def sphere_live(d, obj: ObjectConstants, cert=False):
+    """Rays from the viewpoint that may hit sphere ``obj`` (host constants): all but those
+    that ``sphere_t`` certainly finds missing, decided without a square root."""
+    F, B = _check(d)
+    q = opaque3(type(d), obj.q)
+    sn = dr.squared_norm(dr.cross(q, d))            # |q×d|²
+    ra = opaque(F, obj.radius) * dr.sqrt(dr.squared_norm(d))
+    return ~_sphere_miss(F, sn, ra, _scaled(obj.bo, cert) if cert else None)
+
+
+def _sphere_miss(F, sn, ra, bo):
+    """|q×d|² >= x²(1 + m), with x = r√a as sphere_t computes it (uncertified: then
+    |q×d| >= r√a, so its discriminant (r√a − |q×d|)(r√a + |q×d|) is <= 0, a miss) or
+    x = r√a + bo (certified: then r√a − |q×d| <= −bo, and the outline test fails even
+    'possibly').  With x, x², the margin's product and |q×d|² each rounded a few times
+    (relative 2⁻²⁴ each in float32), x²(1 + m) as computed is still >= x²(1 + m/2) and
+    sphere_t's rounded |q×d| >= x; a NaN anywhere compares false: the ray is tested."""
+    x = ra if bo is None else ra + (dr.opaque(F, bo) if isinstance(bo, (int, float)) else bo)
+    return sn >= (x * x) * dr.opaque(F, 1 + CULL_MARGIN)
+
+
 from .quadrics import KINDS as QUADRIC_KINDS  # noqa: E402  (the quadrics' kernel uses the above)
 from .shapes_quadric import quadric_constants, quadric_t  # noqa: E402
 from .shapes_torus import torus_constants, torus_t  # noqa: E402  (uses the helpers above)

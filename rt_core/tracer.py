@@ -24,9 +24,16 @@ from .decide import decide, decide_rays, prepare as prepare_exact
 from .rules import Rules
 from .scene import Scene, SceneError, locate
 from .kinds import KIND_CODE, PLANE_KINDS
-from .shapes import ObjectConstants, least, numbers, object_constants, object_t
+from .shapes import (ObjectConstants, least, numbers, object_constants, object_t,
+                     sphere_live)
 from .shapes_quadric import is_quadric, quadric_code, quadric_normal
 from .shapes_torus import torus_surface
+
+# Unrolled spheres of camera rays, when a scene has at least this many: each behind a
+# packet-wide branch past its test when every ray of the packet certainly misses it.
+# Measured single-thread in-process: 8 spheres 17% faster, 4 about even to 12%, 2 even,
+# 1 sphere twice as slow (README "Speed")
+SPHERE_BRANCH_MIN = 4
 
 backend.require("llvm")     # fail early, with a message, on an LLVM that would abort kernels
 
@@ -165,12 +172,21 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, c
                 st.set(dr.if_stmt(st.state(), oid != skip, test, lambda *s: s,
                                   label="closest_object"))
                 continue
-            res = object_t(d, o, obj, rules, vz, scale)
-            hit = res[1]
-            # (one object: no ties, so no t bound to carry)
-            st.fold(res[0], hit, oid, rules, single_kind,
-                    *((res[2], res[3] if len(ks.consts) > 1 else None,
-                       dr.opaque(T.Int32, obj.grp) if shared else None) if cert else ()))
+            def test(*state, obj=obj, oid=oid):
+                s = st.set(state)
+                res = object_t(d, o, obj, rules, vz, scale)
+                # (one object: no ties, so no t bound to carry)
+                s.fold(res[0], res[1], oid, rules, single_kind,
+                       *((res[2], res[3] if len(ks.consts) > 1 else None,
+                          dr.opaque(T.Int32, obj.grp) if shared else None) if cert else ()))
+                return s.state()
+            if kind != "sphere" or o is not None or len(ks.by_kind[kind]) < SPHERE_BRANCH_MIN:
+                st.set(test(*st.state()))
+                continue
+            # a camera ray's sphere: a packet whose rays all certainly miss skips the test
+            # (its two square roots and division) and the fold
+            st.set(dr.if_stmt(st.state(), sphere_live(d, obj, scale), test, lambda *s: s,
+                              label="sphere_object"))
     if cert:
         return _decide_flagged(ks, cam, rules, st, d)
     hit = st.id >= 0

@@ -17,7 +17,7 @@ import drjit as dr
 import numpy as np
 import pytest
 
-from rt_core import accel, backend
+from rt_core import accel, backend, tracer
 from rt_core.camera import make_camera, primary_directions
 from rt_core.jitlog import KernelLog
 from rt_core.render import render_geometry
@@ -187,11 +187,11 @@ def test05_bins_are_conservative_where_objects_project(monkeypatch):
     assert (b < grid.nbins).mean() > 0.99, "almost every camera ray falls in a grid bin"
     listed = {}
     for kind, tab in tabs.items():
-        off = tab.offsets.numpy()
-        rows = tab.rows.numpy().reshape(-1, len(accel.LAYOUT[kind]))
+        start, end = tab.offsets.numpy().reshape(-1, 4)[:, :2].T
+        rows = tab.rows.numpy().reshape(-1, accel.stride(kind))
         idcol = accel.LAYOUT[kind].index("id")
         for k in range(grid.nbins + 1):
-            listed.setdefault(k, set()).update(rows[off[k]:off[k + 1], idcol].astype(int))
+            listed.setdefault(k, set()).update(rows[start[k]:end[k], idcol].astype(int))
     hit = np.flatnonzero(oid >= 0)
     assert len(hit) > 0.3 * len(oid)
     missing = [i for i in hit if oid[i] not in listed[b[i]]]
@@ -293,3 +293,65 @@ def test08_scenes_differing_in_numbers_reuse_kernels(layout, precision):
     assert all(p.kernels == first.kernels for p in rest)
     assert sum(p.compiled + p.disk for p in rest) == 0, [(p.compiled, p.disk) for p in rest]
     assert len({h for p in log.passes for h in p.hashes}) == first.kernels
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test09_looped_rows_and_bins_are_packet_gathers(precision):
+    """A looped kind reads each table row, and each ray its bin's (start, end), with packet
+    gathers (one vector load per lane, Dr.Jit's gather_NxT functions): no scalar
+    llvm.masked.gather, which LLVM's znver3 target scalarizes into 8 branches (README
+    "Speed").  Dr.Jit falls back to scalar gathers from a table at an unaligned address, so
+    this also checks accel.device_array's alignment."""
+    T = types(precision)
+    ir = hit_kernel(scene_of(spheres(12) + fplanes(12)), T)["ir"].getvalue()
+    assert "call fastcc" in ir and "@gather_" in ir
+    assert "llvm.masked.gather" not in ir
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test10_unrolled_spheres_branch_past_certain_misses(precision, monkeypatch):
+    """Unrolled sphere tests of camera rays sit behind a packet-wide branch (tracer.closest_hit
+    on shapes.sphere_live), one per sphere; a looped sphere kind has none (its bins' rays
+    mostly hit).  That the branch drops no hit is test01's: the unrolled and the looped
+    search agree bit for bit."""
+    T = types(precision)
+    n = tracer.SPHERE_BRANCH_MIN
+    ir = hit_kernel(scene_of(spheres(n)), T)["ir"].getvalue()
+    assert ir.count("Symbolic conditional: sphere_object") == n
+    ir = hit_kernel(scene_of(spheres(n - 1)), T)["ir"].getvalue()
+    assert "sphere_object" not in ir
+    monkeypatch.setattr(accel, "UNROLL_MAX", LOOPED)
+    ir = hit_kernel(scene_of(spheres(n)), T)["ir"].getvalue()
+    assert "sphere_object" not in ir and "closest_sphere" in ir
+
+
+def test11_certified_cull_keeps_unsure_rays():
+    """float64 with exact decisions: rays within a few ulps of a sphere's outline are unsure
+    (flagged, then decided exactly); the unrolled test's cull must not take them for certain
+    misses.  Unrolled (culled) and looped without bins (the same per-sphere bounds, no cull)
+    flag the same rays and give the same answers."""
+    T = types("f64")
+    sphere = make_sphere(GREY, (0.3, -0.2, -5.0), 1.3)
+    # and spheres away from these rays, so that the unrolled kernel has its branches
+    others = tuple(make_sphere(GREY, (4.0 * k, 30.0, -5.0), 1.0)
+                   for k in range(tracer.SPHERE_BRANCH_MIN - 1))
+    scene = Scene((8.0, 6.0), (0.0, 0.0, 10.0), (), (sphere,) + others)
+    q = np.array(sphere.center) - np.array(scene.viewpoint)
+    L = np.linalg.norm(q)
+    u = q / L
+    e1 = np.cross(u, [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(u, e1)
+    alpha = np.arcsin(sphere.radius / L) * (1 + np.arange(-40, 41)[:, None] * 2.0 ** -44)
+    phi = np.linspace(0, 2 * np.pi, 50)[None]
+    d = (np.cos(alpha)[..., None] * u + np.sin(alpha)[..., None] *
+         (np.cos(phi)[..., None] * e1 + np.sin(phi)[..., None] * e2)).reshape(-1, 3)
+    D = T.Array3(*(T.Float(c) for c in d.T))
+    out = {}
+    for name, unroll in (("unrolled", UNROLLED), ("looped", LOOPED)):
+        ks = accel.configure(prepare(scene, T), unroll, bins=False)
+        t, oid, _ = closest_hit(ks, D, cam="rays")
+        out[name] = (bits(t), bits(oid), ks.decided)
+    assert out["looped"][2] > 100, "the outline's rays are unsure"
+    assert out["unrolled"][2] == out["looped"][2]
+    assert_same(out["unrolled"][:2], out["looped"][:2], "tangent rays")
