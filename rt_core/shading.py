@@ -21,6 +21,8 @@ the reflection rays; nothing in between goes through memory (as separate passes,
 it was 2.5 times slower at a few objects).  What a scene does not need is not in the kernel:
 no lights, no shadow rays; no specular anywhere, no reflection bounces.  Every scene number
 enters kernels as opaque data, so scenes that differ only in numbers reuse the compiled kernels.
+With ``max_bounces=1`` (``rtval bench --shaded``) the one reflection bounce is traced masked in
+the primary kernel instead (``_one_bounce``): the same numbers, nothing through memory.
 
 Everything is relative to the viewpoint, as in the tracer: ray origins ``o``, hit points, light
 positions.
