@@ -4,11 +4,11 @@
 Unrolled, a secondary ray runs every object's full hit function (a sphere's: five square
 roots and a division) inside a symbolic ``dr.if_stmt`` on the object's "skip" test, so a
 packet of lanes that all leave the object does not run it.  ``may_hit`` adds a cheap test of
-the ray against the object's bounding sphere (float64, from its constants) to that
-condition: a packet none of whose rays come near
-the object skips it too.  (A sphere's bounding sphere is itself; a planar object's is
-centred on the mean of the corners that hold it.)  Most reflection rays miss most objects, and neighbouring pixels'
-reflection rays stay neighbours in the compacted wavefront, so whole packets skip.
+the ray against the object's bounding sphere (float64, from its constants; a sphere's is
+itself, a planar object's is centred on the mean of the corners that hold it) to that
+condition: a packet none of whose rays come near the object skips it too.  Most reflection
+rays miss most objects, and neighbouring pixels' reflection rays stay neighbours in a packet,
+so whole packets skip.
 
 The test only skips work, never changes an answer: a ray is culled only when its line's
 distance from the centre, computed with generous slack, exceeds the sphere's radius widened
