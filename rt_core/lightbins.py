@@ -209,6 +209,11 @@ def occluded_kind(ks, kind: str, d, o, maxt, rules, skip, blocked, center):
 
     _, near = dr.while_loop((start, blocked), more, body,
                             labels=("i", "blocked"), label=f"lightbins_{kind}")
-    # the long rays (rare: from far points of unbounded planes) through the BVH
-    walked = bvh.occluded_kind(ks, kind, d, o, maxt, rules, skip, blocked | ~far)
+    # the long rays (rare: from far points of unbounded planes) through the BVH, in a
+    # symbolic if: a packet without one skips the walk's set-up too (three divisions a ray)
+    def walk(blk):
+        return (bvh.occluded_kind(ks, kind, d, o, maxt, rules, skip, blk | ~far),)
+
+    walked = dr.if_stmt((blocked,), far, walk, lambda blk: (blk,),
+                        label=f"lightbins_{kind}_far")[0]
     return dr.select(far, walked, near)

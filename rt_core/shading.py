@@ -21,6 +21,8 @@ the reflection rays; nothing in between goes through memory (as separate passes,
 it was 2.5 times slower at a few objects).  What a scene does not need is not in the kernel:
 no lights, no shadow rays; no specular anywhere, no reflection bounces.  Every scene number
 enters kernels as opaque data, so scenes that differ only in numbers reuse the compiled kernels.
+With ``max_bounces=1`` (``rtval bench --shaded``) the one reflection bounce is traced masked in
+the primary kernel instead (``_one_bounce``): the same numbers, nothing through memory.
 
 Everything is relative to the viewpoint, as in the tracer: ray origins ``o``, hit points, light
 positions.
@@ -29,6 +31,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 
 import drjit as dr
 import numpy as np
@@ -54,6 +57,9 @@ TILE_OFF = 10000.0          # the notes' tile-parity offset (even: no effect unl
 # float32 total_dist that stops growing once t < ulp(total_dist)/2), so this cap guarantees
 # termination.  Reaching it is reported (ShadeResult.capped), never silent.
 MAX_BOUNCES = 10_000
+# With max_bounces = 1, trace the one reflection bounce in the primary rays' kernel
+# (``_one_bounce``) rather than as a compacted wavefront (tests compare the two)
+FUSE_ONE_BOUNCE = True
 
 
 @dataclass
@@ -240,9 +246,10 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
     # (None: start values), and which lanes are real (None: all)
     pixel, o, skip, dist, weight, live = None, None, None, None, None, None
     bounce, count = 0, n          # count: real rays in the wavefront
-    while True:
-        group = "primary" if bounce == 0 else "reflection"
-        rays = count
+
+    def segment(d, o, skip, dist, weight, live, bounce, rec):
+        """One bounce of the rays o + t·d: its closest hits, shadow rays and shading
+        (``add``: what it adds to the pixels where ``hit``) and its reflection rays."""
         # closest hit, surface, material (in float64 the primary hits are decided exactly
         # first: closest_hit evaluates them)
         t, oid, hit = closest_hit(ks, d, o, rules, skip, cam=cam if bounce == 0 else None)
@@ -253,7 +260,6 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
         H = d * t if o is None else dr.fma(d, t, o)         # hit point, relative
         amb, dif, spec = material(ks, tables, oid, hit, u, v, rules, normal)
         ex = extra(t, oid, hit, normal, u, v) if extra is not None and bounce == 0 else {}
-        rec = {} if bounce < record else None       # this bounce's shadow rays, recorded
         # one shadow ray per light from each hit that faces it: diffuse where unblocked
         I = amb
         for j, (Lp, E, spot) in enumerate(lights):
@@ -270,9 +276,28 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
             if rec is not None:
                 rec.update({f"L{j}.dir": L, f"L{j}.dist": ld, f"L{j}.cast": cast,
                             f"L{j}.blocked": blocked})
-        # divide by the path length (a variant: by this segment's), add to the pixel
+        # divide by the path length (a variant: by this segment's)
         local = I / (t if rules.reflect == "segment" else total)
         add = local if weight is None else weight * local
+        seg = SimpleNamespace(t=t, oid=oid, hit=hit, normal=normal, H=H, total=total,
+                              ex=ex, add=add)
+        if reflect:
+            # the reflection rays
+            seg.go = hit & ((spec.x != 0) | (spec.y != 0) | (spec.z != 0)) & (total < max_d)
+            seg.R = dr.normalize(dr.fma(normal, -2 * dr.dot(d, normal), d))  # reflect(dir, N)
+            seg.w_next = spec if weight is None else weight * spec
+        return seg
+
+    if reflect and max_bounces == 1 and not record and FUSE_ONE_BOUNCE:
+        return _one_bounce(T, d, image, segment, out, log)
+    while True:
+        group = "primary" if bounce == 0 else "reflection"
+        rays = count
+        rec = {} if bounce < record else None       # this bounce's shadow rays, recorded
+        seg = segment(d, o, skip, dist, weight, live, bounce, rec)
+        t, oid, hit, normal, H, total, ex, add = (seg.t, seg.oid, seg.hit, seg.normal, seg.H,
+                                                  seg.total, seg.ex, seg.add)
+        # add to the pixel
         if pixel is None:
             # lane i is pixel i: a plain masked sum (0 + add as the read-modify-write gave)
             image = image + dr.select(hit, add, 0)
@@ -282,10 +307,7 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
             dr.scatter(image, dr.gather(T.Array3, image, pixel, hit) + add, pixel, hit)
         outputs = [image, ex]
         if reflect:
-            # the reflection rays
-            go = hit & ((spec.x != 0) | (spec.y != 0) | (spec.z != 0)) & (total < max_d)
-            R = dr.normalize(dr.fma(normal, -2 * dr.dot(d, normal), d))   # reflect(dir, N)
-            w_next = spec if weight is None else weight * spec
+            go, R, w_next = seg.go, seg.R, seg.w_next
             # the pixel of each lane, evaluated: the next wavefront gathers it (at bounce 0
             # lane i is pixel i; an array as in later bounces, so that they share a kernel)
             if pixel is None:
@@ -328,6 +350,42 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
         weight = dr.gather(T.Array3, w_next, idx)
         bounce += 1
         out.bounces = bounce
+    out.rgb = image
+    return out
+
+
+def _one_bounce(T, d, image, segment, out: ShadeResult, log) -> ShadeResult:
+    """``shade`` with max_bounces = 1: the primary rays and their one reflection bounce in
+    one kernel.  The reflection rays are traced in place, in a symbolic ``dr.if_stmt`` on
+    the lanes that reflect (a packet none of whose lanes reflects skips it), instead of as
+    a compacted wavefront: nothing goes through memory but the image and two counts (the
+    reflection rays, and those that would go on: the cap).  Each lane computes what the
+    wavefront computes for its pixel, so the image is the same, bit for bit."""
+    n = dr.width(d)
+    s0 = segment(d, None, None, None, None, None, 0, None)
+    # lane i is pixel i: a plain masked sum (0 + add as the read-modify-write gave)
+    image = image + dr.select(s0.hit, s0.add, 0)
+
+    def reflected(image, more):
+        s1 = segment(s0.R, s0.H, s0.oid, s0.total, s0.w_next, None, 1, None)
+        # the wavefront's read-modify-write: untouched where the reflection misses
+        return dr.select(s1.hit, image + s1.add, image), s1.go
+
+    image, more = dr.if_stmt((image, dr.zeros(T.Bool, n)), s0.go, reflected,
+                             lambda image, more: (image, more), label="one_bounce")
+    # the two counts by atomic adds in the same kernel
+    counts = dr.zeros(T.UInt32, 2)
+    dr.scatter_reduce(dr.ReduceOp.Add, counts, T.UInt32(1), T.UInt32(0), s0.go)
+    dr.scatter_reduce(dr.ReduceOp.Add, counts, T.UInt32(1), T.UInt32(1), more)
+    dr.eval(image, s0.ex, counts)
+    reflections, left = (int(c) for c in counts.numpy())
+    log.mark("bounce", "primary", 0, n)
+    out.extra.update(s0.ex)
+    if reflections:
+        out.bounces = 1
+        log.mark("bounce", "reflection", 1, reflections)
+    if left:
+        out.capped, out.left_active = True, left
     out.rgb = image
     return out
 

@@ -18,7 +18,7 @@ import numpy as np
 
 import drjit as dr
 
-from . import accel, backend
+from . import accel, backend, cull
 from .backend import Types
 from .decide import decide, decide_rays, prepare as prepare_exact
 from .rules import Rules
@@ -155,6 +155,7 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, c
         st.certify(T, n, shared)
     # file order is id order within one kind: then no tie term is needed for 'first'
     single_kind = len(ks.kinds) == 1
+    near = None
     for kind in ks.kinds:
         if accel.looped(ks, kind, o is not None):   # many objects: one loop, constants as data
             st = accel.closest_kind(ks, kind, d, o, rules, skip, st, scale)
@@ -163,13 +164,20 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, c
             oid = dr.opaque(T.Int32, obj.id)
             if skip is not None:
                 # (rays with an origin: no certification) a packet whose lanes all leave
-                # this object skips its test
+                # this object, or certainly miss its bounding sphere (rt_core/cull.py),
+                # skips its test
                 def test(*state, obj=obj, oid=oid):
                     t, hit = object_t(d, o, obj, rules, vz)
                     s = st.set(state)
                     s.fold(t, hit, oid, rules, single_kind)
                     return s.state()
-                st.set(dr.if_stmt(st.state(), oid != skip, test, lambda *s: s,
+                if near is None:
+                    near = cull.Rays(ks, d, o)
+                go = oid != skip
+                reach = cull.may_hit(ks, near, obj.id)
+                if reach is not None:
+                    go &= reach
+                st.set(dr.if_stmt(st.state(), go, test, lambda *s: s,
                                   label="closest_object"))
                 continue
             def test(*state, obj=obj, oid=oid):

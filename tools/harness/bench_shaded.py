@@ -15,8 +15,9 @@ Per pixel both sides do the course's work for one reflection bounce:
   its shadow rays, and the course's sums (ambient + Σ diffuse·E·c/d, divided by the path
   length; the reflection weighted by the specular).
 
-rt_core runs ``shade(..., max_bounces=1)``, compacting the reflection wavefront with
-``dr.compress``; Mitsuba traces the reflection rays masked (its integrators' way).  Both start
+rt_core runs ``shade(..., max_bounces=1)``, which traces the reflection rays masked in the
+primary rays' kernel (rt_core/shading.py ``_one_bounce``); Mitsuba traces them masked too
+(its integrators' way).  Both start
 from rt_core's float32 camera directions.  Timed: the image evaluated (``dr.eval`` +
 ``dr.sync_thread``), median and best of ``reps`` round-robin calls after an untimed second one,
 the first call (with compilation) reported apart.  Agreement (one untimed call each): shadow rays cast, how many were

@@ -1,0 +1,205 @@
+"""What makes shaded images faster without changing them (README "Shaded images").
+
+* One reflection bounce in the primary rays' kernel (rt_core/shading.py ``_one_bounce``,
+  max_bounces = 1): the image, the bounce count and the cap are those of the compacted
+  wavefront, bit for bit, in f32 and f64, on the bundled scenes with reflections and on a
+  generated mirror scene.
+* The bounding-sphere cull of the unrolled closest-hit search of reflection rays
+  (rt_core/cull.py): the answers of rays grazing sphere outlines and aimed at finite-plane
+  corners are those without the cull; without its widening they are not (so the rays do
+  probe the bounding spheres' borders).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import drjit as dr
+import numpy as np
+import pytest
+
+from rt_core import accel, backend, bvh, cull, shading
+from rt_core.camera import make_camera, primary_directions
+from rt_core.parser import parse_scene
+from rt_core.rules import Rules
+from rt_core.scene import Material, PointLight, Scene, make_fplane, make_plane, make_sphere
+from rt_core.shading import shade
+from rt_core.tracer import closest_hit, prepare
+
+REPO = Path(__file__).resolve().parents[1]
+PRECISIONS = ["f32", "f64"]
+MIRROR = Material((0.2, 0.2, 0.2), (1.0, 1.0, 1.0), (0.5, 0.5, 0.5))
+
+
+def bits(a) -> np.ndarray:
+    a = np.ascontiguousarray(a)
+    return a.view(np.uint8).reshape(a.shape + (-1,)) if a.dtype != bool else a
+
+
+def mirrors() -> Scene:
+    """Mirror spheres and finite planes facing each other (reflections hit, some rays would
+    go on past the one bounce), the spheres over a large mirror floor panel (reflection rays
+    that hit it ahead of them while its centre lies behind), a matte floor, two lights."""
+    objs = [make_sphere(MIRROR, (x, 0.0, -6.0 - abs(x)), 0.9) for x in (-2.0, 0.0, 2.0)]
+    objs.append(make_fplane(MIRROR, (0, 1, 0), (-6.0, -0.95, -2.0), (1, 0, 0), (12.0, 12.0)))
+    objs += [make_fplane(MIRROR, (0.3, 0, 1), (-3.5, -1.5, -9.0), (1, 0, -0.3), (7.0, 3.0)),
+             make_fplane(MIRROR, (1, 0.1, 0.2), (-4.0, -1.0, -4.0), (0, 0, -1), (5.0, 2.5)),
+             make_plane(Material((0.3, 0.3, 0.3), (1, 1, 1), (0, 0, 0)), (0, 1, 0),
+                        (0, -1.2, 0))]
+    lights = (PointLight((3, 3, 3), (1.0, 3.0, -2.0)), PointLight((2, 2, 2), (-3.0, 1.0, 0.0)))
+    return Scene((8.0, 6.0), (0.0, 0.5, 4.0), lights, tuple(objs), path="<mirrors>")
+
+
+def one_bounce(scene, precision, fused: bool, monkeypatch, columns=48):
+    monkeypatch.setattr(shading, "FUSE_ONE_BOUNCE", fused)
+    T = backend.types(precision)
+    cam = make_camera(scene, columns)
+    res = shade(prepare(scene, T), primary_directions(scene, cam, T), Rules(), cam=cam,
+                max_bounces=1)
+    rgb = np.stack([np.asarray(getattr(res.rgb, c).numpy()) for c in "xyz"], 1)
+    return rgb, (res.bounces, res.capped, res.left_active)
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test01_one_bounce_in_one_kernel_is_the_wavefront(precision, monkeypatch):
+    scenes = [parse_scene(REPO / "scenes" / f"{n}.txt")
+              for n in ("mixed", "shade_mirrors", "shade_tiles")] + [mirrors()]
+    capped = 0
+    for scene in scenes:
+        wave, wave_stats = one_bounce(scene, precision, False, monkeypatch)
+        fused, fused_stats = one_bounce(scene, precision, True, monkeypatch)
+        assert np.array_equal(bits(wave), bits(fused)), \
+            f"{scene.path}: pixels {np.flatnonzero((bits(wave) != bits(fused)).any((1, 2)))[:5]}"
+        assert fused_stats == wave_stats, scene.path
+        assert wave_stats[0] == 1, f"{scene.path}: reflects"
+        capped += wave_stats[1]
+    assert capped >= 2                       # rays that would go on are counted too
+
+
+def test02_one_bounce_is_one_kernel(monkeypatch):
+    """The fused bounce is one JIT kernel (the wavefront: two, and a compaction)."""
+    scene = mirrors()
+    T = backend.types("f32")
+    cam = make_camera(scene, 32)
+    ks = prepare(scene, T)
+    d = primary_directions(scene, cam, T)
+    dr.eval(d)
+    for fused, kernels in ((True, 1), (False, 2)):
+        monkeypatch.setattr(shading, "FUSE_ONE_BOUNCE", fused)
+        shade(ks, d, max_bounces=1)                 # compiled
+        with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+            dr.kernel_history()
+            dr.eval(shade(ks, d, max_bounces=1).rgb)
+            jit = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+        assert len(jit) == kernels
+
+
+# --- the bounding-sphere cull ---------------------------------------------------------------
+
+def cull_scene() -> Scene:
+    """Unit tiles touching in z = -6, panels in x = const and spheres (few enough to unroll
+    for reflection rays)."""
+    grey = Material((1, 1, 1), (2, 2, 2), (0, 0, 0))
+    objs = [make_fplane(grey, (0, 0, 1), (i, j, -6), (1, 0, 0), (1, 1))
+            for i in range(-1, 2) for j in range(-1, 1)]
+    for k in range(-1, 2):
+        objs.append(make_fplane(grey, (1, 0, 0), (k + 0.5, -2, -7), (0, 1, 0), (3, 3)))
+        objs.append(make_sphere(grey, (k + 0.3, 0.5, -9), 0.5 + 0.2 * k))
+    return Scene((8.0, 6.0), (0.0, 0.0, 4.0), (), tuple(objs), path="<cull>")
+
+
+def grazing_rays(scene, n: int, seed: int):
+    """Rays from random origins (relative to the viewpoint) tangent to the spheres'
+    outlines, or aimed at the tiles' corners and edges; each skips a random object."""
+    rng = np.random.default_rng(seed)
+    V = np.array(scene.viewpoint)
+    o = rng.uniform(-3, 3, (n, 3)) + np.array([0, 0, -1.0]) - V
+    spheres = [ob for ob in scene.objects if ob.kind == "sphere"]
+    k = rng.integers(0, len(spheres), n)
+    C = np.array([spheres[i].center for i in k]) - V
+    r = np.array([spheres[i].radius for i in k])
+    a = C - o
+    dist = np.linalg.norm(a, axis=1, keepdims=True)
+    a /= dist
+    u = np.cross(a, rng.normal(size=(n, 3)))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    sin = r[:, None] / dist
+    tangent = np.sqrt(1 - sin ** 2) * a + sin * u
+    i, j = rng.integers(-1, 3, n), rng.integers(-1, 2, n)
+    f = rng.choice([0.0, 0.5], n)
+    corner = np.stack([i + f * (rng.random(n) < 0.5), j.astype(float), np.full(n, -6.0)],
+                      1) - V - o
+    corner /= np.linalg.norm(corner, axis=1, keepdims=True)
+    d = np.where((rng.random(n) < 0.5)[:, None], tangent, corner)
+    skip = rng.integers(-1, len(scene.objects), n)
+    return d, o, skip
+
+
+def cull_differences(precision: str, monkeypatch) -> int:
+    """Rays whose (t, id) differ with the cull and without."""
+    monkeypatch.setattr(accel, "UNROLL_MAX", 100)
+    T = backend.types(precision)
+    scene = cull_scene()
+    d, o, skip = grazing_rays(scene, 40000, 1)
+    A = T.Array3
+    d, o = A(*(d[:, k] for k in range(3))), A(*(o[:, k] for k in range(3)))
+    skip = T.Int32(skip.astype(np.int32))
+    out = []
+    for on in (False, True):
+        ks = cull.configure(prepare(scene, T), on)
+        t, oid, _ = closest_hit(ks, d, o, Rules(), skip)
+        dr.eval(t, oid)
+        out.append([np.asarray(x.numpy()) for x in (t, oid)])
+    assert (out[0][1] >= 0).mean() > 0.5
+    return sum(int(np.count_nonzero(bits(x) != bits(y))) for x, y in zip(*out))
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test03_cull_keeps_grazing_hits(precision, monkeypatch):
+    assert cull_differences(precision, monkeypatch) == 0
+
+
+def test04_without_the_widening_grazing_hits_are_lost(monkeypatch):
+    monkeypatch.setattr(cull, "GROW", 0.0)
+    monkeypatch.setattr(cull, "SLACK", 0.0)
+    monkeypatch.setattr(bvh, "PAD", {"f32": 0.0, "f64": 0.0})
+    assert cull_differences("f32", monkeypatch) > 50
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test05_cull_keeps_images(precision, monkeypatch):
+    """Shaded with every object unrolled, cull on and off: the same image."""
+    monkeypatch.setattr(accel, "UNROLL_MAX", 100)
+    T = backend.types(precision)
+    for scene in (mirrors(), parse_scene(REPO / "scenes" / "shade_mirrors.txt")):
+        cam = make_camera(scene, 40)
+        d = primary_directions(scene, cam, T)
+        imgs = []
+        for on in (False, True):
+            ks = cull.configure(prepare(scene, T), on)
+            res = shade(ks, d, Rules(), cam=cam, max_bounces=6)
+            imgs.append(np.stack([np.asarray(getattr(res.rgb, c).numpy()) for c in "xyz"]))
+        assert res.bounces >= 2
+        assert np.array_equal(bits(imgs[0]), bits(imgs[1])), scene.path
+
+
+# --- long shadow rays: light bins hand them to the BVH --------------------------------------
+
+def test06_long_shadow_rays_take_the_bvh(monkeypatch):
+    """Spheres next to a light cast shadows on a far wall: those shadow rays are longer
+    than the light bins' dmax, so they walk the BVH (inside a symbolic if that packets
+    without one skip); the image and every shadow verdict are the plain loop's, and some
+    of those long rays are blocked."""
+    from rt_core import lightbins
+    from tests.test_bvh import assert_identical
+    grey = Material((0.1, 0.1, 0.1), (1, 1, 1), (0, 0, 0))
+    objs = tuple(make_sphere(grey, (x, y, -5.6), 0.25) for x in (-0.4, 0.4) for y in (-0.4, 0.4))
+    objs += (make_plane(grey, (0, 0, 1), (0, 0, -300)),)
+    centre = (0.0, 0.0, -5.0)
+    scene = Scene((8.0, 6.0), (0.0, 0.0, 4.0), (PointLight((9, 9, 9), centre),), objs,
+                  path="<long shadows>")
+    ks, res = assert_identical(scene, "f32", monkeypatch, columns=64)
+    rel = tuple(c - v for c, v in zip(centre, scene.viewpoint))
+    dmax = lightbins.light_bins(ks, "sphere", rel).dmax
+    r = res.records[0]
+    long_ = r["L0.cast"] & (r["L0.dist"] > dmax)
+    assert long_.sum() > 100 and (long_ & r["L0.blocked"]).sum() > 20
