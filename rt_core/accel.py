@@ -317,14 +317,7 @@ def make_grid(scene, n_objects: int, rays: int) -> Grid:
 
 def _corners(kind: str, consts) -> np.ndarray:
     """(count, m, 3) points relative to the viewpoint whose convex hull holds each object."""
-    if kind == "fplane":
-        out = []
-        for c in consts:
-            q, x, y = np.array(c.q), np.array(c.xdir), np.array(c.ydir)
-            w, h = c.size
-            out.append([q, q + w * x, q + w * x + h * y, q + h * y])
-        return np.array(out, np.float64)
-    if kind in ("triangle", "disk"):
+    if kind in ("fplane", "triangle", "disk"):
         from .shapes_planar import planar_corners
         return planar_corners(kind, consts)
     if kind in ("sphere", "torus"):              # a torus: its bounding sphere

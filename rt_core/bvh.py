@@ -95,17 +95,9 @@ def object_boxes(kind: str, consts) -> tuple[np.ndarray, np.ndarray]:
         q = np.array([c.q for c in consts], np.float64).reshape(-1, 3)
         r = np.array([c.radius for c in consts], np.float64)[:, None]
         return q - r, q + r
-    if kind == "fplane":
-        q = np.array([c.q for c in consts], np.float64).reshape(-1, 3)
-        x = np.array([c.xdir for c in consts], np.float64).reshape(-1, 3)
-        y = np.array([c.ydir for c in consts], np.float64).reshape(-1, 3)
-        wh = np.array([c.size for c in consts], np.float64).reshape(-1, 2)
-        ex, ey = x * wh[:, :1], y * wh[:, 1:]
-        corners = np.stack([q, q + ex, q + ey, q + ex + ey], 1)
-        return corners.min(1), corners.max(1)
     if kind in QUADRICS:
         return quadric_boxes(consts)
-    if kind in ("triangle", "disk"):
+    if kind in ("fplane", "triangle", "disk"):
         from .shapes_planar import planar_corners
         corners = planar_corners(kind, consts)
         return corners.min(1), corners.max(1)

@@ -24,6 +24,8 @@ from __future__ import annotations
 import drjit as dr
 import numpy as np
 
+from .shapes_planar import planar_corners
+
 GROW = 2.0 ** -10           # relative widening of each bounding radius
 SLACK = 2.0 ** -16          # relative allowance for the rounding of |p|²·a − b²
 
@@ -57,7 +59,7 @@ def bounding(ks) -> dict:
                 r = np.array([k.radius for k in consts], np.float64)
             elif kind in ("fplane", "triangle", "disk"):
                 # about the mean of the corners that hold it, out to the farthest
-                P = _corners(kind, consts)
+                P = planar_corners(kind, consts)
                 c = P.mean(1)
                 r = np.sqrt(((P - c[:, None]) ** 2).sum(-1)).max(1)
             else:                               # around its box
@@ -69,19 +71,6 @@ def bounding(ks) -> dict:
         out[None] = S
         cache["cull"] = out
     return cache["cull"]
-
-
-def _corners(kind: str, consts) -> np.ndarray:
-    """(count, m, 3) points whose convex hull holds each planar object."""
-    if kind == "fplane":
-        q = np.array([c.q for c in consts], np.float64).reshape(-1, 3)
-        x = np.array([c.xdir for c in consts], np.float64).reshape(-1, 3)
-        y = np.array([c.ydir for c in consts], np.float64).reshape(-1, 3)
-        wh = np.array([c.size for c in consts], np.float64).reshape(-1, 2)
-        ex, ey = x * wh[:, :1], y * wh[:, 1:]
-        return np.stack([q, q + ex, q + ey, q + ex + ey], 1)
-    from .shapes_planar import planar_corners
-    return planar_corners(kind, consts)
 
 
 class Rays:

@@ -32,8 +32,9 @@ OPEN = ("cylinder", "cone")          # axial range, both roots; the ellipsoid: n
 
 
 @dataclass(frozen=True)
-class Cylinder:
-    """Open finite cylinder: base centre, axis (the centerline as given), radius, height."""
+class _OpenQuadric:
+    """The fields of the open quadrics: a point, the axis (the centerline as given), the
+    radius at ``height`` along the axis."""
     material: Material
     center: Vec3
     axis: Vec3
@@ -44,23 +45,16 @@ class Cylinder:
     form: str = field(default="", compare=False)
     extras: tuple = field(default=(), compare=False)
     note: str = field(default="", compare=False)   # how a degenerate field was read
+
+
+class Cylinder(_OpenQuadric):
+    """Open finite cylinder: base centre, axis, radius, height."""
     kind = "cylinder"
 
 
-@dataclass(frozen=True)
-class Cone:
+class Cone(_OpenQuadric):
     """Open finite cone: apex ``center`` (nw's "centerpoint of base" is the apex of its
     equation), axis, radius at ``height`` along the axis."""
-    material: Material
-    center: Vec3
-    axis: Vec3
-    radius: float
-    height: float
-    line: int = 0
-    at: tuple = field(default=(), compare=False, repr=False)
-    form: str = field(default="", compare=False)
-    extras: tuple = field(default=(), compare=False)
-    note: str = field(default="", compare=False)
     kind = "cone"
 
 

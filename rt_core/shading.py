@@ -126,7 +126,7 @@ def _texture_tables(T, tex: list) -> dict:
             "tex_sy": T.Float([t.scale[1] for t in ts]),
             "tex_b": T.Float([t.brightness for t in ts]),
             "tex_fwd": vec("forward"), "tex_side": vec("side"),
-            "texels": T.Array3(*(T.Float(list(map(float, flat[:, i]))) for i in range(3)))}
+            "texels": T.Array3(*(T.Float(np.ascontiguousarray(flat[:, i])) for i in range(3)))}
 
 
 def _texel(T, x, size, wrap):

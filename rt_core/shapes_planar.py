@@ -158,10 +158,16 @@ def _disk_bound(F, bm, cert):
 
 def planar_corners(kind: str, consts) -> np.ndarray:
     """(count, m, 3) points (relative to the viewpoint) whose convex hull holds each object:
-    a triangle's three points, a disk's circumscribed square."""
+    a finite plane's four corners, a triangle's three points, a disk's circumscribed square.
+    The one place these are computed (the bins, the BVH boxes and the reflection cull use
+    it)."""
     q = np.array([c.q for c in consts], np.float64).reshape(-1, 3)
     x = np.array([c.xdir for c in consts], np.float64).reshape(-1, 3)
     y = np.array([c.ydir for c in consts], np.float64).reshape(-1, 3)
+    if kind == "fplane":
+        wh = np.array([c.size for c in consts], np.float64).reshape(-1, 2)
+        ex, ey = x * wh[:, :1], y * wh[:, 1:]
+        return np.stack([q, q + ex, q + ey, q + ex + ey], 1)
     if kind == "triangle":
         s = np.array([c.size[0] for c in consts], np.float64)[:, None]
         return np.stack([q, q + s * x, q + s * y], 1)
