@@ -147,7 +147,6 @@ def mitsuba_subset(scene: Scene, keep=lambda kind: True):
     and the kinds ``keep`` refuses, for a comparison with Mitsuba; the note names what was
     left out ("" when nothing was)."""
     import dataclasses
-    mitsuba()                           # (a disk's shape is built with Mitsuba's transforms)
     gone = [o for o in scene.objects if not keep(o.kind)
             or dispatch(_SHAPES, o.kind)(o, scene.viewpoint, 1.0, lambda m: m) is None]
     if not gone:

@@ -39,8 +39,9 @@ def disk_to_world(o):
     (numbers read as float32, the transform and its inverse kept in double), so that the
     dict renders exactly as the XML: a float32 transform inverts in float32, which moves
     the disk's polar uv by an ulp."""
-    import mitsuba as mi
     import numpy as np
+    from .convert import mitsuba            # (Mitsuba with its variant set)
+    mi = mitsuba()
     m = np.array(disk_matrix(o), np.float32).astype(np.float64)
     return mi.ScalarTransform4d(m.tolist())
 
