@@ -236,6 +236,7 @@ def _classes(mi):
             top): the window point x/(W−1)·ww − ww/2 (corners) or (2x+1)/(2W)·ww − ww/2
             (centres), in float64 on the host, one rounding to float32."""
             import numpy as np
+            from .jitdata import jit_array
             ww, wh = self.window
             vx, vy, vz = self.viewpoint
             x = np.arange(W, dtype=np.float64)
@@ -250,7 +251,7 @@ def _classes(mi):
             dy = np.repeat(wy - vy, W)
             dz = np.full(W * H, -vz)
             n = np.sqrt(dx * dx + dy * dy + dz * dz)
-            d = mi.Vector3f(*(mi.Float(c / n) for c in (dx, dy, dz)))
+            d = mi.Vector3f(*(jit_array(mi.Float, c / n) for c in (dx, dy, dz)))
             return mi.Point3f(*(dr.opaque(mi.Float, c) for c in self.viewpoint)), d
 
         # --- the shapes' materials as tables ---------------------------------------------------

@@ -17,6 +17,7 @@ from typing import Any as Scene         # a parsed course scene (duck-typed)
 import numpy as np
 
 from .convert import AOVS, course_id, mitsuba, scene_dict, sensor_setup
+from .jitdata import jit_array, jit_vectors
 
 CAMERA_AOVS = AOVS + ",id:shape_index"
 GROUPS = (("planes", {"plane", "fplane", "tplane", "triangle", "disk"}, True),
@@ -97,10 +98,9 @@ def group_rays(g: Group, V, d32):
         if g.clip:                               # viewpoint behind the window: end on z = 0
             maxt = s.astype(np.float32)
         s = np.zeros(n)
-    ray = mi.Ray3f(mi.Point3f(*(o[:, i] for i in range(3))),
-                   mi.Vector3f(*(d32[:, i] for i in range(3))))
+    ray = mi.Ray3f(jit_vectors(mi.Point3f, o), jit_vectors(mi.Vector3f, d32))
     if maxt is not None:
-        ray.maxt = mi.Float(maxt)
+        ray.maxt = jit_array(mi.Float, maxt)
     return ray, s, valid
 
 

@@ -40,6 +40,7 @@ from .rules import Rules
 from .scene import sub, unit
 from .kinds import KIND_CODE
 from .shapes import opaque3
+from .accel import device_array
 from .jitlog import NullLog
 from .textures import MODE_CODE, Texture
 from .tracer import KernelScene, closest_hit, occluded, surface
@@ -126,7 +127,7 @@ def _texture_tables(T, tex: list) -> dict:
             "tex_sy": T.Float([t.scale[1] for t in ts]),
             "tex_b": T.Float([t.brightness for t in ts]),
             "tex_fwd": vec("forward"), "tex_side": vec("side"),
-            "texels": T.Array3(*(T.Float(np.ascontiguousarray(flat[:, i])) for i in range(3)))}
+            "texels": T.Array3(*(device_array(T.Float, flat[:, i]) for i in range(3)))}
 
 
 def _texel(T, x, size, wrap):

@@ -42,6 +42,7 @@ from rt_core.shading import DEFAULT_MAX_DIST
 from mitsuba_ref.convert import (course_id, mitsuba, mitsuba_subset, plane_extent, scene_dict,
                                  shape_id)
 from mitsuba_ref.explain import EPS32, K_ROUNDING, ObjectEval
+from mitsuba_ref.jitdata import jit_array, jit_vectors
 
 CLASSES = ("agree", "edge", "silhouette", "graze", "clip", "light", "origin", "tie", "extent",
            "unexplained")
@@ -90,12 +91,11 @@ def _intersect(ms, ids, O, d, a, b):
     import drjit as dr
     o = (O[live] + a[live, None] * d[live]).astype(np.float32)
     dd = d[live].astype(np.float32)
-    ray = mi.Ray3f(mi.Point3f(*(o[:, i] for i in range(3))),
-                   mi.Vector3f(*(dd[:, i] for i in range(3))))
+    ray = mi.Ray3f(jit_vectors(mi.Point3f, o), jit_vectors(mi.Vector3f, dd))
     span = b[live] - a[live]
     if np.isfinite(span).any():
-        ray.maxt = mi.Float(np.where(np.isfinite(span), span,
-                                     np.finfo(np.float32).max).astype(np.float32))
+        ray.maxt = jit_array(mi.Float, np.where(np.isfinite(span), span,
+                                                np.finfo(np.float32).max))
     pi = ms.ray_intersect_preliminary(ray)
     dr.eval(pi)
     h = np.asarray(pi.is_valid().numpy())

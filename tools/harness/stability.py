@@ -52,6 +52,7 @@ from fractions import Fraction
 import numpy as np
 
 from mitsuba_ref.exact import U, direction_error, parse_exact, trace_exact
+from rt_core.accel import device_array
 from rt_core.rules import Rules
 
 TRACERS = ("rt_f32", "rt_f64", "mitsuba", "naive_f32")
@@ -565,7 +566,7 @@ def trace_rt(scene, case: Case, precision: str, rules: Rules = Rules()):
         dmax = 1.0
     else:
         a = np.asarray(case.rays, dt)
-        d = T.Array3(*(T.Float(a[:, i]) for i in range(3)))
+        d = T.Array3(*(device_array(T.Float, a[:, i]) for i in range(3)))
         dmax = float(np.linalg.norm(a.astype(np.float64), axis=1).max())
     # float64 decides exactly on the rays as traced, which is what the exact oracle judges
     t, oid, hit = closest_hit(ks, d, None, rules, cam="rays", dmax=dmax)
