@@ -30,18 +30,20 @@ from . import convert_planar
 from .geometry import corners, cross, dot, frame, normal, sub, unit
 
 VARIANT = "llvm_ad_rgb"
+# the variant of each Dr.Jit backend (rtval bench --backend cuda; the rest of rtval uses LLVM)
+VARIANTS = {"llvm": VARIANT, "cuda": "cuda_ad_rgb"}
 AOVS = "dd:depth,pp:position,nn:geo_normal,uv:uv"
 AOV_CHANNELS = ("dd.T", "pp.X", "pp.Y", "pp.Z", "nn.X", "nn.Y", "nn.Z", "uv.U", "uv.V")
 PLANE_EXTENT_FACTOR = 64.0
 EPS32 = 2.0 ** -24
 
 
-def mitsuba():
-    """Mitsuba in rtval's variant, with the course plugins registered
-    (mitsuba_ref/integrator.py)."""
+def mitsuba(variant: str = VARIANT):
+    """Mitsuba in rtval's variant (or ``variant``, one of VARIANTS' values), with the course
+    plugins registered (mitsuba_ref/integrator.py)."""
     import mitsuba as mi
-    if mi.variant() != VARIANT:
-        mi.set_variant(VARIANT)
+    if mi.variant() != variant:
+        mi.set_variant(variant)
     from .integrator import register
     register(mi)
     return mi

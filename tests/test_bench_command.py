@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -27,6 +29,7 @@ def test01_command_bench_splits_a_render_into_phases(tmp_path):
             p[k]["median"] > 0 for k in ("import", "kernel", "write"))
         assert c["largest"] in ("import", "parse", "kernel", "write")
     assert "largest" in r.stdout and "kernel" in r.stdout
+    assert res["machine"]["backend"] == "llvm"
 
 
 def test02_shaded_bench_smoke(tmp_path):
@@ -41,6 +44,7 @@ def test02_shaded_bench_smoke(tmp_path):
     assert r.returncode == 0, r.stderr
     res = json.loads(out.read_text())
     assert res["mode"] == "shaded" and res["meta"]["lights"] == 4
+    assert res["meta"]["backend"] == "llvm" and {c["backend"] for c in res["cases"]} == {"llvm"}
     assert [c["objects"] for c in res["cases"]] == [1, 4]
     for c in res["cases"]:
         assert c["pixels"] == 32 * 18 and set(c["tracers"]) == {"rt_core-f32", "mitsuba"}
@@ -72,3 +76,90 @@ def test04_shaded_defaults_agree():
     assert tuple(cmd_bench.SHADED_OBJECTS) == bench_shaded.SHADED_OBJECTS
     assert cmd_bench.DEFAULT_LIGHTS == bench_shaded.DEFAULT_LIGHTS
     assert tuple(cmd_bench.SHADED_TRACERS) == bench_shaded.TRACERS
+
+
+def _has_cuda() -> bool:
+    import drjit as dr
+    return dr.has_backend(dr.JitBackend.CUDA)
+
+
+@pytest.mark.parametrize("mode", [[], ["--shaded"], ["--command"]], ids=["primary", "shaded",
+                                                                          "command"])
+def test05_cuda_backend_without_a_gpu_says_so(mode, tmp_path):
+    """rtval bench --backend cuda where Dr.Jit finds no CUDA device: one line that says so and
+    what to do, exit 2, nothing written (every mode)."""
+    if _has_cuda():
+        pytest.skip("this machine has CUDA: test06 runs the benchmark there")
+    out = tmp_path / "b.json"
+    r = subprocess.run([sys.executable, "-m", "tools.cli", "bench", "--backend", "cuda", *mode,
+                        "--objects", "1", "--columns", "32", "-o", str(out)] if mode != ["--command"]
+                       else [sys.executable, "-m", "tools.cli", "bench", "--backend", "cuda",
+                             "--command", "--command-columns", "32", "-o", str(out)],
+                       cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2 and not out.exists()
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "CUDA" in lines[0] and "--backend llvm" in lines[0], r.stderr
+
+
+@pytest.mark.skipif(not _has_cuda(), reason="no CUDA device here")
+def test06_cuda_backend_bench_smoke(tmp_path):
+    """On a GPU: the primary and the shaded modes run on Dr.Jit's CUDA backend against
+    Mitsuba's cuda_ad_rgb, and both sides find the same objects."""
+    for mode in ([], ["--shaded", "--tracers", "rt_core-f32", "mitsuba"]):
+        out = tmp_path / "b.json"
+        r = subprocess.run([sys.executable, "-m", "tools.cli", "bench", "--backend", "cuda",
+                            *mode, "--objects", "1", "16", "--columns", "64", "--reps", "1",
+                            "--scenes", "mixed", "-o", str(out)],
+                           cwd=REPO, capture_output=True, text=True, timeout=600)
+        assert r.returncode == 0, r.stderr
+        res = json.loads(out.read_text())
+        assert res["meta"]["backend"] == "cuda" and res["meta"]["gpu"]
+        for c in res["cases"]:
+            assert c["backend"] == "cuda" and c["ratio_f32_vs_mitsuba"] > 0
+            if not mode:
+                assert c["tracers"]["mitsuba"]["differ_from_f32"] <= 0.01 * c["rays"]
+            else:
+                assert c["tracers"]["rt_core-f32"]["pixels_differ_from_mitsuba"] <= \
+                    0.02 * c["pixels"]
+
+
+class _Stop(Exception):
+    pass
+
+
+def test07_every_mode_passes_the_backend_on(monkeypatch):
+    """(Without a GPU) each mode asks for the chosen backend's types, Mitsuba variant and
+    `rtval render --backend`: the calls are recorded, and stopped at the first."""
+    from rt_core import backend
+    from mitsuba_ref import convert
+    from tools.harness import bench, bench_shaded
+    seen = []
+
+    def types(precision="f32", backend_name="llvm"):
+        seen.append(("types", backend_name))
+        raise _Stop
+
+    def mitsuba(variant=convert.VARIANT):
+        seen.append(("mitsuba", variant))
+        raise _Stop
+
+    def run(args, **kw):
+        seen.append(("render", args[args.index("--backend") + 1]))
+        raise _Stop
+    monkeypatch.setattr(backend, "types", types)
+    monkeypatch.setattr(convert, "mitsuba", mitsuba)
+    monkeypatch.setattr("subprocess.run", run)
+    for call in (lambda: bench.bench_case("mixed", 1, 32, 1, backend_name="cuda"),
+                 lambda: bench_shaded.shaded_case("mixed", 1, 32, 1, backend_name="cuda"),
+                 lambda: bench.command_bench([32], 1, backend_name="cuda")):
+        with pytest.raises(_Stop):
+            call()
+    assert seen == [("types", "cuda")] * 2 + [("render", "cuda")]
+    seen.clear()
+    d32 = object()
+    for call in (lambda: bench.mitsuba_tracer(bench.bench_scene("mixed", 1), d32, 32, "cuda"),
+                 lambda: bench_shaded.mitsuba_side(bench.bench_scene("mixed", 1), d32, 32,
+                                                   backend_name="cuda")):
+        with pytest.raises(_Stop):
+            call()
+    assert seen == [("mitsuba", "cuda_ad_rgb")] * 2

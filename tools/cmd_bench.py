@@ -64,6 +64,9 @@ def add_parser(sub) -> None:
                    help="--command: the scene to render (default: scenes/mixed.txt)")
     p.add_argument("--runs", type=positive_int, default=3,
                    help="--command: runs per case, interleaved (default 3)")
+    p.add_argument("--backend", choices=("llvm", "cuda"), default="llvm",
+                   help="Dr.Jit backend of both sides (cuda: rt_core on the GPU against "
+                        "Mitsuba's cuda_ad_rgb variant, OptiX); every mode (default llvm)")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
     p.add_argument("-o", "--output", metavar="FILE.json", help="also write the JSON here")
     p.set_defaults(func=run, usage_error=p.error, before_import=lambda args: fresh_kernel_cache(args.keep_cache))
@@ -84,6 +87,8 @@ def run(args) -> int:
     if args.shaded and (args.whole_command or args.brute):
         args.usage_error(f"--shaded and {'--command' if args.whole_command else '--brute'} "
                          "do not go together (--shaded is a mode of its own)")
+    from rt_core.backend import require
+    require(args.backend)       # no CUDA device: one line, exit 2, before any work
     if args.whole_command:      # (not args.command: that is the subcommand's name)
         return run_command(args)
     if args.threads:
@@ -100,7 +105,7 @@ def run(args) -> int:
               f"{case.get('ratio_f32_vs_mitsuba', 0):.2f}x Mitsuba", file=sys.stderr)
     objects = list(dict.fromkeys(args.objects or DEFAULT_OBJECTS))      # each count once
     result = run_bench(objects, args.scenes, args.columns, args.reps or 9, args.brute,
-                       progress=progress)
+                       progress=progress, backend_name=args.backend)
     return _emit(args, result, table)
 
 
@@ -114,7 +119,8 @@ def run_shaded(args) -> int:
               f"{case.get('ratio_f32_vs_mitsuba', 0):.2f}x Mitsuba", file=sys.stderr)
     objects = list(dict.fromkeys(args.objects or SHADED_OBJECTS))
     result = bench(objects, args.scenes, args.columns, args.reps or 5, args.lights,
-                   list(dict.fromkeys(args.tracers)), progress=progress)
+                   list(dict.fromkeys(args.tracers)), progress=progress,
+                   backend_name=args.backend)
     return _emit(args, result, shaded_table)
 
 
@@ -125,7 +131,7 @@ def run_command(args) -> int:
         print(f"bench: render {c} columns {out} run {rep + 1}: {p['wall']:.2f} s (kernel "
               f"{p['kernel']:.2f}, write {p['write']:.2f})", file=sys.stderr)
     result = command_bench(list(dict.fromkeys(args.command_columns)), args.runs,
-                           scene=args.scene, progress=progress)
+                           scene=args.scene, progress=progress, backend_name=args.backend)
     return _emit(args, result, command_table)
 
 

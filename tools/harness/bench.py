@@ -114,18 +114,28 @@ def vm_kib(field_name: str) -> int:
     return -1
 
 
+def jit_backend(name: str):
+    """Dr.Jit's JitBackend of a backend name ('llvm', 'cuda')."""
+    import drjit as dr
+    return dr.JitBackend.CUDA if name == "cuda" else dr.JitBackend.LLVM
+
+
 class MemoryProbe:
     """Peak memory of a block: Dr.Jit's allocation watermark (its arrays: rt_core's and
     Mitsuba's; the allocator's cache is flushed first so the peak is this block's), and the
     process's peak RSS (VmHWM, reset through /proc/self/clear_refs; it also sees Embree's BVH
-    and LLVM's compiler, which Dr.Jit does not allocate).  Both as growth over the start."""
+    and LLVM's compiler, which Dr.Jit does not allocate).  Both as growth over the start.
+    On the CUDA backend the watermark is the device's memory."""
+
+    def __init__(self, backend: str = "llvm"):
+        self.backend = backend
 
     def __enter__(self):
         import drjit as dr
         dr.sync_thread()
         dr.flush_malloc_cache()
         dr.detail.malloc_clear_statistics()
-        self.jit0 = dr.detail.malloc_watermark(dr.JitBackend.LLVM)
+        self.jit0 = dr.detail.malloc_watermark(jit_backend(self.backend))
         try:
             with open("/proc/self/clear_refs", "w") as f:
                 f.write("5")
@@ -138,7 +148,7 @@ class MemoryProbe:
     def __exit__(self, *exc):
         import drjit as dr
         dr.sync_thread()
-        self.jit_peak = dr.detail.malloc_watermark(dr.JitBackend.LLVM) - self.jit0
+        self.jit_peak = dr.detail.malloc_watermark(jit_backend(self.backend)) - self.jit0
         hwm = vm_kib("VmHWM")
         # VmHWM is updated lazily and can read a few pages below the VmRSS taken just after
         # the reset: growth within that noise is 0, not negative
@@ -166,14 +176,14 @@ def timed_call(fn):
     return time.perf_counter() - t0, out
 
 
-def first_call(fn) -> tuple:
+def first_call(fn, backend: str = "llvm") -> tuple:
     """(seconds, result, kernel_stats, MemoryProbe) of a first call."""
     import drjit as dr
     saved = dr.flag(dr.JitFlag.KernelHistory)
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     dr.kernel_history()
     try:
-        with MemoryProbe() as mem:
+        with MemoryProbe(backend) as mem:
             sec, out = timed_call(fn)
         stats = kernel_stats(dr.kernel_history())
     finally:
@@ -203,11 +213,11 @@ class Tracer:
 
 
 def rt_tracer(name, scene, precision, d32, unroll_max=None, bins=None,
-              exact: bool = True) -> Tracer:
+              exact: bool = True, backend_name: str = "llvm") -> Tracer:
     import drjit as dr
     from rt_core import accel, backend
     from rt_core.tracer import closest_hit, prepare
-    T = backend.types(precision)
+    T = backend.types(precision, backend_name)
     d = d32 if precision == "f32" else T.Array3(*(T.Float(c) for c in (d32.x, d32.y, d32.z)))
     dr.eval(d)
     t0 = time.perf_counter()
@@ -228,10 +238,10 @@ def rt_tracer(name, scene, precision, d32, unroll_max=None, bins=None,
     return Tracer(name, run, prep, lambda: np.asarray(state["id"].numpy()), [ks, d])
 
 
-def mitsuba_tracer(scene, d32, columns: int) -> Tracer:
+def mitsuba_tracer(scene, d32, columns: int, backend_name: str = "llvm") -> Tracer:
     import drjit as dr
-    from mitsuba_ref.convert import course_id, mitsuba, scene_dict
-    mi = mitsuba()
+    from mitsuba_ref.convert import VARIANTS, course_id, mitsuba, scene_dict
+    mi = mitsuba(VARIANTS[backend_name])
     t0 = time.perf_counter()
     ms = mi.load_dict(scene_dict(scene, columns, None, integrator=False, clip=False),
                       optimize=False)
@@ -257,35 +267,34 @@ def mitsuba_tracer(scene, d32, columns: int) -> Tracer:
 # --- the benchmark -----------------------------------------------------------------------------
 
 def bench_case(kind: str, n: int, columns: int = 1920, reps: int = 9, brute: bool = False,
-               tracers=TRACERS) -> dict:
+               tracers=TRACERS, backend_name: str = "llvm") -> dict:
     """One scene: every tracer's first call and steady state, interleaved."""
     import drjit as dr
     from rt_core import backend
     from rt_core.camera import make_camera, primary_directions
     scene = bench_scene(kind, n)
     cam = make_camera(scene, columns)
-    T32 = backend.types("f32")
+    T32 = backend.types("f32", backend_name)
     d32 = primary_directions(scene, cam, T32)
     dr.eval(d32)
-    makers = {"rt_core-f32": lambda: rt_tracer("rt_core-f32", scene, "f32", d32),
-              "rt_core-f64": lambda: rt_tracer("rt_core-f64", scene, "f64", d32),
-              "rt_core-f64-plain": lambda: rt_tracer("rt_core-f64-plain", scene, "f64", d32,
-                                                     exact=False),
-              "mitsuba": lambda: mitsuba_tracer(scene, d32, columns),
-              "rt_core-f32-nobins": lambda: rt_tracer("rt_core-f32-nobins", scene, "f32", d32,
-                                                      bins=False),
-              "rt_core-f32-unrolled": lambda: rt_tracer("rt_core-f32-unrolled", scene, "f32",
-                                                        d32, unroll_max=1 << 30)}
+    rt = lambda name, precision, **kw: (lambda: rt_tracer(name, scene, precision, d32,
+                                                          backend_name=backend_name, **kw))
+    makers = {"rt_core-f32": rt("rt_core-f32", "f32"),
+              "rt_core-f64": rt("rt_core-f64", "f64"),
+              "rt_core-f64-plain": rt("rt_core-f64-plain", "f64", exact=False),
+              "mitsuba": lambda: mitsuba_tracer(scene, d32, columns, backend_name),
+              "rt_core-f32-nobins": rt("rt_core-f32-nobins", "f32", bins=False),
+              "rt_core-f32-unrolled": rt("rt_core-f32-unrolled", "f32", unroll_max=1 << 30)}
     names = list(tracers) + (list(BRUTE) if brute else [])
     if n > UNROLLED_LIMIT and "rt_core-f32-unrolled" in names:
         names.remove("rt_core-f32-unrolled")
     out = {"scene": kind, "objects": n, "total_objects": len(scene.objects),
            "columns": cam.columns, "rows": cam.rows, "rays": cam.size, "reps": reps,
-           "tracers": {}}
+           "backend": backend_name, "tracers": {}}
     trs = {}
     for name in names:
         tr = makers[name]()
-        sec, _, stats, mem = first_call(tr.run)
+        sec, _, stats, mem = first_call(tr.run, backend_name)
         trs[name] = tr
         out["tracers"][name] = {"prepare_ms": round(tr.prepare_ms, 3),
                                 "first_ms": round(sec * 1e3, 3), **stats,
@@ -322,25 +331,28 @@ def bench_case(kind: str, n: int, columns: int = 1920, reps: int = 9, brute: boo
 
 
 def run_bench(objects=DEFAULT_OBJECTS, scenes=SCENES, columns: int = 1920, reps: int = 9,
-              brute: bool = False, progress=None) -> dict:
+              brute: bool = False, progress=None, backend_name: str = "llvm") -> dict:
     """Every scene kind × object count; returns {'meta', 'cases', 'growth'}."""
     from rt_core.render import versions
     cases = []
     for kind in scenes:
         for n in objects:
-            cases.append(bench_case(kind, n, columns, reps, brute))
+            cases.append(bench_case(kind, n, columns, reps, brute,
+                                    backend_name=backend_name))
             if progress:
                 progress(cases[-1])
-    return {"meta": {"columns": columns, "reps": reps, **versions(), **machine()},
+    return {"meta": {"columns": columns, "reps": reps, **versions(), **machine(backend_name)},
             "cases": cases, "growth": growth(cases)}
 
 
-def machine() -> dict:
+def machine(backend_name: str = "llvm") -> dict:
     import os
     import drjit as dr
-    info = {"cpus": os.cpu_count(), "drjit_threads": dr.thread_count(),
+    info = {"backend": backend_name, "cpus": os.cpu_count(), "drjit_threads": dr.thread_count(),
             "llvm": ".".join(map(str, dr.detail.llvm_version())),
             "kernel_cache": os.environ.get("DRJIT_CACHE_DIR", "~/.drjit (shared)")}
+    if backend_name == "cuda":
+        info["gpu"] = gpu_name()
     try:
         with open("/proc/cpuinfo") as f:
             for line in f:
@@ -350,6 +362,18 @@ def machine() -> dict:
     except OSError:
         pass
     return info
+
+
+def gpu_name() -> str:
+    """The GPU's name as nvidia-smi reports it ('?' where it cannot)."""
+    import subprocess
+    try:
+        r = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"],
+                           capture_output=True, text=True, timeout=20)
+        return r.stdout.strip().splitlines()[0] if r.returncode == 0 and r.stdout.strip() \
+            else "?"
+    except (OSError, subprocess.SubprocessError):
+        return "?"
 
 
 def growth(cases) -> dict:
@@ -414,7 +438,7 @@ COMMAND_OUTPUTS = ("geometry", "shaded", "course")
 
 
 def command_bench(columns=COMMAND_COLUMNS, repeats: int = 3, scene: str | None = None,
-                  outputs=COMMAND_OUTPUTS, progress=None) -> dict:
+                  outputs=COMMAND_OUTPUTS, progress=None, backend_name: str = "llvm") -> dict:
     """Wall time of whole ``rtval render`` runs (a new process each), split into phases:
     import (the interpreter's start, the CLI, rt_core, Dr.Jit, numpy, OpenEXR: the wall time
     before the scene is read), parse, kernel (camera, tracing, shading; Dr.Jit's kernel cache
@@ -436,7 +460,7 @@ def command_bench(columns=COMMAND_COLUMNS, repeats: int = 3, scene: str | None =
                 for out in outputs:
                     phases = os.path.join(d, "phases.json")
                     exr, ppm = os.path.join(d, f"{c}.{out}.exr"), os.path.join(d, f"{c}.ppm")
-                    args = ["--columns", str(c)] + (["-o", exr] if out != "course" else []) \
+                    args = ["--columns", str(c), "--backend", backend_name] + (["-o", exr] if out != "course" else []) \
                         + (["--ppm", ppm] if out != "geometry" else [])
                     t0 = time.perf_counter()
                     r = subprocess.run([sys.executable, "-m", "tools.cli", "render", scene, *args],
@@ -469,8 +493,7 @@ def command_bench(columns=COMMAND_COLUMNS, repeats: int = 3, scene: str | None =
         cases.append({"columns": c, "outputs": out, "runs": len(ps), "phases": stat,
                       "largest": largest})
     return {"mode": "command", "scene": os.path.relpath(os.path.abspath(scene), repo),
-            "machine": machine(),
-            "cases": cases}
+            "machine": machine(backend_name), "cases": cases}
 
 
 def command_table(result: dict) -> str:

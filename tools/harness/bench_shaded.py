@@ -67,13 +67,14 @@ class Side:
             name, run, counts, prepare_ms, keep
 
 
-def rt_side(name: str, scene: Scene, precision: str, d32, max_dist: float = MAX_DIST) -> Side:
+def rt_side(name: str, scene: Scene, precision: str, d32, max_dist: float = MAX_DIST,
+            backend_name: str = "llvm") -> Side:
     import drjit as dr
     from rt_core import backend
     from rt_core.rules import Rules
     from rt_core.shading import shade
     from rt_core.tracer import prepare
-    T = backend.types(precision)
+    T = backend.types(precision, backend_name)
     d = d32 if precision == "f32" else T.Array3(*(T.Float(c) for c in (d32.x, d32.y, d32.z)))
     dr.eval(d)
     t0 = time.perf_counter()
@@ -104,12 +105,13 @@ def _rgb(a) -> np.ndarray:
     return np.stack([np.asarray(c.numpy(), np.float64) for c in (a.x, a.y, a.z)], 1)
 
 
-def mitsuba_side(scene: Scene, d32, columns: int, max_dist: float = MAX_DIST) -> Side:
+def mitsuba_side(scene: Scene, d32, columns: int, max_dist: float = MAX_DIST,
+                 backend_name: str = "llvm") -> Side:
     """The course's shading for one bounce written with Mitsuba's ray queries (materials by
     shape index; the bench's tiled floor has one MAT, so no tile parity)."""
     import drjit as dr
-    from mitsuba_ref.convert import course_id, mitsuba, scene_dict
-    mi = mitsuba()
+    from mitsuba_ref.convert import VARIANTS, course_id, mitsuba, scene_dict
+    mi = mitsuba(VARIANTS[backend_name])
     t0 = time.perf_counter()
     ms = mi.load_dict(scene_dict(scene, columns, None, integrator=False, clip=False),
                       optimize=False)
@@ -181,7 +183,7 @@ def mitsuba_side(scene: Scene, d32, columns: int, max_dist: float = MAX_DIST) ->
 # --- the benchmark --------------------------------------------------------------------------------
 
 def shaded_case(kind: str, n: int, columns: int = 1920, reps: int = 5,
-                lights: int = DEFAULT_LIGHTS, tracers=TRACERS) -> dict:
+                lights: int = DEFAULT_LIGHTS, tracers=TRACERS, backend_name: str = "llvm") -> dict:
     """One scene: every side's first call, steady state (interleaved) and ray counts."""
     import drjit as dr
     from rt_core import backend
@@ -189,18 +191,20 @@ def shaded_case(kind: str, n: int, columns: int = 1920, reps: int = 5,
     from rt_core.shading import quantize
     scene = shaded_scene(kind, n, lights)
     cam = make_camera(scene, columns)
-    d32 = primary_directions(scene, cam, backend.types("f32"))
+    d32 = primary_directions(scene, cam, backend.types("f32", backend_name))
     dr.eval(d32)
-    makers = {"rt_core-f32": lambda: rt_side("rt_core-f32", scene, "f32", d32),
-              "rt_core-f64": lambda: rt_side("rt_core-f64", scene, "f64", d32),
-              "mitsuba": lambda: mitsuba_side(scene, d32, columns)}
+    makers = {"rt_core-f32": lambda: rt_side("rt_core-f32", scene, "f32", d32,
+                                             backend_name=backend_name),
+              "rt_core-f64": lambda: rt_side("rt_core-f64", scene, "f64", d32,
+                                             backend_name=backend_name),
+              "mitsuba": lambda: mitsuba_side(scene, d32, columns, backend_name=backend_name)}
     out = {"scene": kind, "objects": n, "total_objects": len(scene.objects), "lights": lights,
            "columns": cam.columns, "rows": cam.rows, "pixels": cam.size, "reps": reps,
-           "tracers": {}}
+           "backend": backend_name, "tracers": {}}
     sides = {}
     for name in tracers:
         side = makers[name]()
-        sec, _, stats, mem = first_call(side.run)
+        sec, _, stats, mem = first_call(side.run, backend_name)
         sides[name] = side
         out["tracers"][name] = {"prepare_ms": round(side.prepare_ms, 3),
                                 "first_ms": round(sec * 1e3, 3), **stats,
@@ -238,17 +242,19 @@ def shaded_case(kind: str, n: int, columns: int = 1920, reps: int = 5,
 
 
 def run_shaded(objects=SHADED_OBJECTS, scenes=SCENES, columns: int = 1920, reps: int = 5,
-               lights: int = DEFAULT_LIGHTS, tracers=TRACERS, progress=None) -> dict:
+               lights: int = DEFAULT_LIGHTS, tracers=TRACERS, progress=None,
+               backend_name: str = "llvm") -> dict:
     """Every scene kind × object count; returns {'mode', 'meta', 'cases'}."""
     from rt_core.render import versions
     cases = []
     for kind in scenes:
         for n in objects:
-            cases.append(shaded_case(kind, n, columns, reps, lights, tracers))
+            cases.append(shaded_case(kind, n, columns, reps, lights, tracers, backend_name))
             if progress:
                 progress(cases[-1])
     return {"mode": "shaded", "meta": {"columns": columns, "reps": reps, "lights": lights,
-                                       "max_dist": MAX_DIST, **versions(), **machine()},
+                                       "max_dist": MAX_DIST, **versions(),
+                                       **machine(backend_name)},
             "cases": cases}
 
 
