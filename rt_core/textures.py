@@ -73,10 +73,15 @@ def find(scene, obj, dirs=()) -> str:
         places.append(os.path.dirname(os.path.abspath(scene.path)))
     if os.path.isabs(name):
         places = [""]
+    folder = None
     for d in places:
         p = os.path.join(d, name)
         if os.path.isfile(p):
             return os.path.abspath(p)
+        folder = folder or (p if os.path.isdir(p) else None)
+    if folder:
+        raise _error(scene, obj, name, f"texture '{name}' is a directory ({folder}), not a PPM "
+                                       "file; give the image file's name")
     looked = ", ".join(places) if places != [""] else name
     raise _error(scene, obj, name, f"texture '{name}' not found (looked in: {looked}); put it "
                                    "next to the scene or pass --texture-dir DIR")

@@ -139,6 +139,20 @@ def test05_missing_texture_one_line_exit_2(tmp_path):
     assert r.returncode == 0, r.stderr
 
 
+def test05b_texture_name_of_a_directory_says_so(tmp_path):
+    """A texture name that names a directory is not reported missing: one line saying it is a
+    directory, exit 2, nothing written."""
+    scene = _scene_copy(tmp_path)
+    (scene.parent / "textures" / "tiles4x3.ppm").mkdir(parents=True)
+    out = tmp_path / "o.ppm"
+    r = cli("render", scene, "--columns", 16, "--ppm", out)
+    assert r.returncode == 2 and not out.exists()
+    assert r.stderr.strip() == (
+        f"rtval render: {scene}:16:1: texture 'textures/tiles4x3.ppm' is a directory "
+        f"({scene.parent / 'textures' / 'tiles4x3.ppm'}), not a PPM file; give the image "
+        "file's name")
+
+
 def test06_unreadable_texture_one_line_exit_2(tmp_path):
     scene = _scene_copy(tmp_path)
     (scene.parent / "textures").mkdir()
