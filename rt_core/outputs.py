@@ -9,6 +9,7 @@ removes once process PID is gone.
 """
 from __future__ import annotations
 
+import contextlib
 import errno
 import json
 import math
@@ -246,18 +247,53 @@ def atomic_write(path: str, write, verify=None) -> None:
             raise WriteError(shown, reason, hint) from None
         _LIVE.add(tmp)
     os.close(fd)
-    done = False
+    done = staged = False
     try:
         _checked(write, tmp, shown, verify)
         os.chmod(tmp, mode)
-        os.replace(tmp, path)
+        if _BATCH:                          # inside together(): renamed at its end
+            _BATCH[-1].append((tmp, path, created))
+            staged = True
+        else:
+            os.replace(tmp, path)
         done = True
     finally:
-        _LIVE.discard(tmp)
-        if os.path.lexists(tmp):
-            os.unlink(tmp)
+        if not staged:
+            _LIVE.discard(tmp)
+            if os.path.lexists(tmp):
+                os.unlink(tmp)
         if not done:
             _remove_dirs(created)
+
+
+_BATCH: list = []           # the open together() blocks: their staged (tmp, path, created)
+
+
+@contextlib.contextmanager
+def together():
+    """The atomic_writes inside the block are all renamed into place at its end, or none is:
+    each writes and checks its temporary as usual, and the renames wait until the block has
+    finished without an exception (a command with several outputs, or a scene with its side
+    files, leaves all of them or nothing).  Writes into a device or a pipe are not held."""
+    _BATCH.append([])
+    ok = False
+    try:
+        yield
+        ok = True
+    finally:
+        staged = _BATCH.pop()
+        if ok and _BATCH:                   # nested: the outer block decides
+            _BATCH[-1].extend(staged)
+        elif ok:
+            for tmp, path, _ in staged:
+                os.replace(tmp, path)
+                _LIVE.discard(tmp)
+        else:
+            for tmp, _, created in reversed(staged):
+                _LIVE.discard(tmp)
+                if os.path.lexists(tmp):
+                    os.unlink(tmp)
+                _remove_dirs(created)
 
 
 def _remove_dirs(created: list) -> None:

@@ -125,6 +125,36 @@ def test04_full_file_system_other_commands(full_dir, tmp_path):
     assert sorted(p.name for p in full_dir.iterdir()) == ["fill"]
 
 
+def test04b_several_outputs_all_or_none(full_dir, tmp_path):
+    """render -o (a good directory) --ppm (a full one): the EXR, written first, is not left
+    behind when the PPM fails; with both writable both are there."""
+    exr, ppm = tmp_path / "x.exr", full_dir / "x.ppm"
+    one_line(rtval("render", SEED, "--columns", 4, "--rows", 3, "-o", exr, "--ppm", ppm), 2,
+             f"{ppm}: cannot write: no space left on device")
+    assert not exr.exists() and sorted(p.name for p in tmp_path.iterdir()) == []
+    assert sorted(p.name for p in full_dir.iterdir()) == ["fill"]
+    r = rtval("render", SEED, "--columns", 4, "--rows", 3, "-o", exr, "--ppm", tmp_path / "x.ppm")
+    assert r.returncode == 0 and exr.exists() and (tmp_path / "x.ppm").exists()
+
+
+def test04c_together_renames_all_or_none(tmp_path):
+    """outputs.together: a failure after a successful write removes that write's temporary
+    (and the directory it created) and renames nothing; success renames every file."""
+    from rt_core.outputs import together
+    a, b = tmp_path / "new" / "a.txt", tmp_path / "b.txt"
+    with pytest.raises(WriteError):
+        with together():
+            atomic_write(a, lambda tmp: Path(tmp).write_text("a"))
+            assert not a.exists()               # held until the block ends
+            atomic_write(b, lambda tmp: Path(tmp).write_text(""))    # empty: refused
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+    with together():
+        atomic_write(a, lambda tmp: Path(tmp).write_text("a"))
+        atomic_write(b, lambda tmp: Path(tmp).write_text("b"))
+    assert a.read_text() == "a" and b.read_text() == "b"
+    assert sorted(p.name for p in a.parent.iterdir()) == ["a.txt"]
+
+
 def test05b_every_cut_of_an_exr_is_incomplete_never_an_exception(tmp_path):
     p = tmp_path / "a.exr"
     write_exr(str(p), {"R": np.random.default_rng(2).random((40, 24)), "G": np.ones((40, 24))})

@@ -41,6 +41,7 @@ def add_parser(sub) -> None:
 
 def run(args) -> int:
     from rt_core.exrio import atomic_write
+    from rt_core.outputs import together
     from rt_core.parser import parse_scene
     from mitsuba_ref.convert import DEFAULT_MAX_DIST, oracle_only, scene_xml, sensor_setup
 
@@ -64,14 +65,15 @@ def run(args) -> int:
                     aovs=args.aovs, files=plys, stem=Path(args.output).name)
     for note in oracle_only(scene):
         print(f"rtval convert: note: {note}", file=sys.stderr)
-    for name, data in plys.items():
-        if isinstance(data, str):
-            atomic_write(os.path.join(parent, name),
-                         lambda tmp, text=data: Path(tmp).write_text(text))
-        else:                               # a texture's texels (mi.Bitmap)
-            atomic_write(os.path.join(parent, name),
-                         lambda tmp, bm=data: bm.write(tmp, type(bm).FileFormat.OpenEXR))
-    atomic_write(args.output, lambda tmp: Path(tmp).write_text(xml))
+    with together():                        # the XML and its side files, or none of them
+        for name, data in plys.items():
+            if isinstance(data, str):
+                atomic_write(os.path.join(parent, name),
+                             lambda tmp, text=data: Path(tmp).write_text(text))
+            else:                           # a texture's texels (mi.Bitmap)
+                atomic_write(os.path.join(parent, name),
+                             lambda tmp, bm=data: bm.write(tmp, type(bm).FileFormat.OpenEXR))
+        atomic_write(args.output, lambda tmp: Path(tmp).write_text(xml))
     print(f"{args.output}: {len(scene.objects)} shapes, {setup.columns}x{setup.rows}",
           file=sys.stderr)
     return 0

@@ -125,7 +125,7 @@ def run(args) -> int:
     from rt_core.errors import InputError
     from rt_core.imageio import write_png, write_ppm
     from rt_core.jitlog import KernelLog
-    from rt_core.outputs import WriteError
+    from rt_core.outputs import WriteError, together
     from rt_core.parser import parse_scene
     from rt_core.memory import band_that_fits, guard, render_bytes
     from rt_core.render import (TILE_PIXELS, nonfinite_count, provenance, render_tiled,
@@ -180,19 +180,20 @@ def run(args) -> int:
         for k, c in enumerate("RGB"):
             pixels[..., k] = quantize(images[c])
     bad = nonfinite_count(images)
-    # everything is computed: write each output (atomically)
-    for opt, path in outs:
-        try:
-            if opt == "-o":
-                write_images(path, images, attrs, args.compression)
-            elif opt == "--ppm":
-                write_ppm(path, pixels)
-            else:
-                write_png(path, pixels, attrs)
-        except WriteError:
-            raise                       # one line naming the target already
-        except OSError as e:
-            raise InputError(f"{path}: cannot write ({e.strerror or e})") from None
+    # everything is computed: write each output (atomically; all of them or none)
+    with together():
+        for opt, path in outs:
+            try:
+                if opt == "-o":
+                    write_images(path, images, attrs, args.compression)
+                elif opt == "--ppm":
+                    write_ppm(path, pixels)
+                else:
+                    write_png(path, pixels, attrs)
+            except WriteError:
+                raise                       # one line naming the target already
+            except OSError as e:
+                raise InputError(f"{path}: cannot write ({e.strerror or e})") from None
     phase("write")
     if os.environ.get("RTVAL_PHASES"):      # where rtval bench --command wants the split
         import json
