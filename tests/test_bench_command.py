@@ -163,3 +163,26 @@ def test07_every_mode_passes_the_backend_on(monkeypatch):
         with pytest.raises(_Stop):
             call()
     assert seen == [("mitsuba", "cuda_ad_rgb")] * 2
+
+
+def test08_readme_tables_from_bench_runs(tmp_path):
+    """benchmarks/readme_tables.py: the README's tables from two tiny `rtval bench -o` runs,
+    every cell the runs' median and [range] of the ratios the runs recorded."""
+    paths = []
+    for k in range(2):
+        out = tmp_path / f"b{k}.json"
+        r = subprocess.run([sys.executable, "-m", "tools.cli", "bench", "--objects", "1",
+                            "--columns", "32", "--reps", "1", "--scenes", "spheres",
+                            "--keep-cache", "-o", str(out)],
+                           cwd=REPO, capture_output=True, text=True, timeout=300)
+        assert r.returncode == 0, r.stderr
+        paths.append(out)
+    r = subprocess.run([sys.executable, "benchmarks/readme_tables.py", *map(str, paths)],
+                       cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    ratios = sorted(json.loads(p.read_text())["cases"][0]["tracers"]["rt_core-f32"]
+                    ["ratio_vs_mitsuba"] for p in paths)
+    row = next(l for l in r.stdout.splitlines() if l.startswith("| 1 |"))
+    med = (ratios[0] + ratios[1]) / 2
+    assert row.split(" | ")[1] == f"{med:.2f}× [{ratios[0]:.2f}–{ratios[1]:.2f}]", row
+    assert "2 runs" in r.stdout and "f64 / f32 speed" in r.stdout

@@ -1,0 +1,106 @@
+"""The README's speed tables from `rtval bench --json` / `-o` files: every cell the median of
+the runs and [their range], so that the README carries measured numbers, never copied ones.
+
+    python benchmarks/readme_tables.py run1.json run2.json run3.json
+
+Primary-ray runs (`rtval bench`) give the ratio table (rt_core f32 and f64 against Mitsuba,
+and f64 with exact decisions against without) and the f64/f32 speed table; shaded runs
+(`rtval bench --shaded`) the shaded ratio table.  Runs of both modes can be given together.
+"""
+from __future__ import annotations
+
+import json
+import statistics
+import sys
+
+SCENES = ("fplanes", "spheres", "mixed")
+NAMES = {"fplanes": "finite planes", "spheres": "spheres", "mixed": "mixed"}
+
+
+def _cell(values, fmt="{:.2f}", unit="×") -> str:
+    values = [v for v in values if v is not None]
+    if not values:
+        return "–"
+    med = statistics.median(values)
+    if len(values) == 1:
+        return fmt.format(med) + unit
+    return f"{fmt.format(med)}{unit} [{fmt.format(min(values))}–{fmt.format(max(values))}]"
+
+
+def _by_case(runs):
+    """{(scene, objects): [case of each run]}."""
+    out: dict = {}
+    for run in runs:
+        for c in run["cases"]:
+            out.setdefault((c["scene"], c["objects"]), []).append(c)
+    return out
+
+
+def _ratio(c, tracer):
+    r = c["tracers"].get(tracer, {})
+    return r.get("ratio_vs_mitsuba")
+
+
+def primary_tables(runs) -> str:
+    cases = _by_case(runs)
+    counts = sorted({n for _, n in cases})
+    scenes = [s for s in SCENES if any(k[0] == s for k in cases)]
+    head = ["objects"] + [f"{NAMES[s]}, {p}" for s in scenes for p in ("f32", "f64")] + \
+        ["f64 exact / plain (" + "; ".join(scenes) + ")"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for n in counts:
+        row = [str(n)]
+        for s in scenes:
+            cs = cases.get((s, n), [])
+            row += [_cell([_ratio(c, "rt_core-f32") for c in cs]),
+                    _cell([_ratio(c, "rt_core-f64") for c in cs])]
+        row.append("; ".join(_cell([c.get("f64_exact_vs_plain") for c in cases.get((s, n), [])],
+                                   unit="") for s in scenes))
+        lines.append("| " + " | ".join(row) + " |")
+    lines += ["", "| objects | f64 / f32 speed: " + " | ".join(NAMES[s] for s in scenes) + " |",
+              "|" + "---|" * (len(scenes) + 1)]
+    for n in counts:
+        row = [str(n)]
+        for s in scenes:
+            vals = []
+            for c in cases.get((s, n), []):
+                a, b = c["tracers"].get("rt_core-f32"), c["tracers"].get("rt_core-f64")
+                if a and b:
+                    vals.append(a["median_ms"] / b["median_ms"])
+            row.append(_cell(vals, unit=""))
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines)
+
+
+def shaded_table(runs) -> str:
+    cases = _by_case(runs)
+    counts = sorted({n for _, n in cases})
+    scenes = [s for s in SCENES if any(k[0] == s for k in cases)]
+    head = ["objects"] + [f"{NAMES[s]}, {p}" for s in scenes for p in ("f32", "f64")]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for n in counts:
+        row = [str(n)]
+        for s in scenes:
+            cs = cases.get((s, n), [])
+            row += [_cell([_ratio(c, "rt_core-f32") for c in cs]),
+                    _cell([_ratio(c, "rt_core-f64") for c in cs])]
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines)
+
+
+def main(paths) -> int:
+    runs = [json.loads(open(p).read()) for p in paths]
+    primary = [r for r in runs if r.get("mode") != "shaded" and "growth" in r]
+    shaded = [r for r in runs if r.get("mode") == "shaded"]
+    for label, group, fn in (("primary rays", primary, primary_tables),
+                             ("shaded images", shaded, shaded_table)):
+        if group:
+            commits = sorted({r["meta"].get("commit", "?") for r in group})
+            print(f"<!-- {label}: {len(group)} runs, commit {', '.join(commits)} -->")
+            print(fn(group))
+            print()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
