@@ -78,7 +78,7 @@ def prepare(scene: Scene, T: Types) -> KernelScene:
     not fit the kernel's precision: a float32 kernel would turn it into inf and silently
     lose the object."""
     try:
-        consts = object_constants(scene)
+        consts = _constants(scene)
     except OverflowError:
         consts = None
     if consts is None or any(not _finite(c) for c in consts):
@@ -95,6 +95,21 @@ def prepare(scene: Scene, T: Types) -> KernelScene:
                              scene.path, o.line or None)  # a product of several fields
     by_kind = {k: [c for c in consts if c.kind == k] for k in KIND_CODE}
     return KernelScene(scene, T, consts, by_kind)
+
+
+# object_constants of the scenes prepared last (each is frozen; its constants are computed
+# in exact arithmetic, ~3 ms a scene, and every render, precision and comparison of a scene
+# prepares it again)
+_CONSTS: dict = {}
+
+
+def _constants(scene: Scene) -> list:
+    hit = _CONSTS.get(id(scene))
+    if hit is None or hit[0] is not scene:
+        if len(_CONSTS) >= 16:
+            _CONSTS.clear()
+        hit = _CONSTS[id(scene)] = (scene, tuple(object_constants(scene)))
+    return list(hit[1])
 
 
 def _overflow(scene: Scene, obj) -> SceneError:

@@ -148,3 +148,16 @@ def test11_an_option_value_may_start_with_dashes(tmp_path):
     command that starts with '--' is a value of --run."""
     r = rtval("check", SPHERE, "--run", "--gpu {scene} {out}", "--columns", 16)
     assert r.returncode != 64 and "unrecognized" not in r.stderr, r.stderr
+
+
+def test12_building_the_parser_loads_no_dr_jit():
+    """`rtval --help` and the parser of every command load neither Dr.Jit nor Mitsuba (0.2 s
+    and more at every start); tools.options' copy of --code27's choices is rt_core's."""
+    code = ("import sys, tools.cli as c; c.build_parser(); "
+            "print(sorted(m for m in ('drjit', 'mitsuba', 'rt_core') if m in sys.modules))")
+    r = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0 and r.stdout.strip() == "[]", r.stdout + r.stderr
+    from rt_core.kinds_planar import CODE27_CHOICES
+    from tools.options import CODE27_CHOICES as copy
+    assert tuple(copy) == tuple(CODE27_CHOICES)

@@ -355,3 +355,18 @@ def test11_certified_cull_keeps_unsure_rays():
     assert out["looped"][2] > 100, "the outline's rays are unsure"
     assert out["unrolled"][2] == out["looped"][2]
     assert_same(out["unrolled"][:2], out["looped"][:2], "tangent rays")
+
+
+def test12_a_scenes_constants_are_computed_once(monkeypatch):
+    """tracer.prepare keeps the exact-arithmetic constants of the scenes it prepared last: a
+    second precision or render of the same (frozen) scene reuses them, another scene gets its
+    own, and the constants are the ones object_constants gives."""
+    calls = []
+    real = tracer.object_constants
+    monkeypatch.setattr(tracer, "object_constants", lambda s: calls.append(s) or real(s))
+    a, b = scene_of(spheres(3) + fplanes(2)), scene_of(spheres(2))
+    ka = tracer.prepare(a, types("f32"))
+    kb = tracer.prepare(a, types("f64"))
+    kc = tracer.prepare(b, types("f32"))
+    assert calls == [a, b]
+    assert ka.consts == kb.consts == real(a) and kc.consts == real(b)

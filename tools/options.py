@@ -89,9 +89,14 @@ def add_rules(p: argparse.ArgumentParser, help: str = RULES_HELP) -> None:
     p.add_argument("--rules", type=rules_arg, default=None, metavar="NAME=VALUE,...", help=help)
 
 
+# rt_core.kinds_planar's CODE27_CHOICES, written out: importing rt_core loads Dr.Jit (0.2 s),
+# which building the parser must not (rtval --help, rtval exr ...); tests/test_cli.py checks
+# that they agree
+CODE27_CHOICES = ("auto", "triangle", "disk")
+
+
 def add_code27(p: argparse.ArgumentParser) -> None:
     """--code27 auto|triangle|disk: how the numeric code 27 is read (rt_core/kinds_planar.py)."""
-    from rt_core.kinds_planar import CODE27_CHOICES
     p.add_argument("--code27", choices=CODE27_CHOICES, default="auto",
                    help="numeric code 27: a triangle (nw's final program) or a disk (nw's "
                         "older layout); default auto: by the line shape (README \"Triangle\")")
