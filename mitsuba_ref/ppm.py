@@ -4,6 +4,7 @@ Files must already be valid (rt_core reports errors); this raises ValueError oth
 from __future__ import annotations
 
 import functools
+import os
 import re
 
 import numpy as np
@@ -13,9 +14,15 @@ _HEADER = re.compile(rb"(P[36])((?:\s+|#[^\n\r]*[\n\r])+)(\d+)((?:\s+|#[^\n\r]*[
                      rb"((?:\s+|#[^\n\r]*[\n\r])+)(\d+)(\s)")
 
 
-@functools.lru_cache(maxsize=16)
 def texels(path: str) -> np.ndarray:
-    """(H, W, 3) float64 texels of the PPM file at ``path``."""
+    """(H, W, 3) float64 texels of the PPM file at ``path`` (read-only; read again when the
+    file has changed since: a long-lived worker may see a texture rewritten)."""
+    st = os.stat(path)
+    return _texels(os.path.abspath(path), st.st_mtime_ns, st.st_size)
+
+
+@functools.lru_cache(maxsize=16)
+def _texels(path: str, mtime_ns: int, size: int) -> np.ndarray:
     with open(path, "rb") as f:
         data = f.read()
     m = _HEADER.match(data)

@@ -5,6 +5,8 @@ Textures are generated here (a 4×3 P6, a 6×5 P3 with maxval 15, a 16-bit P6) o
 tiny generated files under scenes/textures/ that the bundled scenes name."""
 from __future__ import annotations
 
+import os
+
 import shutil
 import subprocess
 import sys
@@ -63,6 +65,21 @@ def test01_ppm_readers_give_value_over_maxval(tmp_path):
     (tmp_path / "grey.pgm").write_bytes(b"P5\n2 2\n255\n\0\0\0\0")
     with pytest.raises(ImageError, match="does not start with P6 or P3"):
         textures.read_ppm(str(tmp_path / "grey.pgm"))
+
+
+def test01b_the_references_reader_sees_a_rewritten_texture(tmp_path):
+    """mitsuba_ref.ppm.texels keeps what it read, but reads a file again once it has changed
+    (a long-lived validate worker); what it returns cannot be written to."""
+    from mitsuba_ref.ppm import texels
+    p = tmp_path / "t.ppm"
+    a, b = RNG.integers(0, 256, (3, 4, 3)), RNG.integers(0, 256, (3, 4, 3))
+    ppm6(p, a)
+    first = texels(str(p))
+    assert np.array_equal(first, a / 255) and not first.flags.writeable
+    ppm6(p, b)
+    st = p.stat()
+    os.utime(p, ns=(st.st_atime_ns, st.st_mtime_ns + 10 ** 9))   # (the same size)
+    assert np.array_equal(texels(str(p)), b / 255)
 
 
 def _oracle_check(scene, columns):
