@@ -90,7 +90,7 @@ def add_rules(p: argparse.ArgumentParser, help: str = RULES_HELP) -> None:
 
 
 # rt_core.kinds_planar's CODE27_CHOICES, written out: importing rt_core loads Dr.Jit (0.2 s),
-# which building the parser must not (rtval --help, rtval exr ...); tests/test_cli.py checks
+# which building the parser need not (rtval --help, usage errors); tests/test_cli.py checks
 # that they agree
 CODE27_CHOICES = ("auto", "triangle", "disk")
 
