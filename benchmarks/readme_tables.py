@@ -41,51 +41,54 @@ def _ratio(c, tracer):
     return r.get("ratio_vs_mitsuba")
 
 
-def primary_tables(runs) -> str:
+def _layout(runs):
+    """(cases by (scene, objects), the object counts, the scene kinds present)."""
     cases = _by_case(runs)
-    counts = sorted({n for _, n in cases})
-    scenes = [s for s in SCENES if any(k[0] == s for k in cases)]
-    head = ["objects"] + [f"{NAMES[s]}, {p}" for s in scenes for p in ("f32", "f64")] + \
-        ["f64 exact / plain (" + "; ".join(scenes) + ")"]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    return cases, sorted({n for _, n in cases}), [s for s in SCENES
+                                                   if any(k[0] == s for k in cases)]
+
+
+def _table(head, rows) -> list:
+    return ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)] + \
+        ["| " + " | ".join(r) + " |" for r in rows]
+
+
+def ratio_table(runs, extra=None) -> list:
+    """Per object count and scene kind, rt_core f32's and f64's ratio to Mitsuba; ``extra``:
+    (heading, fn(cases of one count, scene kinds) -> cell) of a last column."""
+    cases, counts, scenes = _layout(runs)
+    head = ["objects"] + [f"{NAMES[s]}, {p}" for s in scenes for p in ("f32", "f64")]
+    rows = []
     for n in counts:
         row = [str(n)]
         for s in scenes:
             cs = cases.get((s, n), [])
-            row += [_cell([_ratio(c, "rt_core-f32") for c in cs]),
-                    _cell([_ratio(c, "rt_core-f64") for c in cs])]
-        row.append("; ".join(_cell([c.get("f64_exact_vs_plain") for c in cases.get((s, n), [])],
-                                   unit="") for s in scenes))
-        lines.append("| " + " | ".join(row) + " |")
-    lines += ["", "| objects | f64 / f32 speed: " + " | ".join(NAMES[s] for s in scenes) + " |",
-              "|" + "---|" * (len(scenes) + 1)]
-    for n in counts:
-        row = [str(n)]
-        for s in scenes:
-            vals = []
-            for c in cases.get((s, n), []):
-                a, b = c["tracers"].get("rt_core-f32"), c["tracers"].get("rt_core-f64")
-                if a and b:
-                    vals.append(a["median_ms"] / b["median_ms"])
-            row.append(_cell(vals, unit=""))
-        lines.append("| " + " | ".join(row) + " |")
-    return "\n".join(lines)
+            row += [_cell([_ratio(c, f"rt_core-{p}") for c in cs]) for p in ("f32", "f64")]
+        if extra:
+            row.append(extra[1]({s: cases.get((s, n), []) for s in scenes}))
+        rows.append(row)
+    return _table(head + ([extra[0]] if extra else []), rows)
+
+
+def _f64_over_f32(c):
+    a, b = c["tracers"].get("rt_core-f32"), c["tracers"].get("rt_core-f64")
+    return a["median_ms"] / b["median_ms"] if a and b else None
+
+
+def primary_tables(runs) -> str:
+    cases, counts, scenes = _layout(runs)
+    exact = ("f64 exact / plain (" + "; ".join(scenes) + ")",
+             lambda by: "; ".join(_cell([c.get("f64_exact_vs_plain") for c in by[s]], unit="")
+                                  for s in scenes))
+    speed = _table(["objects", "f64 / f32 speed: " + NAMES[scenes[0]]] +
+                   [NAMES[s] for s in scenes[1:]],
+                   [[str(n)] + [_cell([_f64_over_f32(c) for c in cases.get((s, n), [])], unit="")
+                                for s in scenes] for n in counts])
+    return "\n".join(ratio_table(runs, exact) + [""] + speed)
 
 
 def shaded_table(runs) -> str:
-    cases = _by_case(runs)
-    counts = sorted({n for _, n in cases})
-    scenes = [s for s in SCENES if any(k[0] == s for k in cases)]
-    head = ["objects"] + [f"{NAMES[s]}, {p}" for s in scenes for p in ("f32", "f64")]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for n in counts:
-        row = [str(n)]
-        for s in scenes:
-            cs = cases.get((s, n), [])
-            row += [_cell([_ratio(c, "rt_core-f32") for c in cs]),
-                    _cell([_ratio(c, "rt_core-f64") for c in cs])]
-        lines.append("| " + " | ".join(row) + " |")
-    return "\n".join(lines)
+    return "\n".join(ratio_table(runs))
 
 
 def main(paths) -> int:
