@@ -83,8 +83,10 @@ def _has_cuda() -> bool:
     return dr.has_backend(dr.JitBackend.CUDA)
 
 
-@pytest.mark.parametrize("mode", [[], ["--shaded"], ["--command"]], ids=["primary", "shaded",
-                                                                          "command"])
+@pytest.mark.parametrize("mode", [["--objects", "1", "--columns", "32"],
+                                  ["--shaded", "--objects", "1", "--columns", "32"],
+                                  ["--command", "--command-columns", "32"]],
+                         ids=["primary", "shaded", "command"])
 def test05_cuda_backend_without_a_gpu_says_so(mode, tmp_path):
     """rtval bench --backend cuda where Dr.Jit finds no CUDA device: one line that says so and
     what to do, exit 2, nothing written (every mode)."""
@@ -92,10 +94,7 @@ def test05_cuda_backend_without_a_gpu_says_so(mode, tmp_path):
         pytest.skip("this machine has CUDA: test06 runs the benchmark there")
     out = tmp_path / "b.json"
     r = subprocess.run([sys.executable, "-m", "tools.cli", "bench", "--backend", "cuda", *mode,
-                        "--objects", "1", "--columns", "32", "-o", str(out)] if mode != ["--command"]
-                       else [sys.executable, "-m", "tools.cli", "bench", "--backend", "cuda",
-                             "--command", "--command-columns", "32", "-o", str(out)],
-                       cwd=REPO, capture_output=True, text=True, timeout=300)
+                        "-o", str(out)], cwd=REPO, capture_output=True, text=True, timeout=300)
     assert r.returncode == 2 and not out.exists()
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and "CUDA" in lines[0] and "--backend llvm" in lines[0], r.stderr
