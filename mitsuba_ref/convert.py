@@ -38,10 +38,13 @@ PLANE_EXTENT_FACTOR = 64.0
 EPS32 = 2.0 ** -24
 
 
-def mitsuba(variant: str = VARIANT):
-    """Mitsuba in rtval's variant (or ``variant``, one of VARIANTS' values), with the course
-    plugins registered (mitsuba_ref/integrator.py)."""
+def mitsuba(variant: str | None = None):
+    """Mitsuba in ``variant`` (one of VARIANTS' values), with the course plugins registered
+    (mitsuba_ref/integrator.py).  Without one: the variant already set if it is one of
+    VARIANTS' (so that the helpers below keep a benchmark's CUDA variant), else rtval's."""
     import mitsuba as mi
+    if variant is None:
+        variant = mi.variant() if mi.variant() in VARIANTS.values() else VARIANT
     if mi.variant() != variant:
         mi.set_variant(variant)
     from .integrator import register

@@ -285,15 +285,27 @@ def together():
         if ok and _BATCH:                   # nested: the outer block decides
             _BATCH[-1].extend(staged)
         elif ok:
-            for tmp, path, _ in staged:
-                os.replace(tmp, path)
+            # (a rename can still fail, e.g. a file of another user in a sticky directory:
+            # then the temporaries not yet renamed go, and the error is one line)
+            for k, (tmp, path, _) in enumerate(staged):
+                try:
+                    os.replace(tmp, path)
+                except OSError as exc:
+                    _discard(staged[k:])
+                    reason, hint = _reason(exc, tmp, path)
+                    raise WriteError(path, reason, hint) from None
                 _LIVE.discard(tmp)
         else:
-            for tmp, _, created in reversed(staged):
-                _LIVE.discard(tmp)
-                if os.path.lexists(tmp):
-                    os.unlink(tmp)
-                _remove_dirs(created)
+            _discard(staged)
+
+
+def _discard(staged) -> None:
+    """Remove staged temporaries and the directories their writes created."""
+    for tmp, _, created in reversed(staged):
+        _LIVE.discard(tmp)
+        if os.path.lexists(tmp):
+            os.unlink(tmp)
+        _remove_dirs(created)
 
 
 def _remove_dirs(created: list) -> None:

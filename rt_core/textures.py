@@ -111,6 +111,11 @@ def _tokens(data: bytes, count: int, pos: int):
 def read_ppm(path: str) -> np.ndarray:
     """The texels of a PPM file (P6 or P3, maxval 1..65535): (H, W, 3) float64 value /
     maxval, row 0 the file's first row.  ImageError (one line naming the file) otherwise."""
+    return _read_ppm(path)[0]
+
+
+def _read_ppm(path: str):
+    """(texels, the file's bytes) of read_ppm: one read serves the texels and the hash."""
     try:
         check_input(path, "texture")
         with open(path, "rb") as f:
@@ -145,7 +150,7 @@ def read_ppm(path: str) -> np.ndarray:
         vals = np.array([int(t) for t in toks[:n]], np.int64)
     if int(vals.max(initial=0)) > maxval:
         raise bad(f"a value above its maxval {maxval}")
-    return (vals.astype(np.float64) / maxval).reshape(h, w, 3)
+    return (vals.astype(np.float64) / maxval).reshape(h, w, 3), data
 
 
 def _mapping(scene, obj, word) -> dict:
@@ -181,9 +186,8 @@ def load(scene, obj, dirs=()) -> Texture:
     word = _field(obj, "texture")
     mapping = _mapping(scene, obj, word)
     path = find(scene, obj, dirs)
-    texels = read_ppm(path)
-    with open(path, "rb") as f:
-        sha = hashlib.sha256(f.read()).hexdigest()
+    texels, data = _read_ppm(path)
+    sha = hashlib.sha256(data).hexdigest()
     return Texture(str(word), path, sha, texels.shape[1], texels.shape[0], texels=texels,
                    **mapping)
 

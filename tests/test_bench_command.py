@@ -185,3 +185,20 @@ def test08_readme_tables_from_bench_runs(tmp_path):
     med = (ratios[0] + ratios[1]) / 2
     assert row.split(" | ")[1] == f"{med:.2f}× [{ratios[0]:.2f}–{ratios[1]:.2f}]", row
     assert "2 runs" in r.stdout and "f64 / f32 speed" in r.stdout
+
+
+def test09_the_scene_helpers_keep_the_benchmarks_variant(monkeypatch):
+    """(Without a GPU: scalar_rgb stands in for cuda_ad_rgb) once a benchmark has set its
+    backend's variant, building the scene (convert.scene_dict, which calls convert.mitsuba()
+    itself) keeps it: a CUDA benchmark's Mitsuba scene is a CUDA one."""
+    from mitsuba_ref import convert
+    from tools.harness.bench import bench_scene
+    monkeypatch.setitem(convert.VARIANTS, "cuda", "scalar_rgb")
+    try:
+        mi = convert.mitsuba(convert.VARIANTS["cuda"])
+        convert.scene_dict(bench_scene("mixed", 1), 32, None, integrator=False, clip=False)
+        assert mi.variant() == "scalar_rgb"
+    finally:
+        monkeypatch.undo()
+        convert.mitsuba(convert.VARIANT)
+    assert convert.mitsuba().variant() == convert.VARIANT

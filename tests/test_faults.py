@@ -155,6 +155,24 @@ def test04c_together_renames_all_or_none(tmp_path):
     assert sorted(p.name for p in a.parent.iterdir()) == ["a.txt"]
 
 
+def test04d_a_failed_rename_at_the_end_of_together(tmp_path, monkeypatch):
+    """A rename that fails when together() ends: one WriteError naming the file, and no
+    temporary left (the earlier rename stands: it cannot be undone)."""
+    from rt_core import outputs
+    real = os.replace
+
+    def replace(src, dst):
+        if str(dst).endswith("b.txt"):
+            raise PermissionError(1, "Operation not permitted")
+        return real(src, dst)
+    monkeypatch.setattr(outputs.os, "replace", replace)
+    with pytest.raises(WriteError, match=r"b\.txt: .*operation not permitted"):
+        with outputs.together():
+            atomic_write(tmp_path / "a.txt", lambda tmp: Path(tmp).write_text("a"))
+            atomic_write(tmp_path / "b.txt", lambda tmp: Path(tmp).write_text("b"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt"]
+
+
 def test05b_every_cut_of_an_exr_is_incomplete_never_an_exception(tmp_path):
     p = tmp_path / "a.exr"
     write_exr(str(p), {"R": np.random.default_rng(2).random((40, 24)), "G": np.ones((40, 24))})
@@ -482,3 +500,16 @@ def test17_devices_fifos_directories_and_huge_files_are_refused(tmp_path):
     one_line(rtval("exr", "info", fifo, timeout=60), 4, "is a FIFO")
     one_line(rtval("check", SEED, fifo, timeout=60), 2, "is a FIFO (named pipe), not an image")
     assert sorted(os.listdir(tmp_path)) == ["big.txt", "fifo"]
+
+
+def test04e_mitsuba_render_outputs_all_or_none(full_dir, tmp_path):
+    """rtval render --mitsuba (a convert --shading scene): -o fine, --ppm on a full disk: the
+    EXR is not left behind."""
+    xml = tmp_path / "s.xml"
+    assert rtval("convert", SEED, "--columns", 8, "--rows", 6, "--shading", "-o", xml) \
+        .returncode == 0
+    exr, ppm = tmp_path / "m.exr", full_dir / "m.ppm"
+    r = rtval("render", "--mitsuba", xml, "-o", exr, "--ppm", ppm)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert f"{ppm}: cannot write" in r.stderr.strip().splitlines()[-1]
+    assert not exr.exists() and sorted(p.name for p in full_dir.iterdir()) == ["fill"]

@@ -139,7 +139,8 @@ def run(args) -> int:
     if args.mitsuba:
         if args.json:
             args.usage_error("--json does not apply with --mitsuba")
-        return _run_mitsuba(args, outs)
+        with together():                # (its outputs too: all of them or none)
+            return _run_mitsuba(args, outs)
     if args.columns is None:
         args.usage_error("the following arguments are required: --columns")
     rules = args.rules or Rules()
