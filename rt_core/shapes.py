@@ -47,6 +47,7 @@ import decimal
 import math
 from dataclasses import dataclass
 from fractions import Fraction
+from types import SimpleNamespace
 
 import drjit as dr
 
@@ -583,12 +584,14 @@ def fplane_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = F
     return (t, *c.split(), lf)
 
 
-def sphere_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = False):
+def sphere_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = False,
+             live=None):
     """The near root of |o + t·d − centre|² = r²; miss if the discriminant <= 0 or t <= 0.
 
     The discriminant is taken as a·r² − |q' × d|² = (r√a − |q'×d|)(r√a + |q'×d|) (|q'×d|/√a
     is the distance of the centre from the ray line), and the near root as c/(b' + √disc)
-    when b' > 0, so neither cancels."""
+    when b' > 0, so neither cancels.  ``live``: ``sphere_live``'s result for these rays
+    from the viewpoint, whose |q×d|² and r√a (the same operations) are reused."""
     F, B = _check(d)
     q = opaque3(type(d), obj.q)
     r = opaque(F, obj.radius)
@@ -600,8 +603,12 @@ def sphere_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = F
         c = (qn - r) * (qn + r)
     a = dr.squared_norm(d)
     bh = dr.dot(q, d)                       # −b/2 of the course's quadratic
-    cn = dr.norm(dr.cross(q, d))            # |d| × distance of the centre from the ray line
-    ra = r * dr.sqrt(a)
+    if live is None:
+        cn = dr.norm(dr.cross(q, d))        # |d| × distance of the centre from the ray line
+        ra = r * dr.sqrt(a)
+    else:
+        assert o is None, "sphere_live is for rays from the viewpoint"
+        cn, ra = dr.sqrt(live.sn), live.ra
     disc = (ra - cn) * (ra + cn)
     # √max(disc, 0) as a select (dr.maximum costs ~8 instructions, see ``least``); a NaN
     # disc gives 0 here, and a miss either way (disc > 0 fails)
@@ -646,14 +653,18 @@ def sphere_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = F
 CULL_MARGIN = 2.0 ** -18
 
 
-def sphere_live(d, obj: ObjectConstants, cert=False):
-    """Rays from the viewpoint that may hit sphere ``obj`` (host constants): all but those
-    that ``sphere_t`` certainly finds missing, decided without a square root."""
+def sphere_live(d, obj: ObjectConstants, cert=False) -> SimpleNamespace:
+    """Rays from the viewpoint that may hit sphere ``obj`` (host constants): ``mask``, all
+    but those that ``sphere_t`` certainly finds missing, decided without a square root;
+    with ``sn`` = |q×d|² and ``ra`` = r√a, computed as sphere_t computes them (it takes them
+    as ``live`` instead of computing them again: ~7% of 4 spheres' camera rays, measured
+    with ``rtval bench``)."""
     F, B = _check(d)
     q = opaque3(type(d), obj.q)
     sn = dr.squared_norm(dr.cross(q, d))            # |q×d|²
     ra = opaque(F, obj.radius) * dr.sqrt(dr.squared_norm(d))
-    return ~_sphere_miss(F, sn, ra, _scaled(obj.bo, cert) if cert else None)
+    miss = _sphere_miss(F, sn, ra, _scaled(obj.bo, cert) if cert else None)
+    return SimpleNamespace(mask=~miss, sn=sn, ra=ra)
 
 
 def _sphere_miss(F, sn, ra, bo):

@@ -25,7 +25,7 @@ from .rules import Rules
 from .scene import Scene, SceneError, locate
 from .kinds import KIND_CODE, PLANE_KINDS
 from .shapes import (ObjectConstants, least, numbers, object_constants, object_t,
-                     sphere_live)
+                     sphere_live, sphere_t)
 from .shapes_quadric import is_quadric, quadric_code, quadric_normal
 from .shapes_torus import torus_surface
 
@@ -195,9 +195,10 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, c
                 st.set(dr.if_stmt(st.state(), go, test, lambda *s: s,
                                   label="closest_object"))
                 continue
-            def test(*state, obj=obj, oid=oid):
+            def test(*state, obj=obj, oid=oid, live=None):
                 s = st.set(state)
-                res = object_t(d, o, obj, rules, vz, scale)
+                res = (object_t(d, o, obj, rules, vz, scale) if live is None else
+                       sphere_t(d, o, obj, rules, vz, scale, live))
                 # (one object: no ties, so no t bound to carry)
                 s.fold(res[0], res[1], oid, rules, single_kind,
                        *((res[2], res[3] if len(ks.consts) > 1 else None,
@@ -207,8 +208,11 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, c
                 st.set(test(*st.state()))
                 continue
             # a camera ray's sphere: a packet whose rays all certainly miss skips the test
-            # (its two square roots and division) and the fold
-            st.set(dr.if_stmt(st.state(), sphere_live(d, obj, scale), test, lambda *s: s,
+            # (its two square roots and division) and the fold; the test reuses the cull's
+            # |q×d|² and r√a
+            live = sphere_live(d, obj, scale)
+            st.set(dr.if_stmt(st.state(), live.mask, lambda *s, t=test, lv=live: t(*s, live=lv),
+                              lambda *s: s,
                               label="sphere_object"))
     if cert:
         return _decide_flagged(ks, cam, rules, st, d)
