@@ -228,6 +228,7 @@ class _Screen:
                                               np.float64)
         self.sphere = np.array([o.kind == "sphere" for o in objs], bool)
         self.fplane = np.array([o.kind == "fplane" for o in objs], bool)
+        self.quadric = np.array([o.kind in QUADRICS for o in objs], bool)
         self.fQ = np.array([o.fQ for o in objs], np.float64).reshape(n, 3)
         self.nQ, self.fcc = col("nQ"), col("fcc")
         self.fN = np.array([getattr(o, "fN", z3) for o in objs], np.float64).reshape(n, 3)
@@ -271,8 +272,7 @@ def surely_missed(objs, fE: np.ndarray) -> np.ndarray:
                (a * a > S.fw2 * (1 + SCREEN) + SCREEN * pa * pa) |
                (bb * bb > S.fh2 * (1 + SCREEN) + SCREEN * ya * ya))
         fpl = open_ & (s > 0) & out & S.fplane
-    quad = np.array([o.kind in QUADRICS for o in objs], bool)
-    return np.where(S.sphere, sph, behind | fpl) & ~quad[None, :]
+    return np.where(S.sphere, sph, behind | fpl) & ~S.quadric[None, :]
 
 
 def _less(a, b) -> int:
@@ -327,6 +327,12 @@ class Prepared(list):
     """The scene's objects as exact numbers (and, once asked for, their float screen)."""
     screen = None
 
+    @property
+    def torus(self) -> bool:
+        if "_torus" not in self.__dict__:
+            self._torus = any(o.kind == "torus" for o in self)
+        return self._torus
+
 
 def prepare(scene: Scene) -> Prepared:
     """The scene's objects as exact numbers, for any number of ``decide`` calls."""
@@ -341,7 +347,7 @@ def decide_rays(scene: Scene, rules: Rules, rays, distance: bool = False, objs=N
     or with ``distance`` the Euclidean distance."""
     V = tuple(_q(exact(c)) for c in scene.viewpoint)
     objs = prepare(scene) if objs is None else objs
-    torus = any(o.kind == "torus" for o in objs)
+    torus = objs.torus if isinstance(objs, Prepared) else any(o.kind == "torus" for o in objs)
     tmin = Q(rules.t_min)
     tmin2 = tmin * tmin
     ids = np.full(len(rays), -1, np.int32)

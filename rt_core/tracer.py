@@ -221,8 +221,12 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, c
 
 
 def shared_groups(ks: KernelScene) -> bool:
-    """Do two objects lie on the same plane (or are the same sphere)?"""
-    return len({c.grp for c in ks.consts}) < len(ks.consts)
+    """Do two objects lie on the same plane (or are the same sphere)?  (Once per
+    KernelScene: a set over every object, ~1 ms at 4096.)"""
+    got = ks.__dict__.get("_shared_groups")
+    if got is None:
+        got = ks.__dict__["_shared_groups"] = len({c.grp for c in ks.consts}) < len(ks.consts)
+    return got
 
 
 def exact_decisions(ks: KernelScene) -> bool:
