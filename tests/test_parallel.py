@@ -327,9 +327,19 @@ def test09_check_run_on_a_cluster_equals_serial(cluster, tmp_path):
     assert same(runs["dask"], runs["serial"]) == []
 
 
-def test10_by_default_only_a_long_run_starts_a_local_cluster():
-    from tools.harness.validate import seconds_per_comparison
+def test10_by_default_only_a_long_run_starts_a_local_cluster(monkeypatch):
+    from tools.harness.validate import SERIAL_BUSY_CORES, seconds_per_comparison
     auto = P.Plan()
+    # on 2 cores validate stays here, however long (its serial run keeps both cores busy and
+    # was faster: README), and the full stability sweep (one core busy) does not
+    monkeypatch.setattr(P, "cores", lambda: 2)
+    assert auto.resolve(760, seconds_per_comparison(160), SERIAL_BUSY_CORES).in_process
+    assert not auto.resolve(80, S.SECONDS_PER_CASE["full"], S.SERIAL_BUSY_CORES).in_process
+    assert not P.Plan(workers=2).resolve(760, seconds_per_comparison(160),
+                                         SERIAL_BUSY_CORES).in_process
+    # on more cores, validate too, by the run's length
+    monkeypatch.setattr(P, "cores", lambda: 8)
+    assert not auto.resolve(760, seconds_per_comparison(160), SERIAL_BUSY_CORES).in_process
     # validate: 1 scene (5 comparisons) stays here; the default 670 comparisons do not
     assert auto.resolve(5, seconds_per_comparison(160)).in_process
     assert not auto.resolve(670, seconds_per_comparison(160)).in_process
@@ -342,3 +352,37 @@ def test10_by_default_only_a_long_run_starts_a_local_cluster():
     assert not P.Plan(workers=2).resolve(2, 0.0).in_process
     assert not P.Plan(scheduler="tcp://h:8786").resolve(1, 0.0).in_process
     assert P.Plan(workers=1).resolve(10**6).in_process
+
+
+class _Planned(Exception):
+    """Raised by a stubbed run function with the plan it was given."""
+
+
+@pytest.mark.parametrize("cores, stability_busy, validate_here, stability_here",
+                         [(2, None, True, False), (8, None, False, False),
+                          (2, 1.8, True, True)])
+def test11_the_commands_default_plan_follows_their_serial_core_use(
+        monkeypatch, tmp_path, cores, stability_busy, validate_here, stability_here):
+    """`rtval validate` and `rtval stability` hand their measured serial core use to the
+    default plan: on 2 cores a long validate runs here and the full stability sweep on 2
+    workers (unless its serial run kept both cores busy); on 8 both on a cluster (the run
+    functions stubbed: only the plan is asked)."""
+    import tools.harness.validate as V
+    from tools.cli import main
+
+    def stub(*a, plan=None, **k):
+        raise _Planned(plan)
+    monkeypatch.setattr(P, "cores", lambda: cores)
+    monkeypatch.setattr(V, "seconds_per_comparison", lambda columns: 10.0)   # a long run
+    monkeypatch.setattr(V, "validate", stub)
+    monkeypatch.setattr(S, "run_suite", stub)
+    if stability_busy is not None:
+        monkeypatch.setattr(S, "SERIAL_BUSY_CORES", stability_busy)
+    scenes = sorted(str(p) for p in (REPO / "scenes").glob("*.txt"))[:8]
+    got = []
+    for argv in (["validate", *scenes, "-o", str(tmp_path / "v")],
+                 ["stability", "-o", str(tmp_path / "s")]):
+        with pytest.raises(_Planned) as e:
+            main(argv)
+        got.append(e.value.args[0])
+    assert [p.in_process for p in got] == [validate_here, stability_here]

@@ -59,7 +59,7 @@ def run(args) -> int:
     mode = "quick" if args.quick else "full"
     seeds = tuple(range(args.seeds))
     total = len(S.case_specs(mode, fams, seeds))
-    plan = plan_of(args).resolve(total, S.SECONDS_PER_CASE[mode])
+    plan = plan_of(args).resolve(total, S.SECONDS_PER_CASE[mode], S.SERIAL_BUSY_CORES)
     bar = tqdm(total=total, file=sys.stderr, unit="case", disable=None)
     results = S.run_suite(mode, fams, seeds, progress=lambda r: bar.update(1), plan=plan)
     bar.close()

@@ -61,9 +61,9 @@ def run(args) -> int:
     from tqdm import tqdm
     from rt_core.render import versions
     from tools.harness.parallel import plan_of
-    from tools.harness.validate import (default_scene_paths, load_supported,
-                                        seconds_per_comparison, skip_counts, stem_of,
-                                        validate, write_report)
+    from tools.harness.validate import (SERIAL_BUSY_CORES, default_scene_paths,
+                                        load_supported, seconds_per_comparison, skip_counts,
+                                        stem_of, validate, write_report)
 
     if args.report:                     # refused before the run, not after it
         from tools.harness.html_report import check_target
@@ -80,7 +80,7 @@ def run(args) -> int:
         print(f"skipped ({s.category}): {s.reason}", file=sys.stderr)
     total = len(scenes) * (len(precisions) * len(modes) + (args.shaded_columns > 0)) \
         - sum(s.category == "texture" for s in skipped)
-    plan = plan_of(args).resolve(total, seconds_per_comparison(args.columns))
+    plan = plan_of(args).resolve(total, seconds_per_comparison(args.columns), SERIAL_BUSY_CORES)
     if sys.stderr.isatty():
         bar = tqdm(total=total, file=sys.stderr, unit="cmp")
         progress, done = (lambda row: bar.update(1)), bar.close

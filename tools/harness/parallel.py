@@ -3,8 +3,9 @@ this process or on Dask workers, with the results in the cases' order.
 
 * In this process (``Plan.in_process``: ``--serial``, ``--workers 0`` or ``1``): a plain loop,
   no Dask.
-* A local cluster (the default): ``distributed.LocalCluster`` of one worker process per core,
-  one Dask thread each.  Its scratch directory is a temporary one, removed when the run
+* A local cluster (the default for a run long enough, where its serial run would leave
+  cores idle: ``Plan.resolve``): ``distributed.LocalCluster`` of one worker process per
+  core, one Dask thread each.  Its scratch directory is a temporary one, removed when the run
   ends, however it ends (Ctrl-C, SIGTERM, an error).
 * An existing cluster (``--scheduler ADDRESS``): its workers must run the same rtval, Dr.Jit
   and Mitsuba (checked before any case is sent).
@@ -78,13 +79,16 @@ class Plan:
     def in_process(self) -> bool:
         return self.scheduler is None and self.local_workers <= 1
 
-    def resolve(self, n: int | None, seconds_per_case: float = 1.0) -> "Plan":
+    def resolve(self, n: int | None, seconds_per_case: float = 1.0,
+                busy_cores: float = 1.0) -> "Plan":
         """The plan a run of ``n`` cases uses: by default (``workers`` None, no scheduler)
-        a run that would take less than AUTO_MIN_SECONDS in this process
-        (``seconds_per_case``: the command's rough estimate), or has a single case, stays
-        in this process."""
-        if self.workers is None and self.scheduler is None and n is not None and \
-                (n < 2 or n * seconds_per_case < AUTO_MIN_SECONDS):
+        a run stays in this process when it would leave less than IDLE_MIN_CORES of the
+        machine's cores idle there (``busy_cores``: the cores the command's serial run
+        keeps busy, measured), when it would take less than AUTO_MIN_SECONDS there
+        (``seconds_per_case``: the command's rough estimate), or when it has one case."""
+        if self.workers is None and self.scheduler is None and (
+                cores() - busy_cores < IDLE_MIN_CORES or
+                (n is not None and (n < 2 or n * seconds_per_case < AUTO_MIN_SECONDS))):
             return Plan(0, None, self.verbose)
         return self
 
@@ -101,6 +105,11 @@ SERIAL = Plan(workers=0)
 # 3 s before its first result and 5 CPU seconds (each worker imports Dask, Dr.Jit and
 # Mitsuba), more than a short run gains on 2 cores (benchmarks/parallel_speedup.py)
 AUTO_MIN_SECONDS = 30.0
+# and so does a run whose serial run leaves less than this many cores idle: on 2 cores the
+# default validate keeps 1.8 busy (Dr.Jit's and Mitsuba's threads) and ran 1.25x faster
+# serial than on 2 workers, stability keeps 1.06 busy and ran 1.31x faster on 2 workers
+# (benchmarks/parallel_speedup.py, README "Many cores, many machines")
+IDLE_MIN_CORES = 0.5
 
 
 def plan_of(args) -> Plan:
@@ -227,19 +236,20 @@ def worker_stats() -> dict:
 # --- here -----------------------------------------------------------------------------------
 
 def run_cases(fn, items, plan: Plan = SERIAL, each=None, stats: dict | None = None,
-              count: int | None = None, seconds_per_case: float = 1.0) -> list:
+              count: int | None = None, seconds_per_case: float = 1.0,
+              busy_cores: float = 1.0) -> list:
     """``fn(item)`` for every item, where ``plan`` says.  As each result arrives,
     ``each(index, result)`` is called and what it returns is kept (default: the result);
     returns the kept values in the items' order.
 
     ``items`` may be a generator: it is drawn as the cases are sent (``check --run`` yields
     each image as the user's tracer writes it).  ``count``: how many it will yield, when
-    ``items`` has no len(); with ``seconds_per_case`` it decides whether a default plan
-    uses a local cluster (``Plan.resolve``).  ``stats``: filled with each worker's
+    ``items`` has no len(); with ``seconds_per_case`` and ``busy_cores`` it decides
+    whether a default plan uses a local cluster (``Plan.resolve``).  ``stats``: filled with each worker's
     ``worker_stats()`` (Dask only)."""
     each = each or (lambda i, r: r)
     n = len(items) if hasattr(items, "__len__") else count
-    plan = plan.resolve(n, seconds_per_case)
+    plan = plan.resolve(n, seconds_per_case, busy_cores)
     if plan.in_process or n == 0:
         return [each(i, fn(x)) for i, x in enumerate(items)]
     with session(plan, count_kernels=stats is not None or plan.verbose) as (client, config):

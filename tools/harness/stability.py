@@ -739,6 +739,9 @@ def run_spec(spec) -> CaseResult:
 # rough serial seconds of one case, per mode (measured on 2 cores: the full sweep's 80
 # cases take 44 s of case time): whether a run is worth a local cluster (parallel.Plan)
 SECONDS_PER_CASE = {"quick": 0.2, "test": 0.3, "full": 0.6}
+# cores a serial run keeps busy (the full sweep on 2 cores: 67 CPU s over 63 s): its small
+# cases leave a core idle, which a second worker uses (parallel.Plan.resolve)
+SERIAL_BUSY_CORES = 1.06
 
 
 def run_suite(mode: str = "test", families=None, seeds=(0,), progress=None, plan=None):
@@ -752,7 +755,7 @@ def run_suite(mode: str = "test", families=None, seeds=(0,), progress=None, plan
             progress(res)
         return res
     return run_cases(run_spec, case_specs(mode, families, seeds), plan or SERIAL, each,
-                     seconds_per_case=SECONDS_PER_CASE[mode])
+                     seconds_per_case=SECONDS_PER_CASE[mode], busy_cores=SERIAL_BUSY_CORES)
 
 
 # --- report --------------------------------------------------------------------------------------

@@ -129,6 +129,12 @@ def seconds_per_comparison(columns: int) -> float:
     return 0.15 * max(1.0, (columns / 160) ** 2)
 
 
+# cores a serial run keeps busy (its CPU seconds over its wall time: 77 s over 43.5 s for the
+# default run on 2 cores, benchmarks/parallel_speedup.py): Dr.Jit's and Mitsuba's threads
+# leave a 2-core machine no room for a second worker (parallel.Plan.resolve)
+SERIAL_BUSY_CORES = 1.8
+
+
 def run_job(job: Job) -> list:
     """A job's comparisons (in this process or on a Dask worker): for each, its report row,
     and the comparison itself when its evidence is to be written (it failed, or
@@ -203,7 +209,8 @@ def validate(scenes, columns: int, precisions, modes, outdir: str, progress=None
         return rows
     per_job = sum(len(j.modes) for j in todo) / max(len(todo), 1)
     done = run_cases(run_job, todo, plan or SERIAL, each,
-                     seconds_per_case=per_job * seconds_per_comparison(columns))
+                     seconds_per_case=per_job * seconds_per_comparison(columns),
+                     busy_cores=SERIAL_BUSY_CORES)
     # report order: per scene, every mode and precision (as given), then the shaded image
     order = {m: k for k, m in enumerate((*modes, "shaded"))}
     prec = {p: k for k, p in enumerate(precisions)}
