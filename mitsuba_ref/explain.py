@@ -50,7 +50,9 @@ class ObjectEval:
                  O: np.ndarray | None = None):
         V = np.asarray(scene.viewpoint, np.float64)
         n = len(d)
-        O = np.tile(V, (n, 1)) if O is None else np.asarray(O, np.float64)
+        # rays from the viewpoint: O is one row, broadcast (what depends on O alone, as
+        # |O| and the anchor's offset, is computed once instead of once per ray)
+        O = V[None, :] if O is None else np.asarray(O, np.float64)
         kind(obj.kind)                          # an unknown kind raises, never "a plane"
         self.kind = obj.kind
         self.margin = np.full(n, np.inf)       # world-unit distance to the decision boundary
@@ -59,7 +61,8 @@ class ObjectEval:
         self.cos = np.ones(n)
         origin = _norm(O) + np.sqrt(V @ V)
         if obj.kind in quadric.KINDS:          # mitsuba_ref/quadric.py; its classes: silhouette
-            self.t, self.valid, self.margin, size = quadric.classify_eval(obj, O, d, rules)
+            self.t, self.valid, self.margin, size = quadric.classify_eval(
+                obj, np.broadcast_to(O, (n, 3)), d, rules)
             self.size = size
             if rules.clip_spheres:
                 self.clip_margin = np.abs(O[:, 2] + self.t * d[:, 2])
@@ -207,10 +210,13 @@ def depth_bound(scene: Scene, d: np.ndarray, ids: np.ndarray, t: np.ndarray, ext
     position bound along the ray, over t.  For a sphere the bound grows as the ray nears
     the outline (t is ill-conditioned there): ε·S/√(relative discriminant)."""
     out = np.full(len(d), np.inf)
-    for i, o in enumerate(scene.objects):
-        sel = ids == i
-        if not sel.any():
+    # the rays of each object hit, by one sort (not a pass over every ray per object)
+    order = np.argsort(ids, kind="stable")
+    present, start = np.unique(ids[order], return_index=True)
+    for i, sel in zip(present.tolist(), np.split(order, start[1:])):
+        if not 0 <= i < len(scene.objects):
             continue
+        o = scene.objects[i]
         ev = ObjectEval(scene, o, d[sel], rules, extent)
         b = ev.bound(t[sel])
         if o.kind in quadric.KINDS:
