@@ -16,8 +16,9 @@ written here with Mitsuba's own queries and nothing from rt_core:
   and cylinders only with clip_spheres.  One scene: spheres and planes clip differently
   inside it.  A reflection ray steps over the object it leaves, as the course skips it (a
   cylinder's inside wall reflects back into the cylinder).
-* **Shadows**: one ray per light toward it (``si.spawn_ray_to``, which leaves the surface
-  itself, as the course skips the object a ray leaves), blocked by the first counted hit.
+* **Shadows**: one ray per light toward it, the course's line from the hit point (its search
+  starts a little along the ray, ``_along``, and steps over the object it leaves, as the
+  course skips it), blocked by the first counted hit.
 * **Hit points and normals**: Mitsuba decides which surface a ray meets; where on it comes
   from the course geometry its material carries (``_point``): a plane's equation, a
   sphere's centre and radius, a cylinder's base centre, unit axis and radius (the root
@@ -371,7 +372,8 @@ def _classes(mi):
             start = o if start is None else start
             ray = mi.Ray3f(start, d)
             if maxt is not None:
-                ray.maxt = maxt                 # (Ray3f's third argument is the time)
+                # (measured from o, as t is; Ray3f's third argument is the time)
+                ray.maxt = maxt - dr.dot(start - o, d)
             si = scene.ray_intersect(ray, active)
             hit = active & si.is_valid()
             t, p, planar, idx = self._point(si, o, d)
@@ -412,10 +414,14 @@ def _classes(mi):
                 out.append((pos, E, (axis, cos_t)))
             return out
 
-        def blocked(self, scene, sray, cast):
-            """Is a counted hit on the shadow ray (from just off the surface, to the light)?"""
-            return self._closest(scene, sray.o, dr.normalize(sray.d), cast,
-                                 sray.maxt * dr.norm(sray.d))[3]
+        def blocked(self, scene, p, L, ld, leave, cast):
+            """Is a counted hit on the shadow ray p + t·L, 0 < t < ld (the light's distance),
+            other than on the object ``leave`` it leaves?  The ray ends ShadowEpsilon short
+            of the light, as spawn_ray_to's does: a blocker exactly at the light (a light
+            lying in a plane, nw__modelTwoup) is a tie the course's t < d leaves unblocked,
+            which float32 would decide at random."""
+            short = ld * dr.opaque(mi.Float, 1 - mi.math.ShadowEpsilon)
+            return self._closest(scene, p, L, cast, short, _along(p, L), leave)[3]
 
         def light_term(self, dif, E, c, ld):
             """One light's diffuse term: diffuse ⊙ E · c / d (1/d, not 1/d²)."""
@@ -478,7 +484,7 @@ def _classes(mi):
                     if spot is not None:
                         cast &= -dr.dot(L, spot[0]) > spot[1]
                     if dr.any(cast):
-                        blocked = self.blocked(scene, si.spawn_ray_to(Lp), cast)
+                        blocked = self.blocked(scene, p, L, ld, self._ids(si, cast), cast)
                         I += dr.select(cast & ~blocked, self.light_term(dif, E, c, ld), 0.0)
                 div = t if self.reflect == "segment" else total_here
                 image = image + dr.select(hit, weight * I / div, 0.0)
@@ -488,8 +494,9 @@ def _classes(mi):
                     break
                 R = self.reflected(d, N)
                 # the next segment starts at the hit point (its t is measured from there);
-                # the search starts just off the surface it leaves (the course skips it)
-                start = dr.select(go, si.spawn_ray(R).o, start)
+                # the search starts a little along the ray (_along), and steps over the
+                # surface it leaves (the course skips it)
+                start = dr.select(go, _along(p, R), start)
                 leave = self._ids(si, go)
                 o, d = dr.select(go, p, o), dr.select(go, R, d)
                 weight = weight * spec
@@ -502,5 +509,14 @@ def _classes(mi):
 
     def _odd(f):
         return f - 2 * dr.floor(0.5 * f)
+
+    def _along(p, d):
+        """Where a secondary ray from the hit point p along d starts its search: p moved
+        (1 + |p|∞)·RayEpsilon along the ray itself, so the ray is still the course's line
+        H + t·d.  (Mitsuba's spawn_ray moves it as far off the surface, along the normal:
+        that shifts the whole line, and a shadow ray passing 5.5e-4 below a cylinder's rim
+        on the other side was blocked: README "Mitsuba renders the course image".)"""
+        off = (1 + dr.max(dr.abs(p))) * mi.math.RayEpsilon
+        return p + d * off
 
     return CourseMaterial, CourseIntegrator
