@@ -334,3 +334,33 @@ def test42_validate_writes_report(tmp_path):
     assert r.returncode == 0, r.stderr
     assert sorted(p.name for p in (tmp_path / "exr").glob("*.exr")) == [
         f"sphere.{m}.f32.{w}.exr" for m in ("camera", "rays") for w in ("mitsuba", "ours")]
+
+
+def test43_validate_runs_each_side_once_compare_twice(monkeypatch):
+    """validate checks and `rtval bench` times: a validate job traces rt_core once (its rays
+    and camera modes share the trace) and each Mitsuba query once, its rows saying so;
+    `compare` alone times the second of two calls."""
+    import mitsuba_ref.reference as R
+    import tools.harness.compare as C
+    from tools.harness.validate import Job, run_job
+    calls = {"ours": 0, "rays": 0, "camera": 0}
+
+    def counted(name, fn):
+        def wrap(*a, **k):
+            calls[name] += 1
+            return fn(*a, **k)
+        return wrap
+    monkeypatch.setattr(C, "trace_geometry", counted("ours", C.trace_geometry))
+    monkeypatch.setattr(C, "trace_rays", counted("rays", R.trace_rays))
+    monkeypatch.setattr(C, "render_camera", counted("camera", R.render_camera))
+    sc = parse_scene(REPO / "scenes" / "sphere.txt")
+    rows = [row for row, _ in run_job(Job(sc, ("rays", "camera"), "f32", 32))]
+    # (the camera mode traces rt_core again only where Mitsuba's square pixels need another
+    # camera)
+    cam = make_camera(sc, 32)
+    other = not sensor_setup(sc, cam.columns, cam.rows, cam.sampling).square
+    assert calls == {"ours": 1 + other, "rays": 1, "camera": 1}
+    assert [r["timed"] for r in rows] == ["first call"] * 2
+    calls.update(ours=0, rays=0, camera=0)
+    assert compare(sc, 32, None, "f32", "rays").summary()["timed"] == "second call"
+    assert calls == {"ours": 2, "rays": 2, "camera": 0}

@@ -45,6 +45,7 @@ class Comparison:
     rules: Rules = Rules()
     backend: str = "llvm"
     seconds: dict = field(default_factory=dict)     # per phase (tools/harness/timing.py)
+    timed: str = "second call"          # which call ms_ours and ms_ref time (``compare``)
 
     @property
     def unexplained(self) -> int:
@@ -66,7 +67,7 @@ class Comparison:
                 "classes": self.counts, "explained": self.explained,
                 "unexplained": self.unexplained, "depth": self.depth,
                 "rt_core_ms": round(self.ms_ours, 3), "mitsuba_ms": round(self.ms_ref, 3),
-                "seconds": self.seconds, "ok": self.ok, "note": self.note}
+                "timed": self.timed, "seconds": self.seconds, "ok": self.ok, "note": self.note}
 
 
 def _numpy3(v) -> np.ndarray:
@@ -75,11 +76,14 @@ def _numpy3(v) -> np.ndarray:
 
 def compare(scene: Scene, columns: int, rows: int | None = None, precision: str = "f32",
             mode: str = "rays", sampling: str = "corners", rules: Rules = Rules(),
-            backend_name: str = "llvm", cache: dict | None = None) -> Comparison:
+            backend_name: str = "llvm", cache: dict | None = None,
+            calls: int = 2) -> Comparison:
     """rt_core against Mitsuba on one scene in one mode.  ``cache``: a dict shared by the
     comparisons of one scene (validate's rays and camera modes): rt_core's trace of the same
     camera and Mitsuba's loaded scene are made once between them (the time charged to the
-    first)."""
+    first).  ``calls``: each side runs twice and its second call is timed (the steady state:
+    ``rtval compare``), or once (``rtval validate``: its time then includes finding, or
+    compiling, the kernels; ``rtval bench`` times the steady state)."""
     cache = {} if cache is None else cache
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}")
@@ -106,7 +110,7 @@ def compare(scene: Scene, columns: int, rows: int | None = None, precision: str 
            backend_name)
     if ("ours", *key) not in cache:
         with sw("rt_core"):
-            for _ in range(2):
+            for _ in range(calls):
                 t0 = time.perf_counter()
                 flat = trace_geometry(scene, cam, T, rules)
                 ms_ours = (time.perf_counter() - t0) * 1e3
@@ -121,7 +125,7 @@ def compare(scene: Scene, columns: int, rows: int | None = None, precision: str 
             cache[mkey] = MitsubaScene(scene, cam.columns, cam.rows, sampling,
                                        clip_spheres=rules.clip_spheres)
         ms = cache[mkey]
-        for _ in range(2):
+        for _ in range(calls):
             t0 = time.perf_counter()
             if mode == "rays":
                 ref = {k: v.reshape(cam.rows, cam.columns) for k, v in trace_rays(ms, d).items()}
@@ -150,7 +154,7 @@ def compare(scene: Scene, columns: int, rows: int | None = None, precision: str 
     note = "; ".join(n for n in (note, subset_note) if n)
     return Comparison(scene, mode, precision, cam.columns, cam.rows, classes, ours, ref, depth,
                       ms_ours, ms_ref, note, counts, sampling, rules, backend_name,
-                      sw.rounded())
+                      sw.rounded(), "second call" if calls > 1 else "first call")
 
 
 EVIDENCE = ("ours", "mitsuba", "diff", "classes")
