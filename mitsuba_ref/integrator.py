@@ -365,10 +365,11 @@ def _classes(mi):
 
         def _closest(self, scene, o, d, active, maxt=None, start=None, leave=None):
             """The closest counted hit along o + t·d (t < maxt): (si, t, p, hit).  A hit not
-            counted is stepped over (the ray goes on from it); t is measured from o.
-            ``start``: where the search begins (a spawned origin just off the surface the
-            ray leaves), default o; ``leave``: the course id of the object the ray leaves
-            (stepped over, as the course skips it), default none."""
+            counted is stepped over: the search goes on from a little beyond it along the
+            same line (``_along``; never from Mitsuba's ``spawn_ray``, which moves the line
+            off the surface); t is measured from o.  ``start``: where the search begins (a
+            point of the line a little beyond o), default o; ``leave``: the course id of the
+            object the ray leaves (stepped over, as the course skips it), default none."""
             start = o if start is None else start
             ray = mi.Ray3f(start, d)
             if maxt is not None:
@@ -383,9 +384,13 @@ def _classes(mi):
                     skip |= hit & (idx == leave)
                 if not dr.any(skip):
                     break
-                nxt = si.spawn_ray(d)
+                # on from the skipped hit, never back behind where this search started
+                reach = dr.maximum(t, dr.dot(ray.o - o, d))
+                on = _along(mi.Point3f(dr.fma(d, reach, o)), d)
+                nxt = mi.Ray3f(dr.select(skip, on, ray.o), d)
                 if maxt is not None:
                     nxt.maxt = maxt - dr.dot(nxt.o - o, d)
+                ray = nxt
                 si2 = scene.ray_intersect(nxt, skip)
                 si = dr.select(skip, si2, si)
                 hit = dr.select(skip, si2.is_valid(), hit)
@@ -415,11 +420,12 @@ def _classes(mi):
             return out
 
         def blocked(self, scene, p, L, ld, leave, cast):
-            """Is a counted hit on the shadow ray p + t·L, 0 < t < ld (the light's distance),
-            other than on the object ``leave`` it leaves?  The ray ends ShadowEpsilon short
-            of the light, as spawn_ray_to's does: a blocker exactly at the light (a light
-            lying in a plane, nw__modelTwoup) is a tie the course's t < d leaves unblocked,
-            which float32 would decide at random."""
+            """Is a counted hit on the shadow ray p + t·L, 0 < t < ld·(1 − ShadowEpsilon),
+            other than on the object ``leave`` it leaves?  (The course's test is t < ld, the
+            light's distance.  The ray ends ShadowEpsilon, 8.9e-4 of ld, short of the light,
+            as spawn_ray_to's does: a blocker exactly at the light, a light lying in a plane
+            as in nw__modelTwoup, is a tie the course's t < d leaves unblocked, which
+            float32 would decide at random; a blocker that near the light is missed.)"""
             short = ld * dr.opaque(mi.Float, 1 - mi.math.ShadowEpsilon)
             return self._closest(scene, p, L, cast, short, _along(p, L), leave)[3]
 

@@ -82,7 +82,7 @@ class ShadedComparison:
                 "wrong": self.counts.get("wrong", 0), "worst": self.worst,
                 "flip_mean": self.flip_mean,
                 "rt_core_ms": round(self.ms_ours, 3), "mitsuba_ms": round(self.ms_ref, 3),
-                "seconds": self.seconds, "ok": self.ok, "note": self.note}
+                "timed": "first call", "seconds": self.seconds, "ok": self.ok, "note": self.note}
 
 
 def mitsuba_course_image(scene: Scene, columns: int, rows: int, sampling: str = "corners",

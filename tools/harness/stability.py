@@ -740,7 +740,8 @@ def run_spec(spec) -> CaseResult:
 # cases take 44 s of case time): whether a run is worth a local cluster (parallel.Plan)
 SECONDS_PER_CASE = {"quick": 0.2, "test": 0.3, "full": 0.6}
 # cores a serial run keeps busy (the full sweep on 2 cores: 67 CPU s over 63 s): its small
-# cases leave a core idle, which a second worker uses (parallel.Plan.resolve)
+# cases leave a core idle, which a second worker uses (parallel.Plan.resolve; measured on 2
+# cores only)
 SERIAL_BUSY_CORES = 1.06
 
 

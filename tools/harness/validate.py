@@ -131,7 +131,8 @@ def seconds_per_comparison(columns: int) -> float:
 
 # cores a serial run keeps busy (its CPU seconds over its wall time: 77 s over 43.5 s for the
 # default run on 2 cores, benchmarks/parallel_speedup.py): Dr.Jit's and Mitsuba's threads
-# leave a 2-core machine no room for a second worker (parallel.Plan.resolve)
+# leave a 2-core machine no room for a second worker (parallel.Plan.resolve).  Measured on 2
+# cores only: on more, the threads spread wider and the serial run keeps more busy
 SERIAL_BUSY_CORES = 1.8
 
 
