@@ -24,6 +24,7 @@ independent of it and of the kernels).
 from __future__ import annotations
 
 import decimal
+import functools
 import math
 from fractions import Fraction
 
@@ -327,11 +328,9 @@ class Prepared(list):
     """The scene's objects as exact numbers (and, once asked for, their float screen)."""
     screen = None
 
-    @property
+    @functools.cached_property
     def torus(self) -> bool:
-        if "_torus" not in self.__dict__:
-            self._torus = any(o.kind == "torus" for o in self)
-        return self._torus
+        return any(o.kind == "torus" for o in self)
 
 
 def prepare(scene: Scene) -> Prepared:
@@ -347,7 +346,7 @@ def decide_rays(scene: Scene, rules: Rules, rays, distance: bool = False, objs=N
     or with ``distance`` the Euclidean distance."""
     V = tuple(_q(exact(c)) for c in scene.viewpoint)
     objs = prepare(scene) if objs is None else objs
-    torus = objs.torus if isinstance(objs, Prepared) else any(o.kind == "torus" for o in objs)
+    torus = objs.torus
     tmin = Q(rules.t_min)
     tmin2 = tmin * tmin
     ids = np.full(len(rays), -1, np.int32)

@@ -11,6 +11,7 @@ per-object constants gathered by object id.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -211,9 +212,8 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, c
             # (its two square roots and division) and the fold; the test reuses the cull's
             # |q×d|² and r√a
             live = sphere_live(d, obj, scale)
-            st.set(dr.if_stmt(st.state(), live.mask, lambda *s, t=test, lv=live: t(*s, live=lv),
-                              lambda *s: s,
-                              label="sphere_object"))
+            st.set(dr.if_stmt(st.state(), live.mask, functools.partial(test, live=live),
+                              lambda *s: s, label="sphere_object"))
     if cert:
         return _decide_flagged(ks, cam, rules, st, d)
     hit = st.id >= 0
