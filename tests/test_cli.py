@@ -133,7 +133,8 @@ def test10_junit_marks_failures_and_skips():
     row = {"scene": "scenes/x.txt", "mode": "rays", "precision": "f64", "rt_core_ms": 1.0,
            "mitsuba_ms": 2.0, "classes": {"agree": 10, "unexplained": 3}, "columns": 4,
            "rows": 3, "depth": {"max_rel": 1e-3, "over_bound": 2}, "ok": False,
-           "unexplained": 3, "evidence": ["out/x.rays.f64.classes.exr"]}
+           "unexplained": 3, "evidence": ["out/x.rays.f64.classes.exr"],
+           "seconds": {"rt_core": 0.001, "mitsuba": 0.002}}
     cases = comparison_cases([row, dict(row, ok=True, mode="camera")], "rtval.validate")
     cases.append(skip_case(Skipped("c/bad.txt", "c/bad.txt:3:1: oops", "malformed")))
     suite = ET.fromstring(junit_xml("rtval validate", cases))

@@ -365,3 +365,17 @@ def test43_validate_runs_each_side_once_compare_twice(monkeypatch):
     calls.update(ours=0, rays=0, camera=0)
     assert compare(sc, 32, None, "f32", "rays").summary()["timed"] == "second call"
     assert calls == {"ours": 2, "rays": 2, "camera": 0}
+
+
+def test44_junit_case_time_is_the_comparisons_own():
+    """A JUnit case's time is its comparison's wall time over every phase; a camera row that
+    reused the rays row's rt_core trace repeats that trace's ms, which must not count again."""
+    from tools.harness.validate import comparison_cases
+    row = {"scene": "scenes/x.txt", "mode": "camera", "precision": "f32", "rt_core_ms": 900.0,
+           "mitsuba_ms": 100.0, "classes": {"agree": 4}, "ok": True, "unexplained": 0,
+           "columns": 2, "rows": 2,
+           "depth": {"pixels": 4, "max_rel": 0.0, "p99_rel": 0.0, "mean_rel": 0.0,
+                     "over_bound": 0},
+           "seconds": {"rt_core": 0.0, "mitsuba": 0.1, "classify": 0.05, "other": 0.05,
+                       "write": 0.0}, "timed": "first call; rt_core shared with another mode"}
+    assert comparison_cases([row], "rtval.validate")[0].seconds == pytest.approx(0.2)

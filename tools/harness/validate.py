@@ -295,8 +295,10 @@ def comparison_cases(rows, classname: str) -> list:
     cases = []
     for r in rows:
         prec = r["precision"].split()[0]
+        # the comparison's own wall time, every phase (a camera row whose rt_core trace was
+        # the rays row's repeats that trace's ms, but not its seconds)
         c = Case(f"{stem_of(r['scene'])}.{r['mode']}.{prec}", classname,
-                 (r["rt_core_ms"] + r["mitsuba_ms"]) / 1e3)
+                 sum(r["seconds"].values()))
         counts = ", ".join(f"{k} {v}" for k, v in r["classes"].items() if v)
         if r["mode"] == "shaded":
             c.body = (f"{r['columns']}x{r['rows']} 8-bit: {counts}"
