@@ -140,7 +140,10 @@ def run(args) -> int:
         if args.json:
             args.usage_error("--json does not apply with --mitsuba")
         with together():                # (its outputs too: all of them or none)
-            return _run_mitsuba(args, outs)
+            code, said = _run_mitsuba(args, outs)
+        for line in said:               # each file named only once all are in place
+            print(line, file=sys.stderr)
+        return code
     if args.columns is None:
         args.usage_error("the following arguments are required: --columns")
     rules = args.rules or Rules()
@@ -227,7 +230,7 @@ def run(args) -> int:
     return 1 if bad else 0
 
 
-def _run_mitsuba(args, outs) -> int:
+def _run_mitsuba(args, outs) -> tuple[int, list]:
     """Mitsuba renders a converted XML scene with its integrator (the course image with
     'course'); the outputs are written as rtval render writes them."""
     import json
@@ -265,6 +268,7 @@ def _run_mitsuba(args, outs) -> int:
     except ValueError as e:         # the integrator's own refusals: one line
         raise InputError(f"{args.scene}: {e}") from None
     bad = int(np.count_nonzero(~np.isfinite(I)))
+    said = []                       # the lines naming each file written
     attrs = {"rtval.source": "mitsuba course integrator", "rtval.scene": args.scene,
              "rtval.integrator": str(integ.to_string()),
              "rtval.versions": json.dumps(versions())}
@@ -277,10 +281,10 @@ def _run_mitsuba(args, outs) -> int:
         for _, path in outs:
             write_images(path, images, {**attrs, "rtval.image": "geometry AOVs"},
                          args.compression)
-            print(f"{path}: {I.shape[1]}x{I.shape[0]} geometry AOVs by Mitsuba's course "
-                  f"integrator, {int(images['hit.mask'].sum())} hits"
-                  + (f", {bad} NON-FINITE values" if bad else ""), file=sys.stderr)
-        return 1 if bad else 0
+            said.append(f"{path}: {I.shape[1]}x{I.shape[0]} geometry AOVs by Mitsuba's "
+                        f"course integrator, {int(images['hit.mask'].sum())} hits"
+                        + (f", {bad} NON-FINITE values" if bad else ""))
+        return (1 if bad else 0), said
     pixels = quantize32(I)
     for opt, path in outs:
         if opt == "-o":
@@ -290,10 +294,10 @@ def _run_mitsuba(args, outs) -> int:
             write_ppm(path, pixels)
         else:
             write_png(path, pixels, attrs)
-        print(f"{path}: {I.shape[1]}x{I.shape[0]} shaded by Mitsuba's course integrator, "
-              f"{_n(integ.stats.get('bounces', 0), 'reflection bounce')}"
-              + (f", {bad} NON-FINITE values" if bad else ""), file=sys.stderr)
-    return 1 if bad else 0
+        said.append(f"{path}: {I.shape[1]}x{I.shape[0]} shaded by Mitsuba's course "
+                    f"integrator, {_n(integ.stats.get('bounces', 0), 'reflection bounce')}"
+                    + (f", {bad} NON-FINITE values" if bad else ""))
+    return (1 if bad else 0), said
 
 
 def _n(count: int, noun: str) -> str:
