@@ -252,10 +252,10 @@ def atomic_write(path: str, write, verify=None) -> None:
         _checked(write, tmp, shown, verify)
         os.chmod(tmp, mode)
         if _BATCH:                          # inside together(): renamed at its end
-            _BATCH[-1].append((tmp, path, created))
+            _BATCH[-1].append((tmp, path, created, shown))
             staged = True
         else:
-            os.replace(tmp, path)
+            _rename(tmp, path, shown)
         done = True
     finally:
         if not staged:
@@ -266,7 +266,7 @@ def atomic_write(path: str, write, verify=None) -> None:
             _remove_dirs(created)
 
 
-_BATCH: list = []           # the open together() blocks: their staged (tmp, path, created)
+_BATCH: list = []   # the open together() blocks: their staged (tmp, path, created, shown)
 
 
 @contextlib.contextmanager
@@ -287,21 +287,30 @@ def together():
         elif ok:
             # (a rename can still fail, e.g. a file of another user in a sticky directory:
             # then the temporaries not yet renamed go, and the error is one line)
-            for k, (tmp, path, _) in enumerate(staged):
+            for k, (tmp, path, _, shown) in enumerate(staged):
                 try:
-                    os.replace(tmp, path)
-                except OSError as exc:
+                    _rename(tmp, path, shown)
+                except WriteError:
                     _discard(staged[k:])
-                    reason, hint = _reason(exc, tmp, path)
-                    raise WriteError(path, reason, hint) from None
+                    raise
                 _LIVE.discard(tmp)
         else:
             _discard(staged)
 
 
+def _rename(tmp: str, path: str, shown: str) -> None:
+    """Put a written temporary in place; a failure (e.g. a file of another user in a sticky
+    directory) is one WriteError naming the output as the user gave it."""
+    try:
+        os.replace(tmp, path)
+    except OSError as exc:
+        reason, hint = _reason(exc, tmp, shown)
+        raise WriteError(shown, reason, hint) from None
+
+
 def _discard(staged) -> None:
     """Remove staged temporaries and the directories their writes created."""
-    for tmp, _, created in reversed(staged):
+    for tmp, _, created, _ in reversed(staged):
         _LIVE.discard(tmp)
         if os.path.lexists(tmp):
             os.unlink(tmp)

@@ -173,6 +173,24 @@ def test04d_a_failed_rename_at_the_end_of_together(tmp_path, monkeypatch):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt"]
 
 
+
+def test04f_a_failed_rename_names_the_file_as_given(tmp_path, monkeypatch):
+    """The rename of a single atomic_write (outside together()) failing: one WriteError with
+    the output's name as the user gave it (through a symlinked folder, not its target), and
+    no temporary left; before, a bare PermissionError named no file."""
+    from rt_core import outputs
+    (tmp_path / "real").mkdir()
+    (tmp_path / "link").symlink_to(tmp_path / "real")
+
+    def replace(src, dst):
+        raise PermissionError(1, "Operation not permitted")
+    monkeypatch.setattr(outputs.os, "replace", replace)
+    given = str(tmp_path / "link" / "b.txt")
+    with pytest.raises(WriteError, match=r"link/b\.txt: .*operation not permitted") as e:
+        atomic_write(given, lambda tmp: Path(tmp).write_text("b"))
+    assert "real" not in str(e.value)
+    assert list((tmp_path / "real").iterdir()) == []
+
 def test05b_every_cut_of_an_exr_is_incomplete_never_an_exception(tmp_path):
     p = tmp_path / "a.exr"
     write_exr(str(p), {"R": np.random.default_rng(2).random((40, 24)), "G": np.ones((40, 24))})
