@@ -38,18 +38,23 @@ PLANE_EXTENT_FACTOR = 64.0
 EPS32 = 2.0 ** -24
 
 
-def mitsuba(variant: str | None = None):
-    """Mitsuba in ``variant`` (one of VARIANTS' values), with the course plugins registered
-    (mitsuba_ref/integrator.py).  Without one: the variant already set if it is one of
-    VARIANTS' (so that the helpers below keep a benchmark's CUDA variant), else rtval's."""
+def mitsuba(variant: str = VARIANT):
+    """Mitsuba in ``variant`` (one of VARIANTS' values; rtval's own by default, whatever an
+    earlier benchmark set), with the course plugins registered (mitsuba_ref/integrator.py)."""
     import mitsuba as mi
-    if variant is None:
-        variant = mi.variant() if mi.variant() in VARIANTS.values() else VARIANT
     if mi.variant() != variant:
         mi.set_variant(variant)
     from .integrator import register
     register(mi)
     return mi
+
+
+def loaded():
+    """Mitsuba for building a scene description (``scene_dict``, the XML): in the variant
+    already set if it is one of VARIANTS' (a benchmark's CUDA one), else rtval's.  The
+    description is the same in every variant, so building it switches none."""
+    import mitsuba as mi
+    return mitsuba(mi.variant() if mi.variant() in VARIANTS.values() else VARIANT)
 
 
 def shape_id(oid: int, kind: str) -> str:
@@ -375,7 +380,7 @@ def texture_spec(o, window) -> dict:
     (repeated); a sphere's (1 − s, t) (``textured_sphere``) flips u."""
     import numpy as np
     from mitsuba_ref.ppm import texels
-    mi = mitsuba()
+    mi = loaded()
     bright = 1.0 if o.form in ("texplane", "texsphere") else float(_extra(o, "brightness"))
     if o.kind == "sphere":
         m, wrap = [[-1.0, 0, 0, 1.0], [0, 1.0, 0, 0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]], "repeat"
@@ -421,7 +426,7 @@ def scene_dict(scene: Scene, columns: int, rows: int | None = None, sampling: st
     its ``course_material``, the lights become emitters, and the integrator is ``course``
     (the course image, ``rules`` and ``max_dist`` as in ``rtval render``).  ``aovs``: the same,
     with the integrator in its AOV mode (rtval's geometry channels of the primary rays)."""
-    mi = mitsuba()
+    mi = loaded()
     shading = shading or aovs
     rules = Rules() if rules is None else rules
     T = mi.ScalarTransform4f
@@ -507,7 +512,7 @@ def _num(v: float) -> str:
 
 
 def _xml_value(name: str, v, indent: str) -> list:
-    mi = mitsuba()
+    mi = loaded()
     if isinstance(v, bool):
         return [f'{indent}<boolean name="{name}" value="{str(v).lower()}"/>']
     if isinstance(v, int):

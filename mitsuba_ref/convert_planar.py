@@ -40,8 +40,8 @@ def disk_to_world(o):
     dict renders exactly as the XML: a float32 transform inverts in float32, which moves
     the disk's polar uv by an ulp."""
     import numpy as np
-    from .convert import mitsuba            # (Mitsuba with its variant set)
-    mi = mitsuba()
+    from .convert import loaded             # (Mitsuba in the variant being built for)
+    mi = loaded()
     m = np.array(disk_matrix(o), np.float32).astype(np.float64)
     return mi.ScalarTransform4d(m.tolist())
 

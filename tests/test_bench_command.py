@@ -189,8 +189,8 @@ def test08_readme_tables_from_bench_runs(tmp_path):
 
 def test09_the_scene_helpers_keep_the_benchmarks_variant(monkeypatch):
     """(Without a GPU: scalar_rgb stands in for cuda_ad_rgb) once a benchmark has set its
-    backend's variant, building the scene (convert.scene_dict, which calls convert.mitsuba()
-    itself) keeps it: a CUDA benchmark's Mitsuba scene is a CUDA one."""
+    backend's variant, building the scene (convert.scene_dict) keeps it: a CUDA benchmark's
+    Mitsuba scene is a CUDA one; convert.mitsuba() itself means rtval's variant."""
     from mitsuba_ref import convert
     from tools.harness.bench import bench_scene
     monkeypatch.setitem(convert.VARIANTS, "cuda", "scalar_rgb")
@@ -198,7 +198,9 @@ def test09_the_scene_helpers_keep_the_benchmarks_variant(monkeypatch):
         mi = convert.mitsuba(convert.VARIANTS["cuda"])
         convert.scene_dict(bench_scene("mixed", 1), 32, None, integrator=False, clip=False)
         assert mi.variant() == "scalar_rgb"
+        # and the references after it (validate, compare, render --mitsuba in the same
+        # process) are back in rtval's own variant, not the benchmark's
+        assert convert.mitsuba().variant() == convert.VARIANT
     finally:
         monkeypatch.undo()
         convert.mitsuba(convert.VARIANT)
-    assert convert.mitsuba().variant() == convert.VARIANT
