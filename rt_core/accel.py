@@ -40,7 +40,7 @@ import numpy as np
 
 from .rules import Rules
 from .kinds import PLANE_KINDS
-from .shapes import BOUND_FIELDS, TAME, object_t
+from .shapes import BOUND_FIELDS, TAME, object_t, sphere_live, sphere_t
 from .quadrics import KINDS as QUADRICS
 from .shapes_quadric import ROW_SLOTS, quadric_boxes, row_view as quadric_row_view
 
@@ -465,20 +465,38 @@ def closest_kind(ks, kind: str, d, o, rules: Rules, skip, st, scale: float = 0.0
 
     def body(i, *state):
         obj = tab.view(T, i)
-        res = object_t(d, o, obj, rules, vz, scale if cert else False)
-        hit = res[1]
-        if skip is not None:
-            hit &= obj.id != skip
-        s = st.set(state)
-        s.fold(res[0], hit, obj.id, rules, False,
-               *((res[2], res[3], obj.grp if st.shared else None) if cert else ()))
-        return (i + 1, *s.state())
+
+        def fold(res, *state):
+            s = st.set(state)
+            s.fold(res[0], res[1], obj.id, rules, False,
+                   *((*res[2:], obj.grp if st.shared else None) if cert else ()))
+            return s.state()
+        return (i + 1, *tested(d, o, obj, rules, vz, skip, fold, state, scale if cert else False))
 
     names = st.names()
     out = dr.while_loop((start, *st.state()), lambda i, *state: i < end, body,
                         labels=("i",) + tuple("best_" + k for k in names),
                         label=f"closest_{kind}")
     return st.set(out[1:])
+
+
+def tested(d, o, obj, rules: Rules, vz: float, skip, fold, state, cert=False):
+    """``fold(res, *state)`` of one object of a table (``obj``: its row, gathered per ray)
+    for the rays o + t·d: ``res`` is ``shapes.object_t``'s answer (with ``cert``, its
+    certified one), the rays that leave the object (``skip``) not hitting it.  A sphere's
+    test sits behind a packet-wide branch on ``shapes.sphere_live``: a packet none of whose
+    rays can hit it (not even possibly) skips the square roots and the division and keeps
+    ``state`` (a certain miss folds to no change); the others reuse its products."""
+    if obj.kind != "sphere":
+        res = object_t(d, o, obj, rules, vz, cert)
+        if skip is not None:
+            res = (res[0], res[1] & (obj.id != skip), *res[2:])
+        return fold(res, *state)
+    live = sphere_live(d, obj, cert, o=o)
+    go = live.mask if skip is None else live.mask & (obj.id != skip)
+    return dr.if_stmt(tuple(state), go,
+                      lambda *s: fold(sphere_t(d, o, obj, rules, vz, cert, live), *s),
+                      lambda *s: s, label="tested_sphere")
 
 
 def occluded_kind(ks, kind: str, d, o, maxt, rules: Rules, skip, blocked, toward=None):

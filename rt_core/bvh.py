@@ -46,8 +46,7 @@ import numpy as np
 
 from types import SimpleNamespace
 
-from .accel import device_array, pack, packet_type
-from .shapes import object_t
+from .accel import device_array, pack, packet_type, tested
 from .quadrics import KINDS as QUADRICS
 from .shapes_quadric import ROW_SLOTS, quadric_boxes, row_view as quadric_row_view
 
@@ -343,12 +342,12 @@ def closest_kind(ks, kind: str, d, o, rules, skip, st):
     st.fresh = False
     def leaf(node, row, end, *state):
         obj = bvh.view(T, row)
-        t, hit = object_t(d, o, obj, rules, vz)
-        if skip is not None:
-            hit &= obj.id != skip
-        s = st.set(state)
-        s.fold(t, hit, obj.id, rules, False)
-        return (node, row + 1, end, *s.state())
+
+        def fold(res, *state):
+            s = st.set(state)
+            s.fold(*res, obj.id, rules, False)
+            return s.state()
+        return (node, row + 1, end, *tested(d, o, obj, rules, vz, skip, fold, state))
 
     def inner(node, row, end, *state):
         limit = state[0] * grow                 # the closest t so far (inf: none)
@@ -379,10 +378,9 @@ def occluded_kind(ks, kind: str, d, o, maxt, rules, skip, blocked):
     limit = maxt * dr.opaque(T.Float, 1 + KAPPA)
     def leaf(node, row, end, blk):
         obj = bvh.view(T, row)
-        t, hit = object_t(d, o, obj, rules, vz)
-        if skip is not None:
-            hit &= obj.id != skip
-        return node, row + 1, end, blk | (hit & (t < maxt))
+        blk, = tested(d, o, obj, rules, vz, skip,
+                      lambda res, b: (b | (res[1] & (res[0] < maxt)),), (blk,))
+        return node, row + 1, end, blk
 
     def inner(node, row, end, blk):
         node, row, end = _step(T, bvh, rays, node, row, end, limit, True)
