@@ -21,8 +21,9 @@ the reflection rays; nothing in between goes through memory (as separate passes,
 it was 2.5 times slower at a few objects).  What a scene does not need is not in the kernel:
 no lights, no shadow rays; no specular anywhere, no reflection bounces.  Every scene number
 enters kernels as opaque data, so scenes that differ only in numbers reuse the compiled kernels.
-With ``max_bounces=1`` (``rtval bench --shaded``) the one reflection bounce is traced masked in
-the primary kernel instead (``_one_bounce``): the same numbers, nothing through memory.
+With ``max_bounces=1`` (``rtval bench --shaded``) the one reflection bounce's rays are traced
+masked in the primary kernel instead, and only those that hit go through memory, to a second
+kernel that shades them (``_one_bounce``): the same numbers.
 
 Everything is relative to the viewpoint, as in the tracer: ray origins ``o``, hit points, light
 positions.
@@ -40,7 +41,7 @@ from .rules import Rules
 from .scene import sub, unit
 from .kinds import KIND_CODE
 from .shapes import opaque3
-from .accel import device_array
+from .accel import device_array, packet_type
 from .jitlog import NullLog
 from .textures import MODE_CODE, Texture
 from .tracer import KernelScene, closest_hit, occluded, surface
@@ -58,7 +59,7 @@ TILE_OFF = 10000.0          # the notes' tile-parity offset (even: no effect unl
 # float32 total_dist that stops growing once t < ulp(total_dist)/2), so this cap guarantees
 # termination.  Reaching it is reported (ShadeResult.capped), never silent.
 MAX_BOUNCES = 10_000
-# With max_bounces = 1, trace the one reflection bounce in the primary rays' kernel
+# With max_bounces = 1, trace the one reflection bounce's rays in the primary rays' kernel
 # (``_one_bounce``) rather than as a compacted wavefront (tests compare the two)
 FUSE_ONE_BOUNCE = True
 
@@ -248,12 +249,14 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
     pixel, o, skip, dist, weight, live = None, None, None, None, None, None
     bounce, count = 0, n          # count: real rays in the wavefront
 
-    def segment(d, o, skip, dist, weight, live, bounce, rec):
-        """One bounce of the rays o + t·d: its closest hits, shadow rays and shading
-        (``add``: what it adds to the pixels where ``hit``) and its reflection rays."""
+    def segment(d, o, skip, dist, weight, live, bounce, rec, found=None):
+        """One bounce of the rays o + t·d: its closest hits (or ``found``: (t, oid, hit)
+        already traced), shadow rays and shading (``add``: what it adds to the pixels where
+        ``hit``) and its reflection rays."""
         # closest hit, surface, material (in float64 the primary hits are decided exactly
         # first: closest_hit evaluates them)
-        t, oid, hit = closest_hit(ks, d, o, rules, skip, cam=cam if bounce == 0 else None)
+        t, oid, hit = found or closest_hit(ks, d, o, rules, skip,
+                                           cam=cam if bounce == 0 else None)
         if live is not None:
             hit &= live
         normal, u, v = surface(ks, d, t, oid, hit, o)
@@ -290,7 +293,8 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
         return seg
 
     if reflect and max_bounces == 1 and not record and FUSE_ONE_BOUNCE:
-        return _one_bounce(T, d, image, segment, out, log)
+        return _one_bounce(T, d, image, segment, out, log,
+                           lambda d, o, skip: closest_hit(ks, d, o, rules, skip))
     while True:
         group = "primary" if bounce == 0 else "reflection"
         rays = count
@@ -355,40 +359,79 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
     return out
 
 
-def _one_bounce(T, d, image, segment, out: ShadeResult, log) -> ShadeResult:
-    """``shade`` with max_bounces = 1: the primary rays and their one reflection bounce in
-    one kernel.  The reflection rays are traced in place, in a symbolic ``dr.if_stmt`` on
-    the lanes that reflect (a packet none of whose lanes reflects skips it), instead of as
-    a compacted wavefront: nothing goes through memory but the image and two counts (the
-    reflection rays, and those that would go on: the cap).  Each lane computes what the
-    wavefront computes for its pixel, so the image is the same, bit for bit."""
+def _one_bounce(T, d, image, segment, out: ShadeResult, log, trace) -> ShadeResult:
+    """``shade`` with max_bounces = 1 in two kernels, nothing through memory but the image
+    and the reflection rays that hit something.
+
+    The first kernel is the primary rays' bounce with the reflection rays' closest hits
+    traced in place, in a symbolic ``dr.if_stmt`` on the lanes that reflect (a packet none
+    of whose lanes reflects skips it), instead of as a compacted wavefront.  Each reflection
+    ray that hits takes a slot (an atomic counter) and writes there its pixel and what its
+    hit's shading needs; the second kernel shades those hits only (shadow rays, material,
+    the sum into the pixel), densely: shaded in place, they ran at the lanes' hit rate
+    (a third of the lanes at 256 spheres), at the cost of whole packets.  Each pixel's
+    arithmetic is the wavefront's, so the image is the same, bit for bit, whatever the
+    slots' order."""
     n = dr.width(d)
+    U, F, I, A3 = T.UInt32, T.Float, T.Int32, T.Array3
     s0 = segment(d, None, None, None, None, None, 0, None)
     # lane i is pixel i: a plain masked sum (0 + add as the read-modify-write gave)
     image = image + dr.select(s0.hit, s0.add, 0)
 
-    def reflected(image, more):
-        s1 = segment(s0.R, s0.H, s0.oid, s0.total, s0.w_next, None, 1, None)
-        # the wavefront's read-modify-write: untouched where the reflection misses
-        return dr.select(s1.hit, image + s1.add, image), s1.go
+    def reflected(t, oid):
+        t, oid, hit = trace(s0.R, s0.H, s0.oid)
+        return t, oid
 
-    image, more = dr.if_stmt((image, dr.zeros(T.Bool, n)), s0.go, reflected,
-                             lambda image, more: (image, more), label="one_bounce")
-    # the two counts by atomic adds in the same kernel
-    counts = dr.zeros(T.UInt32, 2)
-    dr.scatter_reduce(dr.ReduceOp.Add, counts, T.UInt32(1), T.UInt32(0), s0.go)
-    dr.scatter_reduce(dr.ReduceOp.Add, counts, T.UInt32(1), T.UInt32(1), more)
-    dr.eval(image, s0.ex, counts)
-    reflections, left = (int(c) for c in counts.numpy())
+    t1, oid1 = dr.if_stmt((dr.zeros(F, n), dr.full(I, -1, n)), s0.go, reflected,
+                          lambda t, oid: (t, oid), label="one_bounce")
+    hit1 = oid1 >= 0
+    # the reflection hits, each in a slot of its own: pixel, hit, and the ray's state
+    counts = dr.zeros(U, 3)                 # reflection rays, slots taken, rays going on
+    dr.scatter_reduce(dr.ReduceOp.Add, counts, U(1), U(0), s0.go)
+    slot = dr.scatter_inc(counts, U(1), hit1)
+    # (one packet of SLOT numbers a slot: one packet scatter, one packet gather; the ids as
+    # the bits of a float of their width)
+    row = [_bits(T, dr.arange(U, n)), t1, _bits(T, oid1), _bits(T, s0.oid), *s0.H, *s0.R,
+           s0.total, *s0.w_next]
+    row += [row[1]] * (SLOT - len(row))
+    slots = dr.empty(F, n * SLOT)
+    dr.scatter(slots, packet_type(T)(row), slot, hit1)
+    dr.eval(image, s0.ex, counts, slots)
     log.mark("bounce", "primary", 0, n)
     out.extra.update(s0.ex)
+    reflections, m = (int(c) for c in counts.numpy()[:2])
     if reflections:
         out.bounces = 1
         log.mark("bounce", "reflection", 1, reflections)
-    if left:
-        out.capped, out.left_active = True, left
+    if m:
+        # the second kernel over the m hits (at least two lanes: a width-1 array would be
+        # compiled as a scalar, kernels of its own)
+        k = dr.arange(U, max(m, 2))
+        live = k < dr.opaque(U, m)
+        g = dr.gather(packet_type(T), slots, k, live, shape=(SLOT, dr.width(k)))
+        pixel, oid, skip = (_bits(T, g[j], back=True) for j in (0, 2, 3))
+        s1 = segment(A3(g[7], g[8], g[9]), A3(g[4], g[5], g[6]), I(skip), g[10],
+                     A3(g[11], g[12], g[13]), None, 1, None, found=(g[1], I(oid), live))
+        # the wavefront's read-modify-write (each pixel at most once)
+        dr.scatter(image, dr.gather(A3, image, pixel, live) + s1.add, pixel, live)
+        dr.scatter_reduce(dr.ReduceOp.Add, counts, U(1), U(2), s1.go)
+        dr.eval(image, counts)
+        left = int(counts.numpy()[2])
+        if left:
+            out.capped, out.left_active = True, left
     out.rgb = image
     return out
+
+
+SLOT = 16
+
+
+def _bits(T, v, back=False):
+    """Non-negative ids (below 2³²) as the bits of a float of T's width, or ``back``."""
+    wide = T.module.UInt64 if T.precision == "f64" else T.UInt32
+    if back:
+        return T.UInt32(dr.reinterpret_array(wide, v))
+    return dr.reinterpret_array(T.Float, wide(T.UInt32(v)))
 
 
 def _numpy(arrays: dict, count: int) -> dict:

@@ -75,22 +75,41 @@ def test01_one_bounce_in_one_kernel_is_the_wavefront(precision, monkeypatch):
     assert capped >= 2                       # rays that would go on are counted too
 
 
-def test02_one_bounce_is_one_kernel(monkeypatch):
-    """The fused bounce is one JIT kernel (the wavefront: two, and a compaction)."""
+def test02_one_bounce_shades_reflection_hits_densely(monkeypatch):
+    """The fused bounce is two JIT kernels: the primary rays with their reflection rays'
+    closest hits, then the shading of the reflection rays that hit, one lane each (the
+    wavefront: two kernels over every reflection ray, and a compaction)."""
     scene = mirrors()
     T = backend.types("f32")
     cam = make_camera(scene, 32)
     ks = prepare(scene, T)
     d = primary_directions(scene, cam, T)
     dr.eval(d)
-    for fused, kernels in ((True, 1), (False, 2)):
+    sizes = {}
+    for fused in (True, False):
         monkeypatch.setattr(shading, "FUSE_ONE_BOUNCE", fused)
         shade(ks, d, max_bounces=1)                 # compiled
         with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
             dr.kernel_history()
             dr.eval(shade(ks, d, max_bounces=1).rgb)
-            jit = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
-        assert len(jit) == kernels
+            sizes[fused] = [k["size"] for k in dr.kernel_history()
+                            if k["type"] == dr.KernelType.JIT and k["size"] > 1]
+    # the reflection rays (primary hits on a specular object) and their closest hits,
+    # traced apart
+    from rt_core.tracer import surface
+    t, oid, hit = closest_hit(ks, d)
+    normal = surface(ks, d, t, oid, hit)[0]
+    mirror = np.array([any(c != 0 for c in o.material.specular) for o in scene.objects])
+    ids = oid.numpy()
+    idx = np.flatnonzero(hit.numpy() & mirror[np.maximum(ids, 0)])
+    k = T.UInt32(idx.astype(np.uint32).tolist())
+    dd, tt, nn = (dr.gather(type(x), x, k) for x in (d, t, normal))
+    R = dr.normalize(dr.fma(nn, -2 * dr.dot(dd, nn), dd))
+    hits = int(np.count_nonzero(closest_hit(ks, R, dd * tt, Rules(),
+                                            dr.gather(T.Int32, oid, k))[2].numpy()))
+    assert 0 < hits < len(idx) < cam.columns * cam.rows
+    assert sizes[True] == [cam.columns * cam.rows, hits]
+    assert sizes[False][0] == cam.columns * cam.rows and sizes[False][-1] == len(idx)
 
 
 # --- the bounding-sphere cull ---------------------------------------------------------------
