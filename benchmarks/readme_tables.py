@@ -91,10 +91,35 @@ def shaded_table(runs) -> str:
     return "\n".join(ratio_table(runs))
 
 
+def _kind(run) -> str | None:
+    """'shaded', 'primary', or None for JSON that is not an `rtval bench` run of either."""
+    if not isinstance(run, dict) or not isinstance(run.get("cases"), list):
+        return None
+    if run.get("mode") == "shaded":
+        return "shaded"
+    return "primary" if "growth" in run else None
+
+
 def main(paths) -> int:
-    runs = [json.loads(open(p).read()) for p in paths]
-    primary = [r for r in runs if r.get("mode") != "shaded" and "growth" in r]
-    shaded = [r for r in runs if r.get("mode") == "shaded"]
+    if not paths:
+        print("usage: python benchmarks/readme_tables.py RUN.json ...", file=sys.stderr)
+        return 2
+    runs = []
+    for p in paths:
+        try:
+            with open(p) as f:
+                run = json.load(f)
+        except (OSError, ValueError) as e:
+            print(f"readme_tables: {p}: cannot read a JSON run ({e}); give the -o file of "
+                  "`rtval bench`", file=sys.stderr)
+            return 2
+        if _kind(run) is None:
+            print(f"readme_tables: {p}: not an `rtval bench` run (primary or --shaded); "
+                  "give the -o file of `rtval bench`", file=sys.stderr)
+            return 2
+        runs.append(run)
+    primary = [r for r in runs if _kind(r) == "primary"]
+    shaded = [r for r in runs if _kind(r) == "shaded"]
     for label, group, fn in (("primary rays", primary, primary_tables),
                              ("shaded images", shaded, shaded_table)):
         if group:

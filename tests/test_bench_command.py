@@ -187,6 +187,21 @@ def test08_readme_tables_from_bench_runs(tmp_path):
     assert "2 runs" in r.stdout and "f64 / f32 speed" in r.stdout
 
 
+def test08b_readme_tables_refuse_what_is_not_a_run(tmp_path):
+    """A file that is not an `rtval bench` run (another JSON, a cut file, a missing one) is
+    one line naming it, exit 2: never a table silently short of a run."""
+    other = tmp_path / "report.json"
+    other.write_text(json.dumps({"rows": []}))
+    cut = tmp_path / "cut.json"
+    cut.write_text('{"cases": [')
+    for bad in (other, cut, tmp_path / "missing.json"):
+        r = subprocess.run([sys.executable, "benchmarks/readme_tables.py", str(bad)],
+                           cwd=REPO, capture_output=True, text=True, timeout=60)
+        assert r.returncode == 2 and r.stdout == "", (bad, r.stdout)
+        lines = r.stderr.strip().splitlines()
+        assert len(lines) == 1 and str(bad) in lines[0] and "Traceback" not in r.stderr
+
+
 def test09_the_scene_helpers_keep_the_benchmarks_variant(monkeypatch):
     """(Without a GPU: scalar_rgb stands in for cuda_ad_rgb) once a benchmark has set its
     backend's variant, building the scene (convert.scene_dict) keeps it: a CUDA benchmark's
