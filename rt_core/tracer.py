@@ -79,7 +79,7 @@ def prepare(scene: Scene, T: Types) -> KernelScene:
     not fit the kernel's precision: a float32 kernel would turn it into inf and silently
     lose the object."""
     try:
-        consts = _constants(scene)
+        consts = scene_constants(scene)
     except OverflowError:
         consts = None
     if consts is None or any(not _finite(c) for c in consts):
@@ -104,9 +104,11 @@ def prepare(scene: Scene, T: Types) -> KernelScene:
 _CONSTS: dict = {}
 
 
-def _constants(scene: Scene) -> list:
+def scene_constants(scene: Scene) -> list:
+    """``shapes.object_constants(scene)``, computed once for the scenes prepared last (an
+    entry holds its scene, so its id stays that scene's)."""
     hit = _CONSTS.get(id(scene))
-    if hit is None or hit[0] is not scene:
+    if hit is None:
         if len(_CONSTS) >= 16:
             _CONSTS.clear()
         hit = _CONSTS[id(scene)] = (scene, tuple(object_constants(scene)))
@@ -413,7 +415,7 @@ def _decided(scene, cam, rules: Rules, pix, objs):
     key = (id(scene), cam.columns, cam.rows, cam.sampling, cam.row_shift,
            tuple(getattr(rules, k) for k in GEOMETRY_RULES))
     entry = _DECIDED.get(key)
-    if entry is None or entry[0] is not scene:
+    if entry is None:                   # (an entry holds its scene: its id is not reused)
         if len(_DECIDED) > 16:
             _DECIDED.clear()
         entry = _DECIDED[key] = (scene, {})

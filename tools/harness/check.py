@@ -302,8 +302,8 @@ def _can_matter(r: Renderer, name: str) -> bool:
     if name == "ties":
         # exact ties need two objects on one plane (or one sphere twice); others tie only
         # on measure-zero curves, which the other rules' renders show anyway
-        from rt_core.shapes import object_constants
-        grp = [c.grp for c in object_constants(sc)]
+        from rt_core.tracer import scene_constants
+        grp = [c.grp for c in scene_constants(sc)]
         return len(set(grp)) < len(grp)
     if name == "t_min":
         # a hit within 1e-4 of a ray's origin: a plane that close to the viewpoint, or any
