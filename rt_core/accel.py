@@ -487,6 +487,9 @@ def tested(d, o, obj, rules: Rules, vz: float, skip, fold, state, cert=False):
     test sits behind a packet-wide branch on ``shapes.sphere_live``: a packet none of whose
     rays can hit it (not even possibly) skips the square roots and the division and keeps
     ``state`` (a certain miss folds to no change); the others reuse its products."""
+    # (certified decisions are for camera rays, which skip nothing: a skipped lane's
+    # 'possible' would otherwise need keeping)
+    assert not (cert and skip is not None), "certified rays skip no object"
     if obj.kind != "sphere":
         res = object_t(d, o, obj, rules, vz, cert)
         if skip is not None:

@@ -390,9 +390,10 @@ def _one_bounce(T, d, image, segment, out: ShadeResult, log, trace) -> ShadeResu
     dr.scatter_reduce(dr.ReduceOp.Add, counts, U(1), U(0), s0.go)
     slot = dr.scatter_inc(counts, U(1), hit1)
     # (one packet of SLOT numbers a slot: one packet scatter, one packet gather; the ids as
-    # the bits of a float of their width)
-    row = [_bits(T, dr.arange(U, n)), t1, _bits(T, oid1), _bits(T, s0.oid), *s0.H, *s0.R,
-           s0.total, *s0.w_next]
+    # the bits of a float of their width.  The hit's shadow rays skip its own id, so the
+    # surface the reflection ray left is not needed.)
+    row = [_bits(T, dr.arange(U, n)), t1, _bits(T, oid1), *s0.H, *s0.R, s0.total,
+           *s0.w_next]
     row += [row[1]] * (SLOT - len(row))
     slots = dr.empty(F, n * SLOT)
     dr.scatter(slots, packet_type(T)(row), slot, hit1)
@@ -400,18 +401,15 @@ def _one_bounce(T, d, image, segment, out: ShadeResult, log, trace) -> ShadeResu
     log.mark("bounce", "primary", 0, n)
     out.extra.update(s0.ex)
     reflections, m = (int(c) for c in counts.numpy()[:2])
-    if reflections:
-        out.bounces = 1
-        log.mark("bounce", "reflection", 1, reflections)
     if m:
         # the second kernel over the m hits (at least two lanes: a width-1 array would be
         # compiled as a scalar, kernels of its own)
         k = dr.arange(U, max(m, 2))
         live = k < dr.opaque(U, m)
         g = dr.gather(packet_type(T), slots, k, live, shape=(SLOT, dr.width(k)))
-        pixel, oid, skip = (_bits(T, g[j], back=True) for j in (0, 2, 3))
-        s1 = segment(A3(g[7], g[8], g[9]), A3(g[4], g[5], g[6]), I(skip), g[10],
-                     A3(g[11], g[12], g[13]), None, 1, None, found=(g[1], I(oid), live))
+        pixel, oid = (_bits(T, g[j], back=True) for j in (0, 2))
+        s1 = segment(A3(g[6], g[7], g[8]), A3(g[3], g[4], g[5]), None, g[9],
+                     A3(g[10], g[11], g[12]), None, 1, None, found=(g[1], I(oid), live))
         # the wavefront's read-modify-write (each pixel at most once)
         dr.scatter(image, dr.gather(A3, image, pixel, live) + s1.add, pixel, live)
         dr.scatter_reduce(dr.ReduceOp.Add, counts, U(1), U(2), s1.go)
@@ -419,6 +417,10 @@ def _one_bounce(T, d, image, segment, out: ShadeResult, log, trace) -> ShadeResu
         left = int(counts.numpy()[2])
         if left:
             out.capped, out.left_active = True, left
+    if reflections:
+        out.bounces = 1
+        # (the reflection rays were traced by the primary kernel; their hits shaded by this)
+        log.mark("bounce", "reflection", 1, reflections)
     out.rgb = image
     return out
 
@@ -427,7 +429,10 @@ SLOT = 16
 
 
 def _bits(T, v, back=False):
-    """Non-negative ids (below 2³²) as the bits of a float of T's width, or ``back``."""
+    """Non-negative ids (below 2³²) as the bits of a float of T's width, or ``back``.  Small
+    ids are denormal floats, and Dr.Jit's threads flush denormals (FTZ/DAZ): such a float
+    may only be moved (reinterpreted, scattered, gathered), never computed with, compared
+    or selected on, or the id silently becomes 0 (test01 would see it)."""
     wide = T.module.UInt64 if T.precision == "f64" else T.UInt32
     if back:
         return T.UInt32(dr.reinterpret_array(wide, v))

@@ -53,6 +53,7 @@ def test02_shaded_bench_smoke(tmp_path):
             assert r_["median_ms"] > 0 and r_["min_ms"] <= r_["median_ms"]
             assert r_["shadow_rays"] > 0 and r_["reflection_rays"] > 0
         assert ours["ratio_vs_mitsuba"] > 0 and "ratio_f32_vs_mitsuba" in c
+        assert ours["timed_image_is_counted"] is True
         assert ours["reflection_rays"] == mi["reflection_rays"]
         assert abs(ours["shadow_rays"] - mi["shadow_rays"]) <= 0.02 * mi["shadow_rays"]
         assert abs(ours["shadow_blocked"] - mi["shadow_blocked"]) <= \

@@ -16,8 +16,8 @@ Per pixel both sides do the course's work for one reflection bounce:
   length; the reflection weighted by the specular).
 
 rt_core runs ``shade(..., max_bounces=1)``, which traces the reflection rays masked in the
-primary rays' kernel (rt_core/shading.py ``_one_bounce``); Mitsuba traces them masked too
-(its integrators' way).  Both start
+primary rays' kernel and shades their hits in a second kernel, one a lane (rt_core/shading.py
+``_one_bounce``); Mitsuba traces them masked (its integrators' way).  Both start
 from rt_core's float32 camera directions.  Timed: the image evaluated (``dr.eval`` +
 ``dr.sync_thread``), median and best of ``reps`` round-robin calls after an untimed second one,
 the first call (with compilation) reported apart.  Agreement (one untimed call each): shadow rays cast, how many were
@@ -221,6 +221,10 @@ def shaded_case(kind: str, n: int, columns: int = 1920, reps: int = 5,
         r["mpixels_per_s"] = round(cam.size / med / 1e6, 3)
         c, rgb = sides[name].counts()
         r.update(c)
+        if name.startswith("rt_core"):
+            # the counts come from the recorded wavefront; the timed image (one bounce fused,
+            # rt_core/shading.py _one_bounce) must be the same, bit for bit
+            r["timed_image_is_counted"] = bool(np.array_equal(_rgb(sides[name].run()), rgb))
         images[name] = quantize(rgb.astype(np.float32)).astype(np.int16)
     mi = out["tracers"].get("mitsuba")
     ref = images.get("mitsuba")
