@@ -43,6 +43,7 @@ Numerical choices measured against the exact oracle (mitsuba_ref/exact.py, tools
 from __future__ import annotations
 
 import dataclasses
+import functools
 import decimal
 import math
 from dataclasses import dataclass
@@ -671,6 +672,87 @@ def sphere_live(d, obj: ObjectConstants, cert=False, o=None) -> SimpleNamespace:
         return SimpleNamespace(mask=~miss, sn=sn, ra=ra)
     bh = dr.dot(q, d)
     return SimpleNamespace(mask=~miss & (bh > 0), sn=sn, ra=ra, q=q, bh=bh)
+
+
+# Camera rays without certification take a cheaper test still (``sphere_cone``).  From the
+# viewpoint |q×d|² = |q|²|d|² − (q·d)², so a ray misses when (q·d)² <= (|q|² − r²)|d|²: the
+# ray lies outside the cone of directions that hold the sphere.  One dot product against a
+# host constant k = |q|² − r²(1 + m) replaces the cross product.  Its margin:
+#   m = CONE_MARGIN + CONE_ROUNDING · u · |q|²/r²   (u: the kernel's unit roundoff)
+# ``sphere_cone``'s docstring has the bound it rests on (m >= 15u + 22u·|q|²/r²).
+CONE_MARGIN = 2.0 ** -10
+CONE_ROUNDING = 64.0
+# the argument assumes no overflow or underflow: it is used for spheres with r >= CONE_MIN
+# and |q|∞ <= 1/CONE_MIN, and rays with CONE_MIN² <= |d|² <= 1/CONE_MIN²
+CONE_MIN = 2.0 ** -20
+
+
+def cone_k(q, radius, precision: str):
+    """k = |q|² − r²(1 + m) of ``sphere_cone``, from q and r as the kernel rounds them, exact
+    and then rounded down to the kernel's precision; None where the cone test is not used
+    (a sphere too small or too far for its argument, or non-finite numbers)."""
+    return _cone_k(tuple(float(c) for c in q), float(radius), precision)
+
+
+@functools.lru_cache(maxsize=4096)
+def _cone_k(q, radius, precision: str):
+    import numpy as np
+    f = np.float32 if precision == "f32" else np.float64
+    u = 2.0 ** -24 if precision == "f32" else U64
+    qk = [float(f(c)) for c in q]
+    rk = float(f(radius))
+    if not all(math.isfinite(c) for c in qk + [rk]) or rk < CONE_MIN or \
+            max(abs(c) for c in qk) > 1 / CONE_MIN:
+        return None
+    q2 = sum(Fraction(c) ** 2 for c in qk)
+    m = Fraction(CONE_MARGIN) + Fraction(CONE_ROUNDING * u) * q2 / Fraction(rk) ** 2
+    k = q2 - Fraction(rk) ** 2 * (1 + m)
+    kd = float(k)                                   # nearest, then down
+    if Fraction(kd) > k:
+        kd = math.nextafter(kd, -math.inf)
+    kf = f(kd)
+    if float(kf) > kd:
+        kf = np.nextafter(kf, f(-np.inf))
+    return float(kf)
+
+
+def cone_rays(d):
+    """The per-ray part of ``sphere_cone``, computed once for all spheres: a = |d|² as
+    sphere_t computes it where CONE_MIN² <= a <= CONE_MIN⁻², else NaN (k·NaN drops
+    nothing)."""
+    F, B = _check(d)
+    a = dr.squared_norm(d)
+    sane = (a >= CONE_MIN * CONE_MIN) & (a <= 1 / (CONE_MIN * CONE_MIN))
+    return dr.select(sane, a, dr.nan)
+
+
+def sphere_cone(d, obj: ObjectConstants, precision: str, a):
+    """The camera rays that may hit sphere ``obj`` (uncertified kernels): all but those that
+    ``sphere_t`` certainly finds missing, by one dot product; None where not used
+    (``cone_k``).  ``a``: ``cone_rays(d)``.
+
+    A ray is dropped when b = q·d <= 0 (sphere_t's front test, on the same computed value,
+    fails) or when fl(b·b) <= fl(k·a), a = |d|² as sphere_t computes it, with a within
+    [CONE_MIN², CONE_MIN⁻²].  Then sphere_t's outline test fails: with Q, D the kernel's
+    values, A = |D|², B = Q·D and S = |Q×D|² = |Q|²A − B² exact (u the unit roundoff, k >= 0,
+    no underflow or overflow):
+      * the test's roundings (a: γ₃, b: γ₃|Q||D|, the two products: u each) give
+        B² <= kA(1 + 6u) + 3γ₃|Q|²A, so with k <= |Q|² − r²(1 + m):
+        S >= r²A(1 + m) − 16u|Q|²A;
+      * sphere_t computes cn = fl(√fl(|fl(Q×D)|²)) >= (√S − 2√2·u|Q||D|)(1 − 3u) (each
+        component of the cross product within γ₂ of the sum of its two products' sizes)
+        and ra = fl(r·fl(√a)) <= r√A(1 + 4u);
+      * so cn >= ra, and disc = (ra − cn)(ra + cn) <= 0 (a miss), whenever
+        S >= r²A(1 + 15u) + 6u|Q|²A, which m >= 15u + 22u|Q|²/r² guarantees; m is
+        CONE_MARGIN (2⁻¹⁰, far above 15u) plus 64u|Q|²/r² (about three times 22u|Q|²/r²).
+    k < 0 (the viewpoint within about a radius of the sphere) drops nothing but b <= 0.  A
+    NaN b fails b > 0 here and sphere_t's front test there; a NaN k·a or b·b drops nothing."""
+    k = cone_k(obj.q, obj.radius, precision)
+    if k is None:
+        return None
+    F, B = _check(d)
+    b = dr.dot(opaque3(type(d), obj.q), d)         # sphere_t's bh, the same operations
+    return (b > 0) & ~(b * b <= dr.opaque(F, k) * a)
 
 
 def _sphere_miss(F, sn, ra, bo):

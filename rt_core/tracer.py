@@ -26,7 +26,8 @@ from .rules import Rules
 from .scene import Scene, SceneError, locate
 from .kinds import KIND_CODE, PLANE_KINDS
 from .shapes import (ObjectConstants, least, numbers, object_constants, object_t,
-                     sphere_live, sphere_t)
+                     cone_rays, sphere_cone, sphere_live,
+                     sphere_t)
 from .shapes_quadric import is_quadric, quadric_code, quadric_normal
 from .shapes_torus import torus_surface
 
@@ -173,7 +174,7 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, c
         st.certify(T, n, shared)
     # file order is id order within one kind: then no tie term is needed for 'first'
     single_kind = len(ks.kinds) == 1
-    near = None
+    near = cone_a = None
     for kind in ks.kinds:
         if accel.looped(ks, kind, o is not None):   # many objects: one loop, constants as data
             st = accel.closest_kind(ks, kind, d, o, rules, skip, st, scale)
@@ -211,8 +212,16 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, c
                 st.set(test(*st.state()))
                 continue
             # a camera ray's sphere: a packet whose rays all certainly miss skips the test
-            # (its two square roots and division) and the fold; the test reuses the cull's
-            # |q×d|² and r√a
+            # (its two square roots and division) and the fold: without certification by
+            # one dot product against the sphere's cone (shapes.sphere_cone), else by
+            # sphere_live, whose |q×d|² and r√a the test reuses
+            if cone_a is None and not cert:
+                cone_a = cone_rays(d)       # (once: each if_stmt starts a new scope)
+            cone = None if cert else sphere_cone(d, obj, T.precision, cone_a)
+            if cone is not None:
+                st.set(dr.if_stmt(st.state(), cone, test, lambda *s: s,
+                                  label="sphere_object"))
+                continue
             live = sphere_live(d, obj, scale)
             st.set(dr.if_stmt(st.state(), live.mask, functools.partial(test, live=live),
                               lambda *s: s, label="sphere_object"))

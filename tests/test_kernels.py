@@ -357,6 +357,51 @@ def test11_certified_cull_keeps_unsure_rays():
     assert_same(out["unrolled"][:2], out["looped"][:2], "tangent rays")
 
 
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test11b_cone_cull_drops_no_hit(precision, monkeypatch):
+    """Without certification the unrolled camera-ray spheres branch on shapes.sphere_cone
+    (one dot product against the cone of directions that hold the sphere).  Rays probing
+    each sphere's outline, from 2⁻⁴⁰ to 2⁻² of its angular radius inside and outside, for
+    spheres 2, 8, 40, 3000 and 10⁵ radii away (where |q|²/r² makes the cone's rounding
+    margin matter): the answers with the branch are those without it, bit for bit, and the probes
+    straddle the outline (hits and misses on every sphere)."""
+    from rt_core import shapes
+    T = types(precision)
+    V = np.array([0.0, 0.0, 10.0])
+    # (directions 45° or more apart: no sphere hides another's outline)
+    spheres_ = [make_sphere(GREY, tuple(V + np.array(c) / np.linalg.norm(c) * 12.0), 12.0 / k)
+                for c, k in (((0.7, 0.0, -0.714), 2), ((-0.5, 0.3, -0.81), 8),
+                             ((0.0, 0.5, -0.866), 40), ((-0.2, -0.4, -0.894), 3000),
+                             ((0.3, -0.6, -0.74), 100000))]
+    scene = Scene((8.0, 6.0), tuple(V), (), tuple(spheres_))
+    rays = []
+    for sp in spheres_:
+        q = np.array(sp.center) - V
+        L = np.linalg.norm(q)
+        u = q / L
+        e1 = np.cross(u, [0.0, 1.0, 0.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(u, e1)
+        s = 2.0 ** -np.arange(2, 41)
+        alpha = np.arcsin(sp.radius / L) * (1 + np.r_[-s, 0.0, s])[:, None]
+        phi = np.linspace(0, 2 * np.pi, 24, endpoint=False)[None]
+        rays.append((np.cos(alpha)[..., None] * u + np.sin(alpha)[..., None] *
+                     (np.cos(phi)[..., None] * e1 + np.sin(phi)[..., None] * e2))
+                    .reshape(-1, 3))
+    d = np.concatenate(rays)
+    D = T.Array3(*(T.Float(c) for c in d.T))
+    ks = accel.configure(prepare(scene, T), UNROLLED)
+    with_cone = closest_hit(ks, D)
+    assert all(shapes.cone_k(sp.q, sp.radius, precision) is not None for sp in ks.consts)
+    monkeypatch.setattr(tracer, "SPHERE_BRANCH_MIN", 10 ** 6)
+    plain = closest_hit(accel.configure(prepare(scene, T), UNROLLED), D)
+    assert_same(tuple(bits(x) for x in with_cone[:2]), tuple(bits(x) for x in plain[:2]),
+                "outline probes")
+    ids = plain[1].numpy().reshape(len(spheres_), -1)
+    for k in range(len(spheres_)):
+        assert (ids[k] == k).any() and (ids[k] != k).any(), f"sphere {k}: probes straddle"
+
+
 def test12_a_scenes_constants_are_computed_once(monkeypatch):
     """tracer.prepare keeps the exact-arithmetic constants of the scenes it prepared last: a
     second precision or render of the same (frozen) scene reuses them, another scene gets its
