@@ -95,7 +95,17 @@ def any_specular(scene) -> bool:
 
 def _material_tables(ks: KernelScene, rules: Rules = Rules()):
     """Per-object MAT tables: rows 0..n-1 foreground, n..2n-1 background (a copy of the
-    foreground for every kind but the tiled plane), plus tile sizes (1 for the others)."""
+    foreground for every kind but the tiled plane), plus tile sizes (1 for the others).
+    Built once per KernelScene and tile rule (the only rule they depend on): a render, a
+    benchmark's calls and a rule sweep's renders of one scene share them (6.5 ms a call at
+    4096 objects)."""
+    cache = ks.__dict__.setdefault("_materials", {})
+    if rules.tile_project not in cache:
+        cache[rules.tile_project] = _build_material_tables(ks, rules)
+    return cache[rules.tile_project]
+
+
+def _build_material_tables(ks: KernelScene, rules: Rules):
     T, objs = ks.T, ks.scene.objects
     bg = [o.background if o.kind == "tplane" else o.material for o in objs]
     mats = [o.material for o in objs] + bg

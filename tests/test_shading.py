@@ -347,3 +347,30 @@ def test12_max_dist_bounds_the_path():
     assert counts[0] == 0 and counts == sorted(counts) and counts[-1] > counts[-2]
     # the mirror walls are 9 apart: a path of k bounces is at least 9(k - 1) long
     assert counts[-1] <= 1000 / 9 + 1
+
+
+def test13_material_tables_built_once_per_tile_rule(monkeypatch):
+    """shade() builds a scene's material tables once per KernelScene and tile rule (the only
+    rule they depend on), and the image is that of a fresh KernelScene under each rule."""
+    from rt_core import shading
+    # a tiled floor whose xdir leaves its plane (the tile rule then changes the tiles' width)
+    red, blue = (Material((0.8, 0.1, 0.1), (1, 1, 1), (0, 0, 0)),
+                 Material((0.1, 0.1, 0.8), (1, 1, 1), (0, 0, 0)))
+    scene = Scene((8.0, 6.0), (0.0, 1.0, 6.0), (PointLight((2, 2, 2), (0.0, 4.0, 2.0)),),
+                  (make_tplane(red, (0, 1, 0), (0, -1, 0), (1, 0.6, 0.2), (0.7, 0.7), blue),))
+    T = backend.types("f32")
+    cam = make_camera(scene, 24)
+    d = primary_directions(scene, cam, T)
+    built = []
+    real = shading._build_material_tables
+    monkeypatch.setattr(shading, "_build_material_tables",
+                        lambda ks, rules: built.append(rules.tile_project) or real(ks, rules))
+    ks = prepare(scene, T)
+    rgb = lambda res: np.asarray(res.rgb.numpy())
+    other = Rules(tile_project=False)
+    images = [rgb(shade(ks, d, r)) for r in (Rules(), Rules(), other, other, Rules())]
+    assert built == [True, False]
+    fresh = [rgb(shade(prepare(scene, T), d, r)) for r in (Rules(), other)]
+    assert np.array_equal(images[0], fresh[0]) and np.array_equal(images[2], fresh[1])
+    assert np.array_equal(images[4], fresh[0])
+    assert not np.array_equal(fresh[0], fresh[1]), "the tile rule changes this scene"
