@@ -24,6 +24,12 @@ KERNEL = {("f32", False): 80, ("f64", False): 130, ("f32", True): 500, ("f64", T
 # 880 B/px f32, 1115 B/px f64)
 COMPARE = {"f32": 1000, "f64": 1250}
 BASE = 300e6                   # Python, Dr.Jit, LLVM and the compiled kernels (~150 MB)
+# rtval bench: every tracer's rays, outputs and Dr.Jit's cached blocks held at once
+# (measured: peak RSS at 1920 less at 64 columns, spheres 1 and 4096 objects: 141 B/px for
+# the primary mode, 1160 B/px --shaded, whose one-bounce kernel also holds 16 numbers a ray
+# for the reflection hits), over a base with Mitsuba loaded (270 and 490 MB at 64 columns)
+BENCH = {False: 160, True: 1300}
+BENCH_BASE = 600e6
 
 
 def available() -> tuple[float, str]:
@@ -90,6 +96,11 @@ def check_bytes(pixels: int) -> float:
     images kept), the oracle's bounds and the classes (measured 340 B/px on
     scenes/mixed.txt; the shaded kernel alone can take 900)."""
     return BASE + pixels * 1500
+
+
+def bench_bytes(pixels: int, shaded: bool) -> float:
+    """``rtval bench`` (its primary or --shaded mode) on an image of ``pixels``."""
+    return BENCH_BASE + pixels * BENCH[shaded]
 
 
 def band_that_fits(need, band: int, least: int = 1 << 16) -> int:

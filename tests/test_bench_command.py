@@ -70,6 +70,31 @@ def test03_shaded_bench_usage_errors():
         assert len(r.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.parametrize("mode", [[], ["--shaded"]], ids=["primary", "shaded"])
+def test03b_bench_too_large_is_one_line_and_its_estimate_bounds_the_peak(mode, tmp_path):
+    """rtval bench refuses an image too large for the machine in one line (exit 2, the
+    largest --columns that fits, nothing written) before tracing; and its estimate
+    (memory.bench_bytes) bounds the real peak RSS of a run that fits."""
+    from rt_core.memory import bench_bytes
+    out = tmp_path / "b.json"
+    r = subprocess.run([sys.executable, "-m", "tools.cli", "bench", *mode, "--columns",
+                        "200000", "--objects", "1", "-o", str(out)],
+                       cwd=REPO, capture_output=True, text=True, timeout=120)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
+    assert "needs ~" in lines[0] and "use --columns <= " in lines[0] and not out.exists()
+    columns = 1280             # (large enough that the per-pixel figure, not the base, counts)
+    code = ("import resource, subprocess, sys; r = subprocess.run(sys.argv[1:]); "
+            "print(r.returncode, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)")
+    r = subprocess.run([sys.executable, "-c", code, sys.executable, "-m", "tools.cli",
+                        "bench", *mode, "--columns", str(columns), "--objects", "1", "256",
+                        "--scenes", "mixed", "--reps", "1", "--keep-cache", "-o", str(out)],
+                       cwd=REPO, capture_output=True, text=True, timeout=600)
+    rc, peak = map(int, r.stdout.split()[-2:])
+    assert rc == 0, r.stderr[-2000:]
+    assert peak * 1024 < bench_bytes(columns * (columns * 9 // 16), bool(mode))
+
+
 def test04_shaded_defaults_agree():
     # tools/cmd_bench.py writes them out (it must not import Dr.Jit before parsing)
     from tools import cmd_bench

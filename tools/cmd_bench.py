@@ -91,6 +91,13 @@ def run(args) -> int:
     require(args.backend)       # no CUDA device: one line, exit 2, before any work
     if args.whole_command:      # (not args.command: that is the subcommand's name)
         return run_command(args)
+    # too large a request: one line (exit 2) before any ray is traced
+    from functools import partial
+    from rt_core.memory import bench_bytes, guard
+    from tools.harness.bench import bench_scene
+    rows = bench_scene("mixed", 1).default_rows(args.columns)
+    guard(partial(bench_bytes, shaded=args.shaded), "bench" + (" --shaded" if args.shaded
+                                                                 else ""), args.columns, rows)
     if args.threads:
         import drjit as dr
         dr.set_thread_count(args.threads)
