@@ -480,17 +480,30 @@ def closest_kind(ks, kind: str, d, o, rules: Rules, skip, st, scale: float = 0.0
     return st.set(out[1:])
 
 
-def tested(d, o, obj, rules: Rules, vz: float, skip, fold, state, cert=False):
+def blocks(maxt):
+    """The fold of a shadow ray's test for ``tested``: blocked by a hit at t < maxt."""
+    return lambda res, b: (b | (res[1] & (res[0] < maxt)),)
+
+
+def tested(d, o, obj, rules: Rules, vz: float, skip, fold, state, cert=False,
+           skip_branch: bool = False):
     """``fold(res, *state)`` of one object of a table (``obj``: its row, gathered per ray)
     for the rays o + t·d: ``res`` is ``shapes.object_t``'s answer (with ``cert``, its
     certified one), the rays that leave the object (``skip``) not hitting it.  A sphere's
     test sits behind a packet-wide branch on ``shapes.sphere_live``: a packet none of whose
     rays can hit it (not even possibly) skips the square roots and the division and keeps
-    ``state`` (a certain miss folds to no change); the others reuse its products."""
+    ``state`` (a certain miss folds to no change); the others reuse its products.
+    ``skip_branch``: other kinds' tests too sit behind a packet-wide branch, on the lanes
+    not leaving the object (where a table lists the surface its rays leave, as a light-bin
+    cell does); else those lanes are masked."""
     # (certified decisions are for camera rays, which skip nothing: a skipped lane's
     # 'possible' would otherwise need keeping)
     assert not (cert and skip is not None), "certified rays skip no object"
     if obj.kind != "sphere":
+        if skip is not None and skip_branch:
+            return dr.if_stmt(tuple(state), obj.id != skip,
+                              lambda *s: fold(object_t(d, o, obj, rules, vz, cert), *s),
+                              lambda *s: s, label="tested_object")
         res = object_t(d, o, obj, rules, vz, cert)
         if skip is not None:
             res = (res[0], res[1] & (obj.id != skip), *res[2:])

@@ -46,7 +46,7 @@ import numpy as np
 
 from types import SimpleNamespace
 
-from .accel import device_array, pack, packet_type, tested
+from .accel import blocks, device_array, pack, packet_type, tested
 from .quadrics import KINDS as QUADRICS
 from .shapes_quadric import ROW_SLOTS, quadric_boxes, row_view as quadric_row_view
 
@@ -378,8 +378,7 @@ def occluded_kind(ks, kind: str, d, o, maxt, rules, skip, blocked):
     limit = maxt * dr.opaque(T.Float, 1 + KAPPA)
     def leaf(node, row, end, blk):
         obj = bvh.view(T, row)
-        blk, = tested(d, o, obj, rules, vz, skip,
-                      lambda res, b: (b | (res[1] & (res[0] < maxt)),), (blk,))
+        blk, = tested(d, o, obj, rules, vz, skip, blocks(maxt), (blk,))
         return node, row + 1, end, blk
 
     def inner(node, row, end, blk):

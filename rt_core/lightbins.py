@@ -36,8 +36,7 @@ import drjit as dr
 import numpy as np
 
 from .bvh import _upload, object_boxes, row_view, rows as packed_rows
-from .accel import tested
-from .shapes import object_t
+from .accel import blocks, tested
 
 BINS_PER_OBJECT = 16        # cells per object on its face (the grid side: sqrt of that × N)
 MAX_SIDE = 256              # cells along a face side at most
@@ -193,15 +192,10 @@ def occluded_kind(ks, kind: str, d, o, maxt, rules, skip, blocked, center):
 
     def body(i, blk):
         obj = row_view(T, kind, lb.rows, i)
-        shadow = lambda res, b: (b | (res[1] & (res[0] < maxt)),)
-        if skip is None or kind == "sphere":
-            # (a sphere's test is behind a branch that leaves out the skipped lanes too)
-            return i + 1, tested(d, o, obj, rules, vz, skip, shadow, (blk,))[0]
-        # the surface the ray leaves is in its cell: a packet whose lanes all leave this
-        # row's object skips the test
-        return i + 1, dr.if_stmt((blk,), obj.id != skip,
-                                 lambda b: shadow(object_t(d, o, obj, rules, vz), b),
-                                 lambda b: (b,))[0]
+        # (the surface the ray leaves is in its cell: a packet whose lanes all leave this
+        # row's object skips the test)
+        return i + 1, tested(d, o, obj, rules, vz, skip, blocks(maxt), (blk,),
+                             skip_branch=True)[0]
 
     def more(i, blk):
         # rows left, not blocked, and the next row not beyond the light
