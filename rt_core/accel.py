@@ -20,8 +20,10 @@ bin from its own direction and loops over that bin's list only; rays that cross 
 outside the grid (or not at all) take a last bin that lists every object.  The per-object test
 is the same function on the same (float64-derived) constants as the unrolled code, and the tie
 test compares object ids, so the results are bit-identical to the unrolled search (tested in
-tests/test_kernels.py).  Other rays (reflections, shadow rays) loop over every object of the
-kind.
+tests/test_kernels.py).  Other rays have structures of their own: reflection rays the bins of
+directions around the object they leave (rt_core/reflectbins.py), shadow rays those around
+their light (rt_core/lightbins.py), and the rest a BVH (rt_core/bvh.py); without them
+(``configure(bvh=False)``) they loop over every object of the kind.
 
 Why the culling is conservative: an object is left out of a bin only if its float64 projected
 box, enlarged by ``MARGIN`` (2⁻¹² of the window, viewpoint and box scales), misses the bin.  A
@@ -109,10 +111,13 @@ def packet_type(T):
 
 
 def configure(ks, unroll_max: int | None = None, bins: bool | None = None,
-              bvh: bool | None = None):
-    """Override UNROLL_MAX, the use of bins (rays from the viewpoint) and of the BVH (other
-    rays, rt_core/bvh.py) for one KernelScene (benchmarks, tests)."""
+              bvh: bool | None = None, reflectbins: bool | None = None):
+    """Override UNROLL_MAX, the use of bins (rays from the viewpoint), of the BVH (other
+    rays, rt_core/bvh.py) and of the reflection rays' bins (rt_core/reflectbins.py; else
+    they walk the BVH) for one KernelScene (benchmarks, tests)."""
     opts = ks.__dict__.setdefault("_accel_opts", {})
+    if reflectbins is not None:
+        opts["reflectbins"] = reflectbins
     if unroll_max is not None:
         opts["unroll_max"] = unroll_max
     if bins is not None:
@@ -455,8 +460,8 @@ def closest_kind(ks, kind: str, d, o, rules: Rules, skip, st, scale: float = 0.0
     """Fold every object of ``kind`` into the running closest hit ``st`` (tracer.Best), with
     the same test, tie rule and certification as the unrolled code."""
     if use_bvh(ks, kind, o):
-        from . import bvh
-        return bvh.closest_kind(ks, kind, d, o, rules, skip, st)
+        from . import reflectbins
+        return reflectbins.closest_kind(ks, kind, d, o, rules, skip, st)
     T = ks.T
     vz = ks.scene.viewpoint[2]
     tab, start, end = _range(ks, kind, d, o)

@@ -329,8 +329,9 @@ def _step(T, bvh: KindBVH, rays, node, row, end, limit, active):
     return node, row, end
 
 
-def closest_kind(ks, kind: str, d, o, rules, skip, st):
-    """accel.closest_kind for rays with an origin, through the kind's BVH."""
+def closest_kind(ks, kind: str, d, o, rules, skip, st, active=None):
+    """accel.closest_kind for rays with an origin, through the kind's BVH (``active``: the
+    rays that walk it; the others keep ``st``)."""
     T = ks.T
     U = T.UInt32
     bvh = trees(ks)[kind]
@@ -359,7 +360,8 @@ def closest_kind(ks, kind: str, d, o, rules, skip, st):
                           label=f"bvh_{kind}_step")
 
     zero = dr.zeros(U, n)
-    out = dr.while_loop((zero, zero, zero, *st.state()),
+    node = zero if active is None else dr.select(active, zero, nn)
+    out = dr.while_loop((node, zero, zero, *st.state()),
                         lambda node, row, end, *s: (node < nn) | (row < end), body,
                         labels=("node", "row", "end") + tuple("best_" + k for k in st.names()),
                         label=f"bvh_closest_{kind}")

@@ -86,6 +86,29 @@ def _project(lo, hi, side: int, h: float):
     return out
 
 
+def cube_cells(lo, hi, side: int, h: float, keep=None):
+    """(box index, cell) pairs, int64 arrays: the cells of the 6 faces' side × side grids
+    (cell = face·side² + y·side + x) that the boxes (lo, hi), relative to the cube's centre,
+    cover seen from it (``_project``, the part of each box with s·v_i >= h); ``keep``: a mask
+    of the boxes to list."""
+    cells_per_face = side * side
+    items, bins = [], []
+    for face, (idx, x0, x1, y0, y1) in enumerate(_project(lo, hi, side, h)):
+        if keep is not None:
+            k = keep[idx]
+            idx, x0, x1, y0, y1 = idx[k], x0[k], x1[k], y0[k], y1[k]
+        w, hgt = x1 - x0 + 1, y1 - y0 + 1
+        cnt = w * hgt
+        rep = np.repeat(np.arange(len(idx)), cnt)
+        local = np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+        cx = x0[rep] + local % w[rep]
+        cy = y0[rep] + local // w[rep]
+        items.append(idx[rep])
+        bins.append(face * cells_per_face + cy * side + cx)
+    return (np.concatenate(items).astype(np.int64) if items else np.zeros(0, np.int64),
+            np.concatenate(bins).astype(np.int64) if bins else np.zeros(0, np.int64))
+
+
 def build(ks, kind: str, center) -> LightBins:
     """The bins of one kind around the light at ``center`` (relative to the viewpoint, host
     float64; rounded here to the kernel's precision, as the shading rounds it)."""
@@ -105,18 +128,8 @@ def build(ks, kind: str, center) -> LightBins:
     side = int(min(MAX_SIDE, max(1, round(math.sqrt(BINS_PER_OBJECT * n)))))
     cells_per_face = side * side
     nbins = 6 * cells_per_face
-    items, bins = [], []
-    for face, (idx, x0, x1, y0, y1) in enumerate(_project(lo, hi, side, R0 / 2)):
-        keep = ~near[idx]
-        idx, x0, x1, y0, y1 = idx[keep], x0[keep], x1[keep], y0[keep], y1[keep]
-        w, hgt = x1 - x0 + 1, y1 - y0 + 1
-        cnt = w * hgt
-        rep = np.repeat(np.arange(len(idx)), cnt)
-        local = np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt)
-        cx = x0[rep] + local % w[rep]
-        cy = y0[rep] + local // w[rep]
-        items.append(idx[rep])
-        bins.append(face * cells_per_face + cy * side + cx)
+    items, bins = cube_cells(lo, hi, side, R0 / 2, keep=~near)
+    items, bins = [items], [bins]
     for k in np.flatnonzero(near):                      # near the light: every cell
         items.append(np.full(nbins, k))
         bins.append(np.arange(nbins))
@@ -154,10 +167,15 @@ def light_bins(ks, kind: str, center) -> LightBins:
 
 
 def cell(T, lb: LightBins, L):
-    """The cell of each ray with direction L toward the light: the face of −L's largest
-    component, then v_j/|v_i|, v_k/|v_i| (j < k the other axes) on the face's grid."""
+    """The cell of each ray with direction L toward the light (``face_cell`` of −L)."""
+    return face_cell(T, lb.side, -L)
+
+
+def face_cell(T, side: int, v):
+    """The cube-map cell of direction v: the face of v's largest component, then
+    v_j/|v_i|, v_k/|v_i| (j < k the other axes) on the face's side × side grid."""
     F, U = T.Float, T.UInt32
-    vx, vy, vz = -L.x, -L.y, -L.z
+    vx, vy, vz = v.x, v.y, v.z
     ax, ay, az = dr.abs(vx), dr.abs(vy), dr.abs(vz)
     fx = (ax >= ay) & (ax >= az)
     fy = ~fx & (ay >= az)
@@ -168,11 +186,11 @@ def cell(T, lb: LightBins, L):
     axis = dr.select(fx, U(0), dr.select(fy, U(1), U(2)))
     face = 2 * axis + dr.select(vi < 0, U(1), U(0))
     inv = 1 / dr.abs(vi)
-    half = dr.opaque(F, lb.side / 2)
-    top = dr.opaque(F, lb.side - 1)
+    half = dr.opaque(F, side / 2)
+    top = dr.opaque(F, side - 1)
     cx = dr.clip(dr.floor((vj * inv + 1) * half), 0, top)
     cy = dr.clip(dr.floor((vk * inv + 1) * half), 0, top)
-    side = dr.opaque(U, lb.side)
+    side = dr.opaque(U, side)
     return face * side * side + U(cy) * side + U(cx)
 
 

@@ -79,7 +79,8 @@ def assert_identical(scene, precision, monkeypatch, columns=40):
 def used(ks) -> set:
     """What the accelerated KernelScene built: 'bvh' and/or 'lightbins'."""
     cache = ks.__dict__.get("_accel", {})
-    return {k for k in ("bvh", "lightbins") if cache.get(k)}
+    return {k for k in ("bvh", "lightbins", "reflectbins") if cache.get(k)
+            and any(v is not None for v in cache[k].values())}
 
 
 # --- scenes -------------------------------------------------------------------------------------
@@ -134,7 +135,7 @@ def test01_bundled_scenes(precision, monkeypatch):
     for path in BUNDLED:
         ks, _ = assert_identical(parse_scene(path), precision, monkeypatch)
         built |= used(ks)
-    assert built == {"bvh", "lightbins"}
+    assert built == {"bvh", "lightbins", "reflectbins"}
 
 
 @pytest.mark.parametrize("precision", PRECISIONS)
@@ -155,7 +156,7 @@ def test03_generated_scenes(make, precision, monkeypatch):
     for seed in range(2):
         scene = make(seed)
         ks, res = assert_identical(scene, precision, monkeypatch, columns=48)
-        assert used(ks) == {"bvh", "lightbins"}
+        assert used(ks) == {"bvh", "lightbins", "reflectbins"}
         assert res.bounces >= 2 and len(res.records) == 3
         # the secondary rays hit things and the shadow rays are blocked, some of them
         hits = res.records[1]["hit"]

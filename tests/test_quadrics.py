@@ -178,7 +178,7 @@ def test07_loops_bins_and_bvh_match_unrolled(precision, monkeypatch):
     assert (ids == ids_loop).all() and len(set(ids.tolist())) > 12
     assert np.array_equal(np.array(g["depth.Z"]), np.array(g_loop["depth.Z"]))
     ks, _ = assert_identical(sc, precision, monkeypatch, columns=24)
-    assert used(ks) == {"bvh", "lightbins"}
+    assert used(ks) == {"bvh", "lightbins", "reflectbins"}
 
 
 def test08_mitsuba_cylinder_and_the_oracle_only_kinds(tmp_path):

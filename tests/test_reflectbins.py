@@ -1,0 +1,213 @@
+"""The reflection rays' direction bins (rt_core/reflectbins.py) against the BVH walk they
+replace.  (tests/test_bvh.py compares whole shaded images, with the bins in use, against the
+plain loop.)
+
+* Rays from the corners, edges and surface points of the objects (where reflection rays
+  start), aimed at the other objects' corners, edges and outlines (the borders of each
+  source–target difference box, and so of the cells): t and id bit-identical to the BVH's,
+  f32 and f64; without the cells' margin and the boxes' widening they are not (so the rays
+  do reach the cells' borders).
+* Rays the bins cannot take (an origin outside its source's box, a source that is an
+  unbounded plane, no source, a NaN direction) walk the BVH: the same answers, and without
+  that walk they would differ.
+* A ray stops at a row beyond its closest hit: with the bound's slack made negative, answers
+  change.
+* The builder: each (source, cell) list is sorted by its distance bound, the bound is below
+  the true distance between the source's and the row's boxes, no object lists itself, and a
+  scene over MAX_PAIRS keeps the BVH.
+"""
+from __future__ import annotations
+
+import drjit as dr
+import numpy as np
+import pytest
+
+from rt_core import accel, backend, bvh, lightbins, reflectbins
+from rt_core.rules import Rules
+from rt_core.scene import Scene, make_fplane, make_plane, make_sphere
+from rt_core.shapes_planar import planar_corners
+from rt_core.tracer import closest_hit, prepare
+from tests.test_bvh import GREY, bits
+
+PRECISIONS = ["f32", "f64"]
+
+
+def edge_scene() -> Scene:
+    """Axis-aligned unit tiles (flat boxes) in two walls, panels, spheres of several sizes and
+    a mirror plane: every border at an exactly representable coordinate."""
+    objs = []
+    for i in range(-3, 3):
+        for j in range(-2, 2):
+            objs.append(make_fplane(GREY, (0, 0, 1), (i, j, -6), (1, 0, 0), (1, 1)))
+            objs.append(make_fplane(GREY, (1, 0, 0), (4, j, -6 + i), (0, 1, 0), (1, 1)))
+    for k in range(-3, 3):
+        objs.append(make_fplane(GREY, (0, 1, 0), (k, -3, -5), (1, 0, 0), (1, 2)))
+        objs.append(make_sphere(GREY, (k + 0.5, 0.5, -3.5 + 0.25 * k), 0.25 + 0.125 * (k % 3)))
+    objs.append(make_plane(GREY, (0, 1, 0), (0, -4, 0)))
+    return Scene((8.0, 6.0), (0.0, 0.0, 4.0), (), tuple(objs), path="<edges>")
+
+
+def _border_points(ks, rng, n):
+    """n points on the bounded objects' borders (tile corners and edges, sphere surfaces)
+    and each one's object id, relative to the viewpoint (float64)."""
+    fp = ks.by_kind["fplane"]
+    corners = planar_corners("fplane", fp)                  # (objects, 4, 3)
+    sp = ks.by_kind["sphere"]
+    q = np.array([c.q for c in sp])
+    r = np.array([c.radius for c in sp])
+    pts, ids = np.zeros((n, 3)), np.zeros(n, np.int64)
+    on_sphere = rng.random(n) < 0.3
+    k = rng.integers(0, len(fp), n)
+    e = rng.integers(0, 4, n)
+    f = rng.choice([0.0, 0.0, 0.25, 0.5, rng.random()], n)
+    a, b = corners[k, e], corners[k, (e + 1) % 4]
+    pts[:] = a + f[:, None] * (b - a)
+    ids[:] = [fp[j].id for j in k]
+    s = rng.integers(0, len(sp), n)
+    u = rng.normal(size=(n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    pts[on_sphere] = (q[s] + r[s, None] * u)[on_sphere]
+    ids[on_sphere] = np.array([sp[j].id for j in s])[on_sphere]
+    return pts, ids, q, r, sp
+
+
+def edge_rays(ks, n: int, seed: int):
+    """Rays from border points of one object (the skip: the surface it leaves) aimed at
+    border points of another, or grazing a sphere's outline: (d, o, skip) as numpy."""
+    rng = np.random.default_rng(seed)
+    o, src, q, r, sp = _border_points(ks, rng, n)
+    target, tid = _border_points(ks, rng, n)[:2]
+    # a third of the rays graze a sphere's outline instead: o + (q − o) ± r·(a unit normal)
+    graze = rng.random(n) < 0.3
+    s = rng.integers(0, len(sp), n)
+    v = q[s] - o
+    w = np.cross(v, rng.normal(size=(n, 3)))
+    w /= np.linalg.norm(w, axis=1, keepdims=True)
+    target[graze] = (q[s] + r[s, None] * w)[graze]
+    d = target - o
+    norm = np.linalg.norm(d, axis=1, keepdims=True)
+    d /= np.where(norm > 0, norm, 1)
+    keep = ((src != tid) | graze) & (norm[:, 0] > 0)
+    return d[keep], o[keep], src[keep]
+
+
+def trace(ks, d, o, skip, on: bool):
+    T = ks.T
+    accel.configure(ks, reflectbins=on)
+    A = T.Array3
+    t, oid, _ = closest_hit(ks, A(*(T.Float(d[:, k]) for k in range(3))),
+                            A(*(T.Float(o[:, k]) for k in range(3))), Rules(),
+                            T.Int32(skip.astype(np.int32)))
+    dr.eval(t, oid)
+    return np.asarray(t.numpy()), np.asarray(oid.numpy())
+
+
+def differences(precision: str, monkeypatch, d=None, o=None, skip=None, on=True) -> int:
+    """Rays whose (t, id) differ between the bins (``on``) and the BVH."""
+    monkeypatch.setattr(accel, "UNROLL_MAX", 0)
+    T = backend.types(precision)
+    ks = prepare(edge_scene(), T)
+    if d is None:
+        d, o, skip = edge_rays(ks, 60000, 3)
+    (t0, i0), (t1, i1) = trace(ks, d, o, skip, False), trace(ks, d, o, skip, on)
+    assert (i0 >= 0).mean() > 0.5
+    assert all(reflectbins.reflect_bins(ks, k) is not None for k in ("fplane", "sphere"))
+    return int(np.count_nonzero((bits(t0) != bits(t1)).any(-1) | (i0 != i1)))
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test01_border_rays_match_the_bvh(precision, monkeypatch):
+    assert differences(precision, monkeypatch) == 0
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test02_without_margin_and_widening_border_rays_differ(precision, monkeypatch):
+    monkeypatch.setattr(lightbins, "MARGIN", 0.0)
+    monkeypatch.setattr(reflectbins, "PAD", {"f32": 0.0, "f64": 0.0})
+    monkeypatch.setattr(reflectbins, "SOURCE_PAD", 0.0)
+    assert differences(precision, monkeypatch) > 0
+
+
+def odd_rays(precision):
+    """Rays the bins cannot take, each aimed at an object: origins 0.3 to 1 away from their
+    source's box, from the unbounded plane, with no source, and a NaN direction."""
+    T = backend.types(precision)
+    ks = prepare(edge_scene(), T)
+    d, o, skip = edge_rays(ks, 4000, 5)
+    rng = np.random.default_rng(6)
+    off = rng.normal(size=o.shape)
+    off *= rng.uniform(0.3, 1.0, (len(o), 1)) / np.linalg.norm(off, axis=1, keepdims=True)
+    o = o - off                                   # still aimed near the same target
+    plane = next(c.id for c in ks.consts if c.kind == "plane")
+    kind = rng.integers(0, 4, len(o))
+    skip = np.where(kind == 1, plane, np.where(kind == 2, -1, skip))
+    d = d.copy()
+    d[kind == 3, 0] = np.nan
+    return d, o, skip
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test03_other_rays_walk_the_bvh(precision, monkeypatch):
+    d, o, skip = odd_rays(precision)
+    assert differences(precision, monkeypatch, d, o, skip) == 0
+
+
+def test04_without_the_walk_the_other_rays_differ(monkeypatch):
+    """The fallback's walk turned off (its rays keep no hit): test03's rays lose hits."""
+    d, o, skip = odd_rays("f32")
+    walk = bvh.closest_kind
+
+    def nothing(ks, kind, d, o, rules, skip, st, active=None):
+        return st if active is not None else walk(ks, kind, d, o, rules, skip, st)
+    monkeypatch.setattr(bvh, "closest_kind", nothing)
+    assert differences("f32", monkeypatch, d, o, skip) > 500
+
+
+def test05_a_ray_stops_only_beyond_its_closest_hit(monkeypatch):
+    """With the stop's slack negative (rows up to 1.6% nearer than the closest hit count as
+    beyond it), border rays lose their hits: the stop test is exercised."""
+    monkeypatch.setattr(reflectbins, "KAPPA", -2.0 ** -7)
+    assert differences("f32", monkeypatch) > 20
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test06_lists_sorted_bounded_and_without_their_source(precision, monkeypatch):
+    monkeypatch.setattr(accel, "UNROLL_MAX", 0)
+    T = backend.types(precision)
+    ks = prepare(edge_scene(), T)
+    sources = [c for k in accel.BOUNDED for c in ks.by_kind.get(k, ())]
+    slo, shi = (np.concatenate(x) for x in zip(*(bvh.object_boxes(k, ks.by_kind[k])
+                                                 for k in accel.BOUNDED if ks.by_kind.get(k))))
+    for kind in ("fplane", "sphere"):
+        rb = reflectbins.build(ks, kind)
+        off = np.asarray(rb.offsets.numpy()).astype(np.int64)
+        near = np.asarray(rb.near.numpy()).astype(np.float64)
+        index = np.asarray(rb.index.numpy()).astype(np.int64)
+        tlo, thi = bvh.object_boxes(kind, ks.by_kind[kind])
+        tids = np.array([c.id for c in ks.by_kind[kind]])
+        cells = 6 * rb.side ** 2
+        assert len(off) == len(sources) * cells + 1 and off[-1] == len(index)
+        per = np.repeat(np.arange(len(sources) * cells), np.diff(off))
+        src = per // cells
+        # sorted within each list, no source lists itself
+        same = per[1:] == per[:-1]
+        assert (near[1:][same] >= near[:-1][same]).all()
+        assert (tids[index] != np.array([c.id for c in sources])[src]).all()
+        # the bound is at most the true distance between the two (unwidened) boxes
+        gap = np.maximum(0, np.maximum(tlo[index] - shi[src], slo[src] - thi[index]))
+        assert (near <= np.sqrt((gap ** 2).sum(1))).all()
+        # the lists are short against the kind's count (what the bins are for)
+        assert 0 < rb.counts.mean() < 0.5 * len(tids)
+
+
+def test07_too_many_pairs_keep_the_bvh(monkeypatch):
+    monkeypatch.setattr(accel, "UNROLL_MAX", 0)
+    T = backend.types("f32")
+    ks = prepare(edge_scene(), T)
+    n = len(ks.by_kind["sphere"]) * sum(len(ks.by_kind[k]) for k in ("fplane", "sphere"))
+    monkeypatch.setattr(reflectbins, "MAX_PAIRS", n - 1)
+    assert reflectbins.build(ks, "sphere") is None
+    monkeypatch.setattr(reflectbins, "MAX_PAIRS", n)
+    assert reflectbins.build(ks, "sphere") is not None
+    monkeypatch.setattr(reflectbins, "MAX_ROWS", 10)
+    assert reflectbins.build(ks, "sphere") is None
