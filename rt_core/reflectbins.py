@@ -5,9 +5,10 @@ A reflection ray leaves the surface of the object it was reflected by (the ``ski
 B_s toward a box B_t goes in a direction of the box B_t − B_s (the Minkowski difference: all
 differences of a point of B_t and a point of B_s).  So, as rt_core/lightbins.py does around a
 light, each bounded object (the source) gets a cube of directions (6 faces, each a
-``SIDE`` × ``SIDE`` grid), whose cells list, per target kind, the objects whose difference box
-covers the cell, nearest first; a ray reads the list of its source's cell, with the kind's own
-hit function on the same constants and the same skip and tie rules as the BVH walk, and stops
+``SIDE`` × ``SIDE`` grid), whose cells list, per target kind, the objects whose difference
+box (and ball, below) covers the cell, nearest first; a ray reads the list of its source's
+cell, with the kind's own hit function on the same constants and the same skip and tie rules
+as the BVH walk, and stops
 at the first row whose distance bound is beyond its closest hit so far.  In the benchmark
 scenes a ray visits a few rows where the BVH walk takes ~30 steps.  Built on the host once per
 KernelScene and kind (numpy): a list holds row numbers of one table of the kind's rows (in
@@ -16,31 +17,40 @@ measured 2-4% faster but take 4-8 times the memory.
 
 Why no hit the BVH finds is missing from a ray's list (the BVH's own premise, rt_core/bvh.py:
 a hit function accepts a ray only where the exact line o + t·d passes within
-e = PAD·(|o|∞ + S) of the object's box):
+e = PAD·(|o|∞ + S) of the object):
 
 * the kernel checks that the ray's origin lies in its source's box widened by ``SOURCE_PAD``·S
-  (the hit point that made the ray is off the surface by its rounding; the check's box is the
-  float64 one rounded inward); rays outside it, rays from unbounded objects and rays whose
-  direction is not finite take the BVH instead;
-* the target boxes are widened by PAD·2.01·S >= e, so an accepted point X = o + t*·d, t* > 0,
-  makes X − o a point of the difference box D, and d points along it;
+  (the float64 box rounded inward) and in its bounding ball (rt_core/cull.py's) widened as
+  much, |o − c|² <= rs² (the hit point that made the ray is off the surface by its rounding);
+  rays outside either, rays from unbounded objects and rays whose direction is not finite take
+  the BVH instead;
+* the targets are widened by PAD·2.01·S >= e, so an accepted point X = o + t*·d, t* > 0,
+  makes X − o a point of the difference box D (target box − source box) and of the
+  difference ball (centre c_t − c_s, radius R = rs + rt, rs widened by 2⁻¹⁰ of itself and
+  2⁻²⁰·S for the kernel's rounding of |o − c|² and of c), and d points along it;
 * a face lists D by the bounds of v_j/(s·v_i), v_k/(s·v_i) over the part of D with
   s·v_i >= R0/2, widened by lightbins.MARGIN (2⁻⁸ face units, against a few ulps of rounding
   in the kernel's cell); every point of D in the face's pyramid with s·v_i < R0/2 is within
   √3·R0/2 < R0 of the origin, and pairs whose D comes within R0 = ``NEAR``·S of the origin
   are listed in every cell of the source;
-* a row's bound is the distance from the origin to its D (rounded down), a lower bound of
-  |X − o| = t*·|d|; a ray stops at a row whose bound exceeds t·|d|·(1 + 2·KAPPA) (t: its
-  closest hit so far), where the BVH prunes a box whose entry is beyond t·(1 + KAPPA).
+* of those cells, a pair keeps the ones whose centre is within asin(R/|c_t − c_s|) + the
+  cell's angular radius + 2·MARGIN of the ball's direction (a face unit moves the direction
+  by at most a radian): for spheres this halves the lists;
+* a row's bound is the larger of the distances from the origin to D and to the ball (rounded
+  down), a lower bound of |X − o| = t*·|d|; a ray stops at a row whose bound exceeds
+  t·|d|·(1 + 2·KAPPA) (t: its closest hit so far), where the BVH prunes a box whose entry is
+  beyond t·(1 + KAPPA).
 
 The sources' object is left out of its own lists (the skip rule would mask it anyway).  Above
 ``MAX_PAIRS`` source–target pairs or ``MAX_ROWS`` listed rows, a kind keeps the BVH.
 
 Measured (``rtval bench --shaded``'s scenes at 256 objects, f32, the whole one-bounce image
-against the BVH walk, same process): 0.65-0.71 of the time with SIDE = 12 (spheres: 1.9 M rows,
-8.5 a cell, built in 0.35 s), 0.69-0.74 with 8, 0.75 with 4.  At 1024 spheres 0.8, but the
-build takes 5 s; at 16 objects the bins' loop is 6-13% slower than the unrolled tests
-(rt_core/tracer.py), which keep those.
+against the BVH walk, same process, median of 5): spheres 0.57-0.59 of the time (0.95 M rows,
+4.3 a cell, built in 0.5 s), finite planes 0.67, mixed 0.70; the reflection rays' closest hits
+alone, spheres: 57 ms CPU against the walk's 215.  Without the balls' cone (boxes only):
+spheres 0.65, 8.5 rows a cell.  SIDE = 8: spheres 0.63; 16: 0.59 with 1.5 times the rows.
+At 1024 spheres (boxes only) 0.8, but the build took 5 s; at 16 objects the bins' loop was
+6-13% slower than the unrolled tests (rt_core/tracer.py), which keep those.
 """
 from __future__ import annotations
 
@@ -51,6 +61,7 @@ import numpy as np
 
 from .accel import BOUNDED, device_array, packet_type, tested
 from .bvh import KAPPA, PAD, _upload, object_boxes, row_view, rows as packed_rows
+from . import lightbins
 from .lightbins import cube_cells, face_cell
 
 SIDE = 12                   # cells along a face side, per source object
@@ -65,7 +76,8 @@ class ReflectBins:
     kind: str
     side: int
     source: object              # Int32[objects]: each object's source index, −1 if unbounded
-    boxes: object               # Float[sources × 8]: each source's box (lo, hi, 0, 0), inward
+    boxes: object               # Float[sources × 16]: each source's box (lo, hi; inward),
+                                # its ball's centre and radius² (rt_core/cull.py's, widened)
     table: object               # Float[targets × row width]: the kind's rows (bvh.rows)
     index: object               # UInt32[entries]: each cell's rows in the table, nearest first
     near: object                # Float[entries]: a lower bound of each row's distance
@@ -85,8 +97,36 @@ def _round(a: np.ndarray, precision: str, down: bool) -> np.ndarray:
     return f.astype(np.float64)
 
 
+def _cell_centres(side: int):
+    """Unit directions of the cells' centres (6·side², 3) and each cell's angular radius
+    (the largest angle from its centre to a corner), as lightbins.face_cell numbers them."""
+    g = -1 + 2 * np.arange(side + 1) / side                 # cell borders on a face
+    c = -1 + (2 * np.arange(side) + 1) / side               # cell centres
+    dirs, rad = [], []
+    for i in range(3):
+        j, k = [a for a in range(3) if a != i]
+        for s in (1.0, -1.0):
+            cy, cx = np.meshgrid(c, c, indexing="ij")
+            v = np.zeros((side, side, 3))
+            v[..., i], v[..., j], v[..., k] = s, cx, cy
+            v /= np.linalg.norm(v, axis=-1, keepdims=True)
+            worst = np.zeros((side, side))
+            for dy in (0, 1):
+                for dx in (0, 1):
+                    w = np.zeros((side, side, 3))
+                    w[..., i] = s
+                    w[..., j] = g[dx:dx + side][None, :]
+                    w[..., k] = g[dy:dy + side][:, None]
+                    w /= np.linalg.norm(w, axis=-1, keepdims=True)
+                    worst = np.maximum(worst, np.arccos(np.clip((v * w).sum(-1), -1, 1)))
+            dirs.append(v.reshape(-1, 3))
+            rad.append(worst.ravel())
+    return np.concatenate(dirs), np.concatenate(rad)
+
+
 def build(ks, kind: str) -> ReflectBins | None:
     """The bins of the target ``kind`` around every bounded object, or None when too large."""
+    from .cull import bounding
     T = ks.T
     targets = ks.by_kind[kind]
     skinds = [k for k in BOUNDED if ks.by_kind.get(k)]
@@ -103,16 +143,37 @@ def build(ks, kind: str) -> ReflectBins | None:
     R0 = NEAR * S
     sids = np.array([c.id for c in src])
     tids = np.array([c.id for c in targets])
+    # bounding balls (rt_core/cull.py): the kernel admits origins within rs of a source's
+    # centre (as rounded); here the ball is widened by its rounding and a margin
+    balls = bounding(ks)
+    sc = np.array([balls[i][0] for i in sids]).reshape(-1, 3)
+    rs = np.array([balls[i][1] for i in sids]) + es
+    rs_wide = rs * (1 + 2.0 ** -10) + 2.0 ** -20 * S
+    tc = np.array([balls[i][0] for i in tids]).reshape(-1, 3)
+    rt = np.array([balls[i][1] for i in tids]) + et
     # every (source, target) pair but an object and itself; D = target − source
     a, b = np.divmod(np.arange(ns * nt), nt)
     keep = sids[a] != tids[b]
     a, b = a[keep], b[keep]
     lo = tlo[b] - et - shi[a]
     hi = thi[b] + et - slo[a]
-    dist = np.sqrt((np.clip(0.0, lo, hi) ** 2).sum(1))
+    v = tc[b] - sc[a]
+    L = np.sqrt((v ** 2).sum(1))
+    R = rs_wide[a] + rt[b]
+    # a lower bound of |X − o|: the boxes' distance, or the balls'
+    dist = np.maximum(np.sqrt((np.clip(0.0, lo, hi) ** 2).sum(1)), L - R)
     near = dist <= R0
     cells = 6 * SIDE * SIDE
     pair, cell = cube_cells(lo, hi, SIDE, R0 / 2, keep=~near)
+    # and the cells within the balls' cone: the angle from v to the cell's centre at most
+    # asin(R/L) + the cell's radius + the cells' margin
+    centre, radius = _cell_centres(SIDE)
+    vp, Lp, Rp = v[pair], L[pair], R[pair]
+    cosang = (vp * centre[cell]).sum(1) / np.where(Lp > 0, Lp, 1)
+    ang = np.arccos(np.clip(cosang, -1, 1))
+    cone = np.arcsin(np.clip(Rp / np.where(Lp > 0, Lp, 1), 0, 1))
+    inside = (Rp >= Lp) | (ang <= cone + radius[cell] + 2 * lightbins.MARGIN)
+    pair, cell = pair[inside], cell[inside]
     close = np.flatnonzero(near)
     pair = np.concatenate([pair, np.repeat(close, cells)])
     cell = np.concatenate([cell, np.tile(np.arange(cells), len(close))])
@@ -129,9 +190,12 @@ def build(ks, kind: str) -> ReflectBins | None:
     index = b[pair]
     source = np.full(len(ks.scene.objects), -1, np.int64)
     source[sids] = np.arange(ns)
-    boxes = np.zeros((ns, 8))
+    # per source: its box (inward), its centre (as the kernel rounds it) and rs² (down)
+    boxes = np.zeros((ns, 16))
     boxes[:, 0:3] = _round(slo, T.precision, down=False)      # inward: lo up, hi down
     boxes[:, 3:6] = _round(shi, T.precision, down=True)
+    boxes[:, 6:9] = sc
+    boxes[:, 9] = _round(rs * rs, T.precision, down=True)
     off = T.UInt32(offsets.astype(np.uint32).tolist())
     src_t = T.Int32(source.astype(np.int32).tolist())
     dr.make_opaque(off, src_t)
@@ -167,9 +231,10 @@ def closest_kind(ks, kind: str, d, o, rules, skip, st):
     src = dr.gather(I, rb.source, dr.maximum(skip, 0), skip >= 0)
     dn = dr.norm(d)
     ok = (skip >= 0) & (src >= 0) & (dn > 0) & (dn < dr.inf)
-    box = dr.gather(packet_type(T), rb.boxes, U(dr.maximum(src, 0)), ok, shape=(8, n))
+    box = dr.gather(packet_type(T), rb.boxes, U(dr.maximum(src, 0)), ok, shape=(16, n))
     for i, c in enumerate((o.x, o.y, o.z)):
         ok &= (box[i] <= c) & (c <= box[3 + i])
+    ok &= dr.squared_norm(o - T.Array3(box[6], box[7], box[8])) <= box[9]
     b = U(src) * dr.opaque(U, 6 * rb.side * rb.side) + face_cell(T, rb.side, d)
     start = dr.gather(U, rb.offsets, b, ok)
     end = dr.select(ok, dr.gather(U, rb.offsets, b + 1, ok), start)

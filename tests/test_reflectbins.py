@@ -51,7 +51,7 @@ def _border_points(ks, rng, n):
     """n points on the bounded objects' borders (tile corners and edges, sphere surfaces)
     and each one's object id, relative to the viewpoint (float64)."""
     fp = ks.by_kind["fplane"]
-    corners = planar_corners("fplane", fp)                  # (objects, 4, 3)
+    corners = planar_corners("fplane", fp)[:, [0, 1, 3, 2]]    # (objects, 4, 3), in turn
     sp = ks.by_kind["sphere"]
     q = np.array([c.q for c in sp])
     r = np.array([c.radius for c in sp])
@@ -130,18 +130,28 @@ def test02_without_margin_and_widening_border_rays_differ(precision, monkeypatch
 
 def odd_rays(precision):
     """Rays the bins cannot take, each aimed at an object: origins 0.3 to 1 away from their
-    source's box, from the unbounded plane, with no source, and a NaN direction."""
+    source's box, in a sphere's box but outside the sphere (its box's corners), from the
+    unbounded plane, with no source, and a NaN direction."""
     T = backend.types(precision)
     ks = prepare(edge_scene(), T)
-    d, o, skip = edge_rays(ks, 4000, 5)
+    d, o, skip = edge_rays(ks, 5000, 5)
     rng = np.random.default_rng(6)
     off = rng.normal(size=o.shape)
     off *= rng.uniform(0.3, 1.0, (len(o), 1)) / np.linalg.norm(off, axis=1, keepdims=True)
-    o = o - off                                   # still aimed near the same target
+    target = o + d
+    o = o - off
+    sp = ks.by_kind["sphere"]
+    s = rng.integers(0, len(sp), len(o))
+    corner = (np.array([c.q for c in sp])[s]
+              + 0.9 * np.array([c.radius for c in sp])[s, None]
+              * rng.choice([-1.0, 1.0], (len(o), 3)))
     plane = next(c.id for c in ks.consts if c.kind == "plane")
-    kind = rng.integers(0, 4, len(o))
+    kind = rng.integers(0, 5, len(o))
+    o[kind == 4] = corner[kind == 4]
     skip = np.where(kind == 1, plane, np.where(kind == 2, -1, skip))
-    d = d.copy()
+    skip[kind == 4] = np.array([c.id for c in sp])[s][kind == 4]
+    d = target - o
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
     d[kind == 3, 0] = np.nan
     return d, o, skip
 
@@ -170,20 +180,36 @@ def test05_a_ray_stops_only_beyond_its_closest_hit(monkeypatch):
     assert differences("f32", monkeypatch) > 20
 
 
+def surface_points(ks, ids, rng, k: int = 48) -> dict:
+    """{id: (k, 3) points on the object}: a sphere's surface, a tile's corners and inside."""
+    out = {}
+    for c in ks.consts:
+        if c.id not in ids:
+            continue
+        if c.kind == "sphere":
+            u = rng.normal(size=(k, 3))
+            out[c.id] = np.array(c.q) + c.radius * u / np.linalg.norm(u, axis=1, keepdims=True)
+        else:
+            P = planar_corners("fplane", [c])[0]
+            f = rng.random((k, 2))
+            f[:4] = [[0, 0], [1, 0], [0, 1], [1, 1]]
+            out[c.id] = P[0] + f[:, :1] * (P[1] - P[0]) + f[:, 1:] * (P[2] - P[0])
+    return out
+
+
 @pytest.mark.parametrize("precision", PRECISIONS)
 def test06_lists_sorted_bounded_and_without_their_source(precision, monkeypatch):
     monkeypatch.setattr(accel, "UNROLL_MAX", 0)
     T = backend.types(precision)
     ks = prepare(edge_scene(), T)
     sources = [c for k in accel.BOUNDED for c in ks.by_kind.get(k, ())]
-    slo, shi = (np.concatenate(x) for x in zip(*(bvh.object_boxes(k, ks.by_kind[k])
-                                                 for k in accel.BOUNDED if ks.by_kind.get(k))))
+    sids = np.array([c.id for c in sources])
+    pts = surface_points(ks, set(sids.tolist()), np.random.default_rng(7))
     for kind in ("fplane", "sphere"):
         rb = reflectbins.build(ks, kind)
         off = np.asarray(rb.offsets.numpy()).astype(np.int64)
         near = np.asarray(rb.near.numpy()).astype(np.float64)
         index = np.asarray(rb.index.numpy()).astype(np.int64)
-        tlo, thi = bvh.object_boxes(kind, ks.by_kind[kind])
         tids = np.array([c.id for c in ks.by_kind[kind]])
         cells = 6 * rb.side ** 2
         assert len(off) == len(sources) * cells + 1 and off[-1] == len(index)
@@ -192,10 +218,13 @@ def test06_lists_sorted_bounded_and_without_their_source(precision, monkeypatch)
         # sorted within each list, no source lists itself
         same = per[1:] == per[:-1]
         assert (near[1:][same] >= near[:-1][same]).all()
-        assert (tids[index] != np.array([c.id for c in sources])[src]).all()
-        # the bound is at most the true distance between the two (unwidened) boxes
-        gap = np.maximum(0, np.maximum(tlo[index] - shi[src], slo[src] - thi[index]))
-        assert (near <= np.sqrt((gap ** 2).sum(1))).all()
+        assert (tids[index] != sids[src]).all()
+        # the bound is at most the distance between any point of the source and the row's
+        # object (sampled)
+        for s_, t_ in set(zip(sids[src].tolist(), tids[index].tolist())):
+            gap = np.sqrt(((pts[s_][:, None] - pts[t_][None]) ** 2).sum(-1)).min()
+            rows = (sids[src] == s_) & (tids[index] == t_)
+            assert (near[rows] <= gap).all(), (s_, t_)
         # the lists are short against the kind's count (what the bins are for)
         assert 0 < rb.counts.mean() < 0.5 * len(tids)
 
