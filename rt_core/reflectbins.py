@@ -8,9 +8,8 @@ light, each bounded object (the source) gets a cube of directions (6 faces, each
 ``SIDE`` × ``SIDE`` grid), whose cells list, per target kind, the objects whose difference
 box (and ball, below) covers the cell, nearest first; a ray reads the list of its source's
 cell, with the kind's own hit function on the same constants and the same skip and tie rules
-as the BVH walk, and stops
-at the first row whose distance bound is beyond its closest hit so far.  In the benchmark
-scenes a ray visits a few rows where the BVH walk takes ~30 steps.  Built on the host once per
+as the BVH walk, and stops at the first row whose distance bound is beyond its closest hit so
+far.  In the benchmark scenes a ray visits a few rows where the BVH walk takes ~30 steps.  Built on the host once per
 KernelScene and kind (numpy): a list holds row numbers of one table of the kind's rows (in
 the packet layout of rt_core/bvh.py), one more gather a step than copies of the rows, which
 measured 2-4% faster but take 4-8 times the memory.
