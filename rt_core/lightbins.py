@@ -25,10 +25,17 @@ Why no blocker the plain loop finds is missing from a ray's cell:
   part of its box with s·v_i >= R0/2 (which holds every point of the box at distance >= R0
   in or near the face's pyramid), widened by ``MARGIN`` (face units; an angle a moves a
   face coordinate by at most 2a) and clamped to the face: a ray near a face's edge, put on
-  either face by rounding, finds the object on both.
+  either face by rounding, finds the object on both;
+* of those cells an object keeps the ones within the cone of its bounding ball seen from C
+  (``in_cone``: the angle from the ball's centre to the cell's centre at most asin(R/L) +
+  the cell's angular radius + 2·MARGIN): a blocker's accepted point lies as near the ball as
+  the box, so the same angle covers it.  For spheres this halves the rows (spheres 256: 55 k
+  → 30 k rows over 4 lights; the shaded bench image 0.92 of the time, mixed 256 0.86,
+  spheres 16 0.93; finite planes, whose balls fit worse, 0.96–1.03).
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -44,6 +51,7 @@ MARGIN = 2.0 ** -8          # face units each cell range is widened by
 NEAR = 2.0 ** -7            # R0 = NEAR · S: objects this near the light are in every cell
 NEAR_SLACK = 2.0 ** -10     # relative slack on a row's distance from the light
 UNIT = {"f32": 2.0 ** -24, "f64": 2.0 ** -53}
+CONE = True                 # cells also cut by the cone of each object's bounding ball
 
 
 @dataclass
@@ -109,6 +117,46 @@ def cube_cells(lo, hi, side: int, h: float, keep=None):
             np.concatenate(bins).astype(np.int64) if bins else np.zeros(0, np.int64))
 
 
+@functools.lru_cache(maxsize=8)
+def cell_centres(side: int):
+    """Unit directions of the cells' centres (6·side², 3) and each cell's angular radius
+    (the largest angle from its centre to a corner), as lightbins.face_cell numbers them."""
+    g = -1 + 2 * np.arange(side + 1) / side                 # cell borders on a face
+    c = -1 + (2 * np.arange(side) + 1) / side               # cell centres
+    dirs, rad = [], []
+    for i in range(3):
+        j, k = [a for a in range(3) if a != i]
+        for s in (1.0, -1.0):
+            cy, cx = np.meshgrid(c, c, indexing="ij")
+            v = np.zeros((side, side, 3))
+            v[..., i], v[..., j], v[..., k] = s, cx, cy
+            v /= np.linalg.norm(v, axis=-1, keepdims=True)
+            worst = np.zeros((side, side))
+            for dy in (0, 1):
+                for dx in (0, 1):
+                    w = np.zeros((side, side, 3))
+                    w[..., i] = s
+                    w[..., j] = g[dx:dx + side][None, :]
+                    w[..., k] = g[dy:dy + side][:, None]
+                    w /= np.linalg.norm(w, axis=-1, keepdims=True)
+                    worst = np.maximum(worst, np.arccos(np.clip((v * w).sum(-1), -1, 1)))
+            dirs.append(v.reshape(-1, 3))
+            rad.append(worst.ravel())
+    return np.concatenate(dirs), np.concatenate(rad)
+
+
+def in_cone(v, L, R, cell, side: int):
+    """Which of the cells (numbers as face_cell's) may hold a direction toward the ball of
+    centre v (|v| = L) and radius R, seen from the cube's centre: the angle from v to the
+    cell's centre at most asin(R/L) + the cell's angular radius + 2·MARGIN (a face unit
+    moves a direction by at most a radian); all where R >= L."""
+    centre, radius = cell_centres(side)
+    Ls = np.where(L > 0, L, 1)
+    ang = np.arccos(np.clip((v * centre[cell]).sum(1) / Ls, -1, 1))
+    cone = np.arcsin(np.clip(R / Ls, 0, 1))
+    return (R >= L) | (ang <= cone + radius[cell] + 2 * MARGIN)
+
+
 def build(ks, kind: str, center) -> LightBins:
     """The bins of one kind around the light at ``center`` (relative to the viewpoint, host
     float64; rounded here to the kernel's precision, as the shading rounds it)."""
@@ -129,6 +177,17 @@ def build(ks, kind: str, center) -> LightBins:
     cells_per_face = side * side
     nbins = 6 * cells_per_face
     items, bins = cube_cells(lo, hi, side, R0 / 2, keep=~near)
+    if CONE:
+        # and of those the cells within the cone of the object's bounding ball
+        # (rt_core/cull.py's, widened by its rounding and 2⁻²⁰·S: a blocker's accepted point
+        # lies as near the ball as the box, and MARGIN holds that angle)
+        from .cull import bounding
+        balls = bounding(ks)
+        v = np.array([balls[c.id][0] for c in consts]).reshape(-1, 3) - C
+        R = np.array([balls[c.id][1] for c in consts]) * (1 + 2.0 ** -20) + 2.0 ** -20 * S
+        L = np.sqrt((v ** 2).sum(1))
+        inside = in_cone(v[items], L[items], R[items], bins, side)
+        items, bins = items[inside], bins[inside]
     items, bins = [items], [bins]
     for k in np.flatnonzero(near):                      # near the light: every cell
         items.append(np.full(nbins, k))

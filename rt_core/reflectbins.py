@@ -96,33 +96,6 @@ def _round(a: np.ndarray, precision: str, down: bool) -> np.ndarray:
     return f.astype(np.float64)
 
 
-def _cell_centres(side: int):
-    """Unit directions of the cells' centres (6·side², 3) and each cell's angular radius
-    (the largest angle from its centre to a corner), as lightbins.face_cell numbers them."""
-    g = -1 + 2 * np.arange(side + 1) / side                 # cell borders on a face
-    c = -1 + (2 * np.arange(side) + 1) / side               # cell centres
-    dirs, rad = [], []
-    for i in range(3):
-        j, k = [a for a in range(3) if a != i]
-        for s in (1.0, -1.0):
-            cy, cx = np.meshgrid(c, c, indexing="ij")
-            v = np.zeros((side, side, 3))
-            v[..., i], v[..., j], v[..., k] = s, cx, cy
-            v /= np.linalg.norm(v, axis=-1, keepdims=True)
-            worst = np.zeros((side, side))
-            for dy in (0, 1):
-                for dx in (0, 1):
-                    w = np.zeros((side, side, 3))
-                    w[..., i] = s
-                    w[..., j] = g[dx:dx + side][None, :]
-                    w[..., k] = g[dy:dy + side][:, None]
-                    w /= np.linalg.norm(w, axis=-1, keepdims=True)
-                    worst = np.maximum(worst, np.arccos(np.clip((v * w).sum(-1), -1, 1)))
-            dirs.append(v.reshape(-1, 3))
-            rad.append(worst.ravel())
-    return np.concatenate(dirs), np.concatenate(rad)
-
-
 def build(ks, kind: str) -> ReflectBins | None:
     """The bins of the target ``kind`` around every bounded object, or None when too large."""
     from .cull import bounding
@@ -164,14 +137,8 @@ def build(ks, kind: str) -> ReflectBins | None:
     near = dist <= R0
     cells = 6 * SIDE * SIDE
     pair, cell = cube_cells(lo, hi, SIDE, R0 / 2, keep=~near)
-    # and the cells within the balls' cone: the angle from v to the cell's centre at most
-    # asin(R/L) + the cell's radius + the cells' margin
-    centre, radius = _cell_centres(SIDE)
-    vp, Lp, Rp = v[pair], L[pair], R[pair]
-    cosang = (vp * centre[cell]).sum(1) / np.where(Lp > 0, Lp, 1)
-    ang = np.arccos(np.clip(cosang, -1, 1))
-    cone = np.arcsin(np.clip(Rp / np.where(Lp > 0, Lp, 1), 0, 1))
-    inside = (Rp >= Lp) | (ang <= cone + radius[cell] + 2 * lightbins.MARGIN)
+    # and of those the cells within the balls' cone
+    inside = lightbins.in_cone(v[pair], L[pair], R[pair], cell, SIDE)
     pair, cell = pair[inside], cell[inside]
     close = np.flatnonzero(near)
     pair = np.concatenate([pair, np.repeat(close, cells)])

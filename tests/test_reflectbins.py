@@ -1,20 +1,22 @@
-"""The reflection rays' direction bins (rt_core/reflectbins.py) against the BVH walk they
-replace.  (tests/test_bvh.py compares whole shaded images, with the bins in use, against the
-plain loop.)
+"""The direction bins of reflection rays (rt_core/reflectbins.py) and the cones of the light
+bins (rt_core/lightbins.py) against the BVH walk they replace.  (tests/test_bvh.py compares
+whole shaded images, with the bins in use, against the plain loop.)
 
 * Rays from the corners, edges and surface points of the objects (where reflection rays
   start), aimed at the other objects' corners, edges and outlines (the borders of each
-  source–target difference box, and so of the cells): t and id bit-identical to the BVH's,
-  f32 and f64; without the cells' margin and the boxes' widening they are not (so the rays
-  do reach the cells' borders).
-* Rays the bins cannot take (an origin outside its source's box, a source that is an
-  unbounded plane, no source, a NaN direction) walk the BVH: the same answers, and without
-  that walk they would differ.
+  source–target difference box and ball, and so of the cells): t and id bit-identical to
+  the BVH's, f32 and f64; without the cells' margin and the widenings they are not (so the
+  rays do reach the cells' borders).
+* Rays the bins cannot take (an origin outside its source's box, or in a sphere's box but
+  outside the sphere, a source that is an unbounded plane, no source, a NaN direction) walk
+  the BVH: the same answers, and without that walk they would differ.
 * A ray stops at a row beyond its closest hit: with the bound's slack made negative, answers
   change.
 * The builder: each (source, cell) list is sorted by its distance bound, the bound is below
-  the true distance between the source's and the row's boxes, no object lists itself, and a
-  scene over MAX_PAIRS keeps the BVH.
+  the distance between sampled points of the source and of the row's object, no object
+  lists itself, and a scene over MAX_PAIRS or MAX_ROWS keeps the BVH.
+* Light bins: shadow rays through the objects' borders (and just inside them) get the BVH's
+  verdicts, and would not with the cells' radius halved in the cone test.
 """
 from __future__ import annotations
 
@@ -240,3 +242,71 @@ def test07_too_many_pairs_keep_the_bvh(monkeypatch):
     assert reflectbins.build(ks, "sphere") is not None
     monkeypatch.setattr(reflectbins, "MAX_ROWS", 10)
     assert reflectbins.build(ks, "sphere") is None
+
+
+# --- the light bins' cone (rt_core/lightbins.py) -------------------------------------------------
+
+LIGHT = (0.3, 2.5, 1.0)             # relative to the viewpoint
+
+
+def shadow_rays(ks, n: int, seed: int):
+    """Shadow rays as the shading makes them, toward LIGHT, through border points of the
+    objects (tile edges and corners, sphere outlines seen from the light), half of them
+    moved 0.5-3% inside (toward the tile's centre, or the outline's): origins beyond those
+    points, 1.05 to 3 times as far from the light.  (d, o, maxt) as numpy."""
+    rng = np.random.default_rng(seed)
+    p, ids, q, r, sp = _border_points(ks, rng, n)
+    C = np.array(LIGHT)
+    mid = {c.id: planar_corners("fplane", [c])[0].mean(0) for c in ks.by_kind["fplane"]}
+    centre = np.array([mid.get(i, np.zeros(3)) for i in ids])
+    # a third aimed at a sphere's outline seen from the light
+    graze = rng.random(n) < 0.3
+    s = rng.integers(0, len(sp), n)
+    w = np.cross(q[s] - C, rng.normal(size=(n, 3)))
+    w /= np.linalg.norm(w, axis=1, keepdims=True)
+    p[graze] = (q[s] + r[s, None] * w)[graze]
+    centre[graze] = q[s][graze]
+    inset = np.where(rng.random(n) < 0.5, rng.uniform(0.005, 0.03, n), 0.0)
+    tile = (np.array([i in mid for i in ids]) | graze)
+    p = np.where(tile[:, None], p + inset[:, None] * (centre - p), p)
+    o = C + rng.uniform(1.05, 3.0, (n, 1)) * (p - C)
+    D = C - o
+    maxt = np.linalg.norm(D, axis=1)
+    return D / maxt[:, None], o, maxt
+
+
+def shadow_differences(precision: str, monkeypatch) -> int:
+    """Shadow rays whose verdict differs between the light bins and the BVH."""
+    from rt_core.tracer import occluded
+    monkeypatch.setattr(accel, "UNROLL_MAX", 0)
+    T = backend.types(precision)
+    ks = prepare(edge_scene(), T)
+    d, o, maxt = shadow_rays(ks, 60000, 8)
+    A = T.Array3
+    args = (A(*(T.Float(d[:, k]) for k in range(3))), A(*(T.Float(o[:, k]) for k in range(3))),
+            T.Float(maxt), Rules())
+    bins = occluded(ks, *args, toward=LIGHT)
+    walk = occluded(ks, *args)
+    dr.eval(bins, walk)
+    a, b = np.asarray(bins.numpy()), np.asarray(walk.numpy())
+    assert 0.5 < b.mean() < 0.995          # (through the borders: most are blocked)
+    assert ks.__dict__["_accel"]["lightbins"]
+    return int(np.count_nonzero(a != b))
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test08_light_bins_border_rays_match_the_bvh(precision, monkeypatch):
+    assert shadow_differences(precision, monkeypatch) == 0
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test09_without_the_cones_margin_light_bins_differ(precision, monkeypatch):
+    """The cells' angular radius halved in the cone test: test08's rays lose blockers.
+    (MARGIN is left alone: without it every shadow ray is 'long' and walks the BVH.)"""
+    centres = lightbins.cell_centres
+
+    def half(side):
+        c, rad = centres(side)
+        return c, 0.5 * rad
+    monkeypatch.setattr(lightbins, "cell_centres", half)
+    assert shadow_differences(precision, monkeypatch) > 0
