@@ -24,14 +24,19 @@ Why no blocker the plain loop finds is missing from a ray's cell:
 * a face (axis i, sign s) lists an object by the bounds of v_j/(s·v_i), v_k/(s·v_i) over the
   part of its box with s·v_i >= R0/2 (which holds every point of the box at distance >= R0
   in or near the face's pyramid), widened by ``MARGIN`` (face units; an angle a moves a
-  face coordinate by at most 2a) and clamped to the face: a ray near a face's edge, put on
-  either face by rounding, finds the object on both;
+  face coordinate by at most √6·a, at a face's corner; dmax keeps a below MARGIN/8) and
+  clamped to the face: a ray near a face's edge, put on either face by rounding, finds the
+  object on both;
 * of those cells an object keeps the ones within the cone of its bounding ball seen from C
   (``in_cone``: the angle from the ball's centre to the cell's centre at most asin(R/L) +
   the cell's angular radius + 2·MARGIN): a blocker's accepted point lies as near the ball as
   the box, so the same angle covers it.  For spheres this halves the rows (spheres 256: 55 k
   → 30 k rows over 4 lights; the shaded bench image 0.92 of the time, mixed 256 0.86,
   spheres 16 0.93; finite planes, whose balls fit worse, 0.96–1.03).
+
+The one exception, as for the BVH (rt_core/bvh.py): a planar object within ~10⁻⁴ rad
+(float32) of parallel to the ray returns a noise t, so the plain loop's verdict there is
+rounding noise, which these bins (stopping at rows beyond the light) need not repeat.
 """
 from __future__ import annotations
 

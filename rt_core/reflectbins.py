@@ -20,7 +20,8 @@ e = PAD·(|o|∞ + S) of the object):
 
 * the kernel checks that the ray's origin lies in its source's box widened by ``SOURCE_PAD``·S
   (the float64 box rounded inward) and in its bounding ball (rt_core/cull.py's) widened as
-  much, |o − c|² <= rs² (the hit point that made the ray is off the surface by its rounding);
+  much, |o − c|² <= rs² (the hit point that made the ray is off the surface by its rounding;
+  rs² rounded down in float32);
   rays outside either, rays from unbounded objects and rays whose direction is not finite take
   the BVH instead;
 * the targets are widened by PAD·2.01·S >= e, so an accepted point X = o + t*·d, t* > 0,
@@ -30,15 +31,25 @@ e = PAD·(|o|∞ + S) of the object):
 * a face lists D by the bounds of v_j/(s·v_i), v_k/(s·v_i) over the part of D with
   s·v_i >= R0/2, widened by lightbins.MARGIN (2⁻⁸ face units, against a few ulps of rounding
   in the kernel's cell); every point of D in the face's pyramid with s·v_i < R0/2 is within
-  √3·R0/2 < R0 of the origin, and pairs whose D comes within R0 = ``NEAR``·S of the origin
-  are listed in every cell of the source;
+  √3·R0/2 < R0 of the origin, so it is in neither D nor the ball when the pair's distance
+  bound (below) exceeds R0 = ``NEAR``·S; the other pairs are listed in every cell of the
+  source;
 * of those cells, a pair keeps the ones whose centre is within asin(R/|c_t − c_s|) + the
   cell's angular radius + 2·MARGIN of the ball's direction (a face unit moves the direction
   by at most a radian): for spheres this halves the lists;
 * a row's bound is the larger of the distances from the origin to D and to the ball (rounded
   down), a lower bound of |X − o| = t*·|d|; a ray stops at a row whose bound exceeds
-  t·|d|·(1 + 2·KAPPA) (t: its closest hit so far), where the BVH prunes a box whose entry is
-  beyond t·(1 + KAPPA).
+  t·|d|·(1 + 2·KAPPA) (t: its closest hit so far).  That needs a hit function's t within
+  KAPPA of the exact crossing, which is a tighter demand than the BVH's (it prunes on a
+  leaf box's entry, looser than one object's distance): a sphere's or a quadric's t is off
+  by ~√u relative at most (at tangency), but a planar object's by ~u/|cos θ| (θ: the angle
+  of the ray to the normal), and within ~10⁻⁴ rad of its plane (float32) t is noise.  So a
+  planar target's rows in the cells holding directions within ``GRAZE`` (2⁻¹⁰ rad; 2⁻³⁰ in
+  float64) of its plane get the bound 0 and are never stopped before, and a torus's rows
+  (a quartic's roots) always get 0: a second reader found rays leaving one of two coplanar
+  tilted tiles toward the other within 10⁻⁷ rad, where the other's noise t beat a sphere
+  between them in the BVH and the plain loop, and the stop skipped it
+  (tests/test_reflectbins.py test10; that grazing cells' rows cost nothing measurable).
 
 The sources' object is left out of its own lists (the skip rule would mask it anyway).  Above
 ``MAX_PAIRS`` source–target pairs or ``MAX_ROWS`` listed rows, a kind keeps the BVH.
@@ -68,6 +79,9 @@ NEAR = 2.0 ** -12           # R0 = NEAR · S: pairs this near are in every cell 
 SOURCE_PAD = 2.0 ** -10     # the source boxes' widening, relative to S
 MAX_PAIRS = 1 << 18         # sources × targets of a kind at most (the build's time)
 MAX_ROWS = 1 << 22          # listed rows of a kind at most (memory)
+# planar targets: directions within this angle of the plane make t noise (their bound is 0)
+GRAZE = {"f32": 2.0 ** -10, "f64": 2.0 ** -30}
+PLANAR = ("fplane", "triangle", "disk")
 
 
 @dataclass
@@ -140,15 +154,26 @@ def build(ks, kind: str) -> ReflectBins | None:
     # and of those the cells within the balls' cone
     inside = lightbins.in_cone(v[pair], L[pair], R[pair], cell, SIDE)
     pair, cell = pair[inside], cell[inside]
+    # a planar target's t is off by ~ulps/|cos θ| (rt_core/bvh.py): in the cells that hold
+    # directions within GRAZE of its plane its rows' bound is 0 (never stopped before)
+    bound = dist[pair] if kind != "torus" else np.zeros(len(pair))
+    if kind in PLANAR:
+        centre, radius = lightbins.cell_centres(SIDE)
+        n = np.array([c.n for c in targets], np.float64).reshape(-1, 3)
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        off_plane = np.arcsin(np.clip(np.abs((n[b[pair]] * centre[cell]).sum(1)), 0, 1))
+        graze = off_plane <= radius[cell] + GRAZE[T.precision] + 2 * lightbins.MARGIN
+        bound = np.where(graze, 0.0, bound)
     close = np.flatnonzero(near)
     pair = np.concatenate([pair, np.repeat(close, cells)])
     cell = np.concatenate([cell, np.tile(np.arange(cells), len(close))])
+    bound = np.concatenate([bound, np.repeat(dist[close], cells)])
     if len(pair) > MAX_ROWS:
         return None
     bins = a[pair] * cells + cell
     # each (source, cell)'s rows nearest first (then by id)
-    order = np.lexsort((tids[b[pair]], dist[pair], bins))
-    pair, bins = pair[order], bins[order]
+    order = np.lexsort((tids[b[pair]], bound, bins))
+    pair, bins, bound = pair[order], bins[order], bound[order]
     counts = np.bincount(bins, minlength=ns * cells)
     offsets = np.zeros(ns * cells + 1, np.int64)
     np.cumsum(counts, out=offsets[1:])
@@ -169,7 +194,7 @@ def build(ks, kind: str) -> ReflectBins | None:
     return ReflectBins(kind, SIDE, src_t, _upload(T, boxes), _upload(T, table),
                        device_array(T.UInt32, np.zeros(1) if empty else index),
                        _upload(T, np.zeros(1) if empty else
-                               _round(dist[pair], T.precision, down=True)),
+                               _round(bound, T.precision, down=True)),
                        off, counts)
 
 
