@@ -114,7 +114,8 @@ def configure(ks, unroll_max: int | None = None, bins: bool | None = None,
               bvh: bool | None = None, reflectbins: bool | None = None):
     """Override UNROLL_MAX, the use of bins (rays from the viewpoint), of the BVH (other
     rays, rt_core/bvh.py) and of the reflection rays' bins (rt_core/reflectbins.py; else
-    they walk the BVH) for one KernelScene (benchmarks, tests)."""
+    they walk the BVH; by default from the second image shaded) for one KernelScene
+    (benchmarks, tests)."""
     opts = ks.__dict__.setdefault("_accel_opts", {})
     if reflectbins is not None:
         opts["reflectbins"] = reflectbins

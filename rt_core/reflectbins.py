@@ -79,6 +79,9 @@ NEAR = 2.0 ** -12           # R0 = NEAR · S: pairs this near are in every cell 
 SOURCE_PAD = 2.0 ** -10     # the source boxes' widening, relative to S
 MAX_PAIRS = 1 << 18         # sources × targets of a kind at most (the build's time)
 MAX_ROWS = 1 << 22          # listed rows of a kind at most (memory)
+# the bins are built for the AFTER_IMAGES-th image shaded through a KernelScene (shading.shade
+# counts them): the build (0.3 s at 256 spheres) costs more than a single image saves
+AFTER_IMAGES = 2
 # planar targets: directions within this angle of the plane make t noise (their bound is 0)
 GRAZE = {"f32": 2.0 ** -10, "f64": 2.0 ** -30}
 PLANAR = ("fplane", "triangle", "disk")
@@ -152,7 +155,7 @@ def build(ks, kind: str) -> ReflectBins | None:
     cells = 6 * SIDE * SIDE
     pair, cell = cube_cells(lo, hi, SIDE, R0 / 2, keep=~near)
     # and of those the cells within the balls' cone
-    inside = lightbins.in_cone(v[pair], L[pair], R[pair], cell, SIDE)
+    inside = lightbins.in_cone(v, L, R, pair, cell, SIDE)
     pair, cell = pair[inside], cell[inside]
     # a planar target's t is off by ~ulps/|cos θ| (rt_core/bvh.py): in the cells that hold
     # directions within GRAZE of its plane its rows' bound is 0 (never stopped before)
@@ -210,8 +213,10 @@ def closest_kind(ks, kind: str, d, o, rules, skip, st):
     """accel.closest_kind for reflection rays (``skip``: the object each leaves): the rows of
     its source's cell; the other rays through the kind's BVH."""
     from . import bvh
-    on = skip is not None and ks.__dict__.get("_accel_opts", {}).get("reflectbins", True)
-    rb = reflect_bins(ks, kind) if on else None
+    on = ks.__dict__.get("_accel_opts", {}).get("reflectbins")
+    if on is None:                      # by default from the second image shaded on
+        on = ks.__dict__.get("_images", 0) >= AFTER_IMAGES
+    rb = reflect_bins(ks, kind) if on and skip is not None else None
     if rb is None:
         return bvh.closest_kind(ks, kind, d, o, rules, skip, st)
     T = ks.T

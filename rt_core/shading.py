@@ -238,6 +238,9 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
     T = ks.T
     F = T.Float
     assert isinstance(d, T.Array3), f"expected {T.Array3.__name__} directions"
+    # images shaded through this KernelScene (rt_core/reflectbins.py builds its bins for
+    # the second: their build costs more than one image saves)
+    ks.__dict__["_images"] = ks.__dict__.get("_images", 0) + 1
     log = log or NullLog()
     max_bounces = MAX_BOUNCES if max_bounces is None else max_bounces
     n = dr.width(d)

@@ -48,7 +48,8 @@ def bits(a) -> np.ndarray:
 
 
 def shaded(scene, T, on: bool, columns: int):
-    ks = accel.configure(prepare(scene, T), bvh=on)
+    # (with the structures on, the reflection bins from the first image: rt_core/reflectbins.py)
+    ks = accel.configure(prepare(scene, T), bvh=on, reflectbins=on or None)
     cam = make_camera(scene, columns)
     res = shade(ks, primary_directions(scene, cam, T), Rules(), cam=cam, record=3,
                 max_bounces=6)

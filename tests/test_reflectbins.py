@@ -359,3 +359,29 @@ def test10_grazing_a_tilted_plane_matches_the_bvh(precision, monkeypatch):
 def test11_without_the_grazing_rows_the_stop_skips_hits(precision, monkeypatch):
     monkeypatch.setattr(reflectbins, "PLANAR", ())
     assert grazing_differences(precision, monkeypatch) > 0
+
+
+# --- when the bins are built ----------------------------------------------------------------------
+
+def test12_built_for_the_second_image_only(monkeypatch):
+    """By default a KernelScene's first shaded image walks the BVH (the bins' build costs
+    more than one image saves: rt_core/reflectbins.py), the second builds and uses them, and
+    the two images are the same bit for bit."""
+    from rt_core.camera import make_camera, primary_directions
+    from rt_core.shading import shade
+    from tests.test_bvh import crowd
+    monkeypatch.setattr(accel, "UNROLL_MAX", 0)
+    T = backend.types("f32")
+    scene = crowd(0)
+    ks = prepare(scene, T)
+    cam = make_camera(scene, 40)
+    d = primary_directions(scene, cam, T)
+
+    def image():
+        rgb = shade(ks, d, Rules(), cam=cam).rgb
+        return np.stack([np.asarray(c.numpy()) for c in (rgb.x, rgb.y, rgb.z)])
+    first = image()
+    assert not ks.__dict__["_accel"].get("reflectbins")
+    second = image()
+    assert any(v is not None for v in ks.__dict__["_accel"]["reflectbins"].values())
+    assert np.array_equal(bits(first), bits(second))
