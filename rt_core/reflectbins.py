@@ -56,11 +56,14 @@ The sources' object is left out of its own lists (the skip rule would mask it an
 
 Measured (``rtval bench --shaded``'s scenes at 256 objects, f32, the whole one-bounce image
 against the BVH walk, same process, median of 5): spheres 0.57-0.59 of the time (0.95 M rows,
-4.3 a cell, built in 0.5 s), finite planes 0.67, mixed 0.70; the reflection rays' closest hits
+4.3 a cell, built in 0.4 s), finite planes 0.67, mixed 0.70; the reflection rays' closest hits
 alone, spheres: 57 ms CPU against the walk's 215.  Without the balls' cone (boxes only):
 spheres 0.65, 8.5 rows a cell.  SIDE = 8: spheres 0.63; 16: 0.59 with 1.5 times the rows.
 At 1024 spheres (boxes only) 0.8, but the build took 5 s; at 16 objects the bins' loop was
-6-13% slower than the unrolled tests (rt_core/tracer.py), which keep those.
+6-13% slower than the unrolled tests (rt_core/tracer.py), which keep those.  A single
+default render (the wavefront) saved only 0.03 s at 256 spheres, less than the build: so the
+bins are built for a KernelScene's ``AFTER_IMAGES``-th shaded image, and its first walks the
+BVH (the same answers either way).
 """
 from __future__ import annotations
 
