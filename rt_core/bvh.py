@@ -193,14 +193,25 @@ def build(lo: np.ndarray, hi: np.ndarray, leaf_size: int | None = None) -> Tree:
     return Tree(nodes, np.array(order, np.int64), scale, depth)
 
 
+def rounded(a: np.ndarray, precision: str, down: bool) -> np.ndarray:
+    """float64 values rounded to the kernel's precision, down (or up), as float64."""
+    if precision == "f64":
+        return a
+    f = a.astype(np.float32)
+    if down:
+        f = np.where(f > a, np.nextafter(f, np.float32(-np.inf)), f)
+    else:
+        f = np.where(f < a, np.nextafter(f, np.float32(np.inf)), f)
+    return f.astype(np.float64)
+
+
 def outward(nodes: np.ndarray, precision: str) -> np.ndarray:
     """Node rows in the kernel's precision with the boxes rounded outward (lo down, hi up)."""
     if precision == "f64":
         return nodes
     f = nodes.astype(np.float32)
-    lo, hi = f[..., 0:3], f[..., 3:6]
-    lo[:] = np.where(lo > nodes[..., 0:3], np.nextafter(lo, np.float32(-np.inf)), lo)
-    hi[:] = np.where(hi < nodes[..., 3:6], np.nextafter(hi, np.float32(np.inf)), hi)
+    f[..., 0:3] = rounded(nodes[..., 0:3], precision, down=True)
+    f[..., 3:6] = rounded(nodes[..., 3:6], precision, down=False)
     return f
 
 

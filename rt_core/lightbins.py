@@ -47,7 +47,7 @@ from dataclasses import dataclass
 import drjit as dr
 import numpy as np
 
-from .bvh import _upload, object_boxes, row_view, rows as packed_rows
+from .bvh import _upload, object_boxes, rounded, row_view, rows as packed_rows
 from .accel import blocks, tested
 
 BINS_PER_OBJECT = 16        # cells per object on its face (the grid side: sqrt of that × N)
@@ -99,18 +99,23 @@ def _project(lo, hi, side: int, h: float):
     return out
 
 
-def cube_cells(lo, hi, side: int, h: float, keep=None):
+def cube_cells(lo, hi, side: int, h: float, keep=None, limit: int | None = None):
     """(box index, cell) pairs, int64 arrays: the cells of the 6 faces' side × side grids
     (cell = face·side² + y·side + x) that the boxes (lo, hi), relative to the cube's centre,
     cover seen from it (``_project``, the part of each box with s·v_i >= h); ``keep``: a mask
-    of the boxes to list."""
+    of the boxes to list; None when there would be more than ``limit`` pairs (counted
+    before any is made)."""
     cells_per_face = side * side
-    items, bins = [], []
+    faces = []
     for face, (idx, x0, x1, y0, y1) in enumerate(_project(lo, hi, side, h)):
         if keep is not None:
             k = keep[idx]
             idx, x0, x1, y0, y1 = idx[k], x0[k], x1[k], y0[k], y1[k]
-        w, hgt = x1 - x0 + 1, y1 - y0 + 1
+        faces.append((face, idx, x0, y0, x1 - x0 + 1, y1 - y0 + 1))
+    if limit is not None and sum(int((w * hgt).sum()) for *_, w, hgt in faces) > limit:
+        return None
+    items, bins = [], []
+    for face, idx, x0, y0, w, hgt in faces:
         cnt = w * hgt
         rep = np.repeat(np.arange(len(idx)), cnt)
         local = np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt)
@@ -216,10 +221,8 @@ def build(ks, kind: str, center) -> LightBins:
     table = packed_rows(kind, consts, np.arange(n))[items[order]]
     # a blocker's accepted point lies within |C − H|(1 + 2u) + ~16u(|C − H| + S) of C: a row
     # whose distance, less NEAR_SLACK of it and of S, exceeds |C − H| cannot block
-    near = dist[items[order]] * (1 - NEAR_SLACK) - NEAR_SLACK * S
-    if T.precision == "f32":
-        f = near.astype(np.float32)
-        near = np.where(f > near, np.nextafter(f, np.float32(-np.inf)), f).astype(np.float64)
+    near = rounded(dist[items[order]] * (1 - NEAR_SLACK) - NEAR_SLACK * S, T.precision,
+                   down=True)
     u = UNIT[T.precision]
     dmax = (MARGIN - 5 * u) * R0 / (64 * u) - S
     off = T.UInt32(offsets.astype(np.uint32).tolist())

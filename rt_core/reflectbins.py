@@ -52,7 +52,8 @@ e = PAD·(|o|∞ + S) of the object):
   (tests/test_reflectbins.py test10; that grazing cells' rows cost nothing measurable).
 
 The sources' object is left out of its own lists (the skip rule would mask it anyway).  Above
-``MAX_PAIRS`` source–target pairs or ``MAX_ROWS`` listed rows, a kind keeps the BVH.
+``MAX_PAIRS`` source–target pairs, or ``MAX_ROWS`` listed rows (counted before the cones'
+cut, so before they are made) or source cells, a kind keeps the BVH.
 
 Measured (``rtval bench --shaded``'s scenes at 256 objects, f32, the whole one-bounce image
 against the BVH walk, same process, median of 5): spheres 0.57-0.59 of the time (0.95 M rows,
@@ -60,10 +61,13 @@ against the BVH walk, same process, median of 5): spheres 0.57-0.59 of the time 
 alone, spheres: 57 ms CPU against the walk's 215.  Without the balls' cone (boxes only):
 spheres 0.65, 8.5 rows a cell.  SIDE = 8: spheres 0.63; 16: 0.59 with 1.5 times the rows.
 At 1024 spheres (boxes only) 0.8, but the build took 5 s; at 16 objects the bins' loop was
-6-13% slower than the unrolled tests (rt_core/tracer.py), which keep those.  A single
+3-10% slower than the unrolled tests (rt_core/tracer.py; 6-13% before the balls' cut), which
+keep those.  A single
 default render (the wavefront) saved only 0.03 s at 256 spheres, less than the build: so the
 bins are built for a KernelScene's ``AFTER_IMAGES``-th shaded image, and its first walks the
-BVH (the same answers either way).
+BVH.  The two give the same answers except at the BVH's own exception (rt_core/bvh.py): a
+planar object grazed within ~10⁻⁴ rad (float32) whose leaf the walk prunes by its box,
+where the plain loop reports its noise t and so do the bins (test10).
 """
 from __future__ import annotations
 
@@ -73,7 +77,7 @@ import drjit as dr
 import numpy as np
 
 from .accel import BOUNDED, device_array, packet_type, tested
-from .bvh import KAPPA, PAD, _upload, object_boxes, row_view, rows as packed_rows
+from .bvh import KAPPA, PAD, _upload, object_boxes, rounded, row_view, rows as packed_rows
 from . import lightbins
 from .lightbins import cube_cells, face_cell
 
@@ -104,18 +108,6 @@ class ReflectBins:
     counts: np.ndarray          # host: rows per (source, cell) (tests, statistics)
 
 
-def _round(a: np.ndarray, precision: str, down: bool) -> np.ndarray:
-    """float64 values rounded to the kernel's precision, down (or up), as float64."""
-    if precision == "f64":
-        return a
-    f = a.astype(np.float32)
-    if down:
-        f = np.where(f > a, np.nextafter(f, np.float32(-np.inf)), f)
-    else:
-        f = np.where(f < a, np.nextafter(f, np.float32(np.inf)), f)
-    return f.astype(np.float64)
-
-
 def build(ks, kind: str) -> ReflectBins | None:
     """The bins of the target ``kind`` around every bounded object, or None when too large."""
     from .cull import bounding
@@ -124,7 +116,8 @@ def build(ks, kind: str) -> ReflectBins | None:
     skinds = [k for k in BOUNDED if ks.by_kind.get(k)]
     src = [c for k in skinds for c in ks.by_kind[k]]
     ns, nt = len(src), len(targets)
-    if ns * nt > MAX_PAIRS:
+    cells = 6 * SIDE * SIDE
+    if ns * nt > MAX_PAIRS or ns * cells > MAX_ROWS:       # (the offsets: ns·cells + 1)
         return None
     slo, shi = (np.concatenate(b) for b in zip(*(object_boxes(k, ks.by_kind[k])
                                                  for k in skinds)))
@@ -155,8 +148,11 @@ def build(ks, kind: str) -> ReflectBins | None:
     # a lower bound of |X − o|: the boxes' distance, or the balls'
     dist = np.maximum(np.sqrt((np.clip(0.0, lo, hi) ** 2).sum(1)), L - R)
     near = dist <= R0
-    cells = 6 * SIDE * SIDE
-    pair, cell = cube_cells(lo, hi, SIDE, R0 / 2, keep=~near)
+    listed = cube_cells(lo, hi, SIDE, R0 / 2, keep=~near,
+                        limit=MAX_ROWS - int(near.sum()) * cells)
+    if listed is None:
+        return None
+    pair, cell = listed
     # and of those the cells within the balls' cone
     inside = lightbins.in_cone(v, L, R, pair, cell, SIDE)
     pair, cell = pair[inside], cell[inside]
@@ -173,7 +169,9 @@ def build(ks, kind: str) -> ReflectBins | None:
     close = np.flatnonzero(near)
     pair = np.concatenate([pair, np.repeat(close, cells)])
     cell = np.concatenate([cell, np.tile(np.arange(cells), len(close))])
-    bound = np.concatenate([bound, np.repeat(dist[close], cells)])
+    # (near pairs: bound 0, as a hit's t nearer than ~2⁻¹⁶·S need not be within KAPPA of
+    # the exact crossing)
+    bound = np.concatenate([bound, np.zeros(len(close) * cells)])
     if len(pair) > MAX_ROWS:
         return None
     bins = a[pair] * cells + cell
@@ -189,18 +187,17 @@ def build(ks, kind: str) -> ReflectBins | None:
     source[sids] = np.arange(ns)
     # per source: its box (inward), its centre (as the kernel rounds it) and rs² (down)
     boxes = np.zeros((ns, 16))
-    boxes[:, 0:3] = _round(slo, T.precision, down=False)      # inward: lo up, hi down
-    boxes[:, 3:6] = _round(shi, T.precision, down=True)
+    boxes[:, 0:3] = rounded(slo, T.precision, down=False)      # inward: lo up, hi down
+    boxes[:, 3:6] = rounded(shi, T.precision, down=True)
     boxes[:, 6:9] = sc
-    boxes[:, 9] = _round(rs * rs, T.precision, down=True)
-    off = T.UInt32(offsets.astype(np.uint32).tolist())
-    src_t = T.Int32(source.astype(np.int32).tolist())
-    dr.make_opaque(off, src_t)
+    boxes[:, 9] = rounded(rs * rs, T.precision, down=True)
+    off = device_array(T.UInt32, offsets)
+    src_t = device_array(T.Int32, source)
     empty = not len(index)
     return ReflectBins(kind, SIDE, src_t, _upload(T, boxes), _upload(T, table),
                        device_array(T.UInt32, np.zeros(1) if empty else index),
                        _upload(T, np.zeros(1) if empty else
-                               _round(bound, T.precision, down=True)),
+                               rounded(bound, T.precision, down=True)),
                        off, counts)
 
 

@@ -51,6 +51,7 @@ def test02_shaded_bench_smoke(tmp_path):
         ours, mi = c["tracers"]["rt_core-f32"], c["tracers"]["mitsuba"]
         for r_ in (ours, mi):
             assert r_["median_ms"] > 0 and r_["min_ms"] <= r_["median_ms"]
+            assert r_["first_ms"] > 0 and r_["second_ms"] > 0
             assert r_["shadow_rays"] > 0 and r_["reflection_rays"] > 0
         assert ours["ratio_vs_mitsuba"] > 0 and "ratio_f32_vs_mitsuba" in c
         assert ours["timed_image_is_counted"] is True

@@ -47,9 +47,10 @@ def bits(a) -> np.ndarray:
     return a.view(np.uint8).reshape(a.shape + (-1,)) if a.dtype != bool else a
 
 
-def shaded(scene, T, on: bool, columns: int):
-    # (with the structures on, the reflection bins from the first image: rt_core/reflectbins.py)
-    ks = accel.configure(prepare(scene, T), bvh=on, reflectbins=on or None)
+def shaded(scene, T, on: bool, columns: int, bins: bool = True):
+    # (with the structures on, the reflection rays through their bins from the first image,
+    # or the BVH walk, as a KernelScene's first image takes it: rt_core/reflectbins.py)
+    ks = accel.configure(prepare(scene, T), bvh=on, reflectbins=on and bins)
     cam = make_camera(scene, columns)
     res = shade(ks, primary_directions(scene, cam, T), Rules(), cam=cam, record=3,
                 max_bounces=6)
@@ -57,23 +58,25 @@ def shaded(scene, T, on: bool, columns: int):
 
 
 def assert_identical(scene, precision, monkeypatch, columns=40):
-    """The image and the records of the first three bounces, structures against the loop;
-    returns the accelerated KernelScene (to see what it built)."""
+    """The image and the records of the first three bounces, structures against the loop
+    (reflection rays through the BVH, then through their bins); returns the accelerated
+    KernelScene of the second (to see what it built)."""
     monkeypatch.setattr(accel, "UNROLL_MAX", 0)
     T = backend.types(precision)
     _, loop = shaded(scene, T, False, columns)
-    ks, fast = shaded(scene, T, True, columns)
-    name = f"{scene.path} {precision}"
-    for c in "xyz":
-        a, b = (np.asarray(getattr(r.rgb, c).numpy()) for r in (loop, fast))
-        assert np.array_equal(bits(a), bits(b)), f"{name}: image differs at " \
-            f"{np.flatnonzero((bits(a) != bits(b)).any(-1))[:5]}"
-    assert loop.bounces == fast.bounces and len(loop.records) == len(fast.records)
-    for k, (ra, rb) in enumerate(zip(loop.records, fast.records)):
-        assert ra.keys() == rb.keys()
-        for key in ra:
-            same = np.array_equal(bits(ra[key]), bits(rb[key]))
-            assert same, f"{name}: bounce {k} {key} differs"
+    for bins in (False, True):
+        ks, fast = shaded(scene, T, True, columns, bins)
+        name = f"{scene.path} {precision} {'reflection bins' if bins else 'BVH'}"
+        for c in "xyz":
+            a, b = (np.asarray(getattr(r.rgb, c).numpy()) for r in (loop, fast))
+            assert np.array_equal(bits(a), bits(b)), f"{name}: image differs at " \
+                f"{np.flatnonzero((bits(a) != bits(b)).any(-1))[:5]}"
+        assert loop.bounces == fast.bounces and len(loop.records) == len(fast.records)
+        for k, (ra, rb) in enumerate(zip(loop.records, fast.records)):
+            assert ra.keys() == rb.keys()
+            for key in ra:
+                same = np.array_equal(bits(ra[key]), bits(rb[key]))
+                assert same, f"{name}: bounce {k} {key} differs"
     return ks, fast
 
 
