@@ -53,7 +53,8 @@ e = PAD·(|o|∞ + S) of the object):
 
 The sources' object is left out of its own lists (the skip rule would mask it anyway).  Above
 ``MAX_PAIRS`` source–target pairs, or ``MAX_ROWS`` listed rows (counted before the cones'
-cut, so before they are made) or source cells, a kind keeps the BVH.
+cut, so before they are made) or source cells, or with more than ``MAX_UNSTOPPED`` of its
+rows never stopped before (bound 0: coplanar tiles), a kind keeps the BVH.
 
 Measured (``rtval bench --shaded``'s scenes at 256 objects, f32, the whole one-bounce image
 against the BVH walk, same process, median of 5): spheres 0.57-0.59 of the time (0.95 M rows,
@@ -89,6 +90,10 @@ MAX_ROWS = 1 << 22          # listed rows of a kind at most (memory)
 # the bins are built for the AFTER_IMAGES-th image shaded through a KernelScene (shading.shade
 # counts them): the build (0.3 s at 256 spheres) costs more than a single image saves
 AFTER_IMAGES = 2
+# more rows than this share with bound 0 (grazing or near: never stopped before), the BVH:
+# a floor of coplanar mirror tiles had 92% (tests/test_bvh.py mirror_hall: 1.04 of the BVH's
+# time at one bounce, 1.21 at all), the bench scenes 10-25%
+MAX_UNSTOPPED = 0.5
 # planar targets: directions within this angle of the plane make t noise (their bound is 0)
 GRAZE = {"f32": 2.0 ** -10, "f64": 2.0 ** -30}
 PLANAR = ("fplane", "triangle", "disk")
@@ -172,7 +177,7 @@ def build(ks, kind: str) -> ReflectBins | None:
     # (near pairs: bound 0, as a hit's t nearer than ~2⁻¹⁶·S need not be within KAPPA of
     # the exact crossing)
     bound = np.concatenate([bound, np.zeros(len(close) * cells)])
-    if len(pair) > MAX_ROWS:
+    if len(pair) > MAX_ROWS or np.count_nonzero(bound == 0) > MAX_UNSTOPPED * len(pair):
         return None
     bins = a[pair] * cells + cell
     # each (source, cell)'s rows nearest first (then by id)

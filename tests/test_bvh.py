@@ -24,7 +24,7 @@ import drjit as dr
 import numpy as np
 import pytest
 
-from rt_core import accel, backend, bvh, lightbins
+from rt_core import accel, backend, bvh, lightbins, reflectbins
 from rt_core.camera import make_camera, primary_directions
 from rt_core.parser import parse_scene
 from rt_core.rules import Rules
@@ -62,6 +62,7 @@ def assert_identical(scene, precision, monkeypatch, columns=40):
     (reflection rays through the BVH, then through their bins); returns the accelerated
     KernelScene of the second (to see what it built)."""
     monkeypatch.setattr(accel, "UNROLL_MAX", 0)
+    monkeypatch.setattr(reflectbins, "MAX_UNSTOPPED", 1.0)     # every kind binned
     T = backend.types(precision)
     _, loop = shaded(scene, T, False, columns)
     for bins in (False, True):

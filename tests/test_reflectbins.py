@@ -34,6 +34,13 @@ from tests.test_bvh import GREY, bits
 PRECISIONS = ["f32", "f64"]
 
 
+@pytest.fixture(autouse=True)
+def every_kind_binned(monkeypatch):
+    """These scenes are made of coplanar tiles, whose rows are mostly never stopped before:
+    the bins would leave them to the BVH (MAX_UNSTOPPED, test13); here they are binned."""
+    monkeypatch.setattr(reflectbins, "MAX_UNSTOPPED", 1.0)
+
+
 def edge_scene() -> Scene:
     """Axis-aligned unit tiles (flat boxes) in two walls, panels, spheres of several sizes and
     a mirror plane: every border at an exactly representable coordinate."""
@@ -399,3 +406,16 @@ def test12_built_for_the_second_image_only(monkeypatch):
     second = image()
     assert any(v is not None for v in ks.__dict__["_accel"]["reflectbins"].values())
     assert np.array_equal(bits(first), bits(second))
+
+
+def test13_mostly_unstopped_kinds_keep_the_bvh(monkeypatch):
+    """edge_scene's finite planes are walls of coplanar tiles: most of their rows lie in the
+    grazing cells (bound 0), so by default they keep the BVH; its spheres are binned."""
+    monkeypatch.undo()
+    T = backend.types("f32")
+    ks = prepare(edge_scene(), T)
+    assert reflectbins.build(ks, "fplane") is None
+    assert reflectbins.build(ks, "sphere") is not None
+    monkeypatch.setattr(reflectbins, "MAX_UNSTOPPED", 1.0)
+    rb = reflectbins.build(ks, "fplane")
+    assert (np.asarray(rb.near.numpy()) == 0).mean() > 0.5
