@@ -111,14 +111,16 @@ def packet_type(T):
 
 
 def configure(ks, unroll_max: int | None = None, bins: bool | None = None,
-              bvh: bool | None = None, reflectbins: bool | None = None):
+              bvh: bool | None = None, reflectbins: bool | str | None = None):
     """Override UNROLL_MAX, the use of bins (rays from the viewpoint), of the BVH (other
     rays, rt_core/bvh.py) and of the reflection rays' bins (rt_core/reflectbins.py; else
-    they walk the BVH; by default from the second image shaded) for one KernelScene
-    (benchmarks, tests)."""
+    they walk the BVH; "auto", the default: from the second image shaded) for one
+    KernelScene (benchmarks, tests).  None leaves a setting as it is."""
     opts = ks.__dict__.setdefault("_accel_opts", {})
-    if reflectbins is not None:
-        opts["reflectbins"] = reflectbins
+    if reflectbins == "auto":
+        opts.pop("reflectbins", None)
+    elif reflectbins is not None:
+        opts["reflectbins"] = bool(reflectbins)
     if unroll_max is not None:
         opts["unroll_max"] = unroll_max
     if bins is not None:

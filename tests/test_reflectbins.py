@@ -401,6 +401,8 @@ def test12_built_for_the_second_image_only(monkeypatch):
     def image():
         rgb = shade(ks, d, Rules(), cam=cam).rgb
         return np.stack([np.asarray(c.numpy()) for c in (rgb.x, rgb.y, rgb.z)])
+    accel.configure(ks, reflectbins=True)
+    accel.configure(ks, reflectbins="auto")             # back to the default
     first = image()
     assert not ks.__dict__["_accel"].get("reflectbins")
     second = image()
