@@ -488,6 +488,16 @@ def closest_kind(ks, kind: str, d, o, rules: Rules, skip, st, scale: float = 0.0
     return st.set(out[1:])
 
 
+def closest_fold(st, oid, rules: Rules):
+    """The fold of a closest-hit test for ``tested`` (uncertified rays): object ``oid``'s
+    hit into the running closest hit ``st`` (tracer.Best)."""
+    def fold(res, *state):
+        s = st.set(state)
+        s.fold(*res, oid, rules, False)
+        return s.state()
+    return fold
+
+
 def blocks(maxt):
     """The fold of a shadow ray's test for ``tested``: blocked by a hit at t < maxt."""
     return lambda res, b: (b | (res[1] & (res[0] < maxt)),)

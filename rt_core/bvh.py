@@ -46,7 +46,8 @@ import numpy as np
 
 from types import SimpleNamespace
 
-from .accel import blocks, device_array, pack, packet_type, tested
+from .accel import blocks, closest_fold, device_array, pack, packet_type, tested
+from .shapes import directed
 from .quadrics import KINDS as QUADRICS
 from .shapes_quadric import ROW_SLOTS, quadric_boxes, row_view as quadric_row_view
 
@@ -193,25 +194,13 @@ def build(lo: np.ndarray, hi: np.ndarray, leaf_size: int | None = None) -> Tree:
     return Tree(nodes, np.array(order, np.int64), scale, depth)
 
 
-def rounded(a: np.ndarray, precision: str, down: bool) -> np.ndarray:
-    """float64 values rounded to the kernel's precision, down (or up), as float64."""
-    if precision == "f64":
-        return a
-    f = a.astype(np.float32)
-    if down:
-        f = np.where(f > a, np.nextafter(f, np.float32(-np.inf)), f)
-    else:
-        f = np.where(f < a, np.nextafter(f, np.float32(np.inf)), f)
-    return f.astype(np.float64)
-
-
 def outward(nodes: np.ndarray, precision: str) -> np.ndarray:
     """Node rows in the kernel's precision with the boxes rounded outward (lo down, hi up)."""
     if precision == "f64":
         return nodes
     f = nodes.astype(np.float32)
-    f[..., 0:3] = rounded(nodes[..., 0:3], precision, down=True)
-    f[..., 3:6] = rounded(nodes[..., 3:6], precision, down=False)
+    f[..., 0:3] = directed(nodes[..., 0:3], precision, down=True)
+    f[..., 3:6] = directed(nodes[..., 3:6], precision, down=False)
     return f
 
 
@@ -354,12 +343,8 @@ def closest_kind(ks, kind: str, d, o, rules, skip, st, active=None):
     st.fresh = False
     def leaf(node, row, end, *state):
         obj = bvh.view(T, row)
-
-        def fold(res, *state):
-            s = st.set(state)
-            s.fold(*res, obj.id, rules, False)
-            return s.state()
-        return (node, row + 1, end, *tested(d, o, obj, rules, vz, skip, fold, state))
+        return (node, row + 1, end,
+                *tested(d, o, obj, rules, vz, skip, closest_fold(st, obj.id, rules), state))
 
     def inner(node, row, end, *state):
         limit = state[0] * grow                 # the closest t so far (inf: none)

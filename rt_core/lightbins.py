@@ -47,7 +47,8 @@ from dataclasses import dataclass
 import drjit as dr
 import numpy as np
 
-from .bvh import _upload, object_boxes, rounded, row_view, rows as packed_rows
+from .bvh import _upload, object_boxes, row_view, rows as packed_rows
+from .shapes import directed
 from .accel import blocks, tested
 
 BINS_PER_OBJECT = 16        # cells per object on its face (the grid side: sqrt of that × N)
@@ -221,7 +222,7 @@ def build(ks, kind: str, center) -> LightBins:
     table = packed_rows(kind, consts, np.arange(n))[items[order]]
     # a blocker's accepted point lies within |C − H|(1 + 2u) + ~16u(|C − H| + S) of C: a row
     # whose distance, less NEAR_SLACK of it and of S, exceeds |C − H| cannot block
-    near = rounded(dist[items[order]] * (1 - NEAR_SLACK) - NEAR_SLACK * S, T.precision,
+    near = directed(dist[items[order]] * (1 - NEAR_SLACK) - NEAR_SLACK * S, T.precision,
                    down=True)
     u = UNIT[T.precision]
     dmax = (MARGIN - 5 * u) * R0 / (64 * u) - S

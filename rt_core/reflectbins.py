@@ -77,8 +77,9 @@ from dataclasses import dataclass
 import drjit as dr
 import numpy as np
 
-from .accel import BOUNDED, device_array, packet_type, tested
-from .bvh import KAPPA, PAD, _upload, object_boxes, rounded, row_view, rows as packed_rows
+from .accel import BOUNDED, closest_fold, device_array, packet_type, tested
+from .bvh import KAPPA, PAD, _upload, object_boxes, row_view, rows as packed_rows
+from .shapes import directed
 from . import lightbins
 from .lightbins import cube_cells, face_cell
 
@@ -88,7 +89,7 @@ SOURCE_PAD = 2.0 ** -10     # the source boxes' widening, relative to S
 MAX_PAIRS = 1 << 18         # sources × targets of a kind at most (the build's time)
 MAX_ROWS = 1 << 22          # listed rows of a kind at most (memory)
 # the bins are built for the AFTER_IMAGES-th image shaded through a KernelScene (shading.shade
-# counts them): the build (0.3 s at 256 spheres) costs more than a single image saves
+# counts them): the build (0.4 s at 256 spheres) costs more than a single image saves
 AFTER_IMAGES = 2
 # more rows than this share with bound 0 (grazing or near: never stopped before), the BVH:
 # a floor of coplanar mirror tiles had 92% (tests/test_bvh.py mirror_hall: 1.04 of the BVH's
@@ -103,9 +104,8 @@ PLANAR = ("fplane", "triangle", "disk")
 class ReflectBins:
     kind: str
     side: int
-    source: object              # Int32[objects]: each object's source index, −1 if unbounded
-    boxes: object               # Float[sources × 16]: each source's box (lo, hi; inward),
-                                # its ball's centre and radius² (rt_core/cull.py's, widened)
+    source: object              # Sources.source and .boxes (shared by the kinds)
+    boxes: object
     table: object               # Float[targets × row width]: the kind's rows (bvh.rows)
     index: object               # UInt32[entries]: each cell's rows in the table, nearest first
     near: object                # Float[entries]: a lower bound of each row's distance
@@ -113,32 +113,69 @@ class ReflectBins:
     counts: np.ndarray          # host: rows per (source, cell) (tests, statistics)
 
 
+@dataclass
+class Sources:
+    """Every bounded object as a source of reflection rays (host float64, and the kernel's
+    tables), the same for every target kind: built once per KernelScene."""
+    ids: np.ndarray             # object ids, in source order
+    lo: np.ndarray              # boxes widened by es
+    hi: np.ndarray
+    centre: np.ndarray          # bounding balls' centres
+    rs: np.ndarray              # their radii widened by es: what the kernel admits
+    wide: np.ndarray            # rs widened by its rounding and a margin: what the lists hold
+    S: float                    # the largest coordinate of any bounded object's box
+    source: object              # Int32[objects]: each object's source index, −1 if unbounded
+    boxes: object               # Float[sources × 16]: box (inward), centre, rs² (down)
+
+
+def sources(ks) -> Sources:
+    """The KernelScene's Sources (once)."""
+    from .cull import bounding
+    cache = ks.__dict__.setdefault("_accel", {})
+    if "reflect_sources" in cache:
+        return cache["reflect_sources"]
+    T = ks.T
+    kinds = [k for k in BOUNDED if ks.by_kind.get(k)]
+    ids = np.array([c.id for k in kinds for c in ks.by_kind[k]])
+    lo, hi = (np.concatenate(b) for b in zip(*(object_boxes(k, ks.by_kind[k]) for k in kinds)))
+    S = float(max(np.abs(lo).max(), np.abs(hi).max()))
+    es = SOURCE_PAD * S
+    lo, hi = lo - es, hi + es
+    # bounding balls (rt_core/cull.py): the kernel admits origins within rs of a source's
+    # centre (as rounded); the lists hold the ball widened by that rounding and a margin
+    balls = bounding(ks)
+    centre = np.array([balls[i][0] for i in ids]).reshape(-1, 3)
+    rs = np.array([balls[i][1] for i in ids]) + es
+    index = np.full(len(ks.scene.objects), -1, np.int64)
+    index[ids] = np.arange(len(ids))
+    boxes = np.zeros((len(ids), 16))
+    boxes[:, 0:3] = directed(lo, T.precision, down=False)       # inward: lo up, hi down
+    boxes[:, 3:6] = directed(hi, T.precision, down=True)
+    boxes[:, 6:9] = centre
+    boxes[:, 9] = directed(rs * rs, T.precision, down=True)
+    out = cache["reflect_sources"] = Sources(
+        ids, lo, hi, centre, rs, rs * (1 + 2.0 ** -10) + 2.0 ** -20 * S, S,
+        device_array(T.Int32, index), _upload(T, boxes))
+    return out
+
+
 def build(ks, kind: str) -> ReflectBins | None:
     """The bins of the target ``kind`` around every bounded object, or None when too large."""
     from .cull import bounding
     T = ks.T
     targets = ks.by_kind[kind]
-    skinds = [k for k in BOUNDED if ks.by_kind.get(k)]
-    src = [c for k in skinds for c in ks.by_kind[k]]
-    ns, nt = len(src), len(targets)
+    ns, nt = sum(len(ks.by_kind.get(k, ())) for k in BOUNDED), len(targets)
     cells = 6 * SIDE * SIDE
     if ns * nt > MAX_PAIRS or ns * cells > MAX_ROWS:       # (the offsets: ns·cells + 1)
         return None
-    slo, shi = (np.concatenate(b) for b in zip(*(object_boxes(k, ks.by_kind[k])
-                                                 for k in skinds)))
+    src = sources(ks)
     tlo, thi = object_boxes(kind, targets)
-    S = float(max(np.abs(slo).max(), np.abs(shi).max(), np.abs(tlo).max(), np.abs(thi).max()))
-    es, et = SOURCE_PAD * S, PAD[T.precision] * 2.01 * S
-    slo, shi = slo - es, shi + es
+    S = src.S                       # (the targets are sources too)
+    et = PAD[T.precision] * 2.01 * S
+    slo, shi, sids, sc, rs_wide = src.lo, src.hi, src.ids, src.centre, src.wide
     R0 = NEAR * S
-    sids = np.array([c.id for c in src])
     tids = np.array([c.id for c in targets])
-    # bounding balls (rt_core/cull.py): the kernel admits origins within rs of a source's
-    # centre (as rounded); here the ball is widened by its rounding and a margin
     balls = bounding(ks)
-    sc = np.array([balls[i][0] for i in sids]).reshape(-1, 3)
-    rs = np.array([balls[i][1] for i in sids]) + es
-    rs_wide = rs * (1 + 2.0 ** -10) + 2.0 ** -20 * S
     tc = np.array([balls[i][0] for i in tids]).reshape(-1, 3)
     rt = np.array([balls[i][1] for i in tids]) + et
     # every (source, target) pair but an object and itself; D = target − source
@@ -188,21 +225,12 @@ def build(ks, kind: str) -> ReflectBins | None:
     np.cumsum(counts, out=offsets[1:])
     table = packed_rows(kind, targets, np.arange(nt))
     index = b[pair]
-    source = np.full(len(ks.scene.objects), -1, np.int64)
-    source[sids] = np.arange(ns)
-    # per source: its box (inward), its centre (as the kernel rounds it) and rs² (down)
-    boxes = np.zeros((ns, 16))
-    boxes[:, 0:3] = rounded(slo, T.precision, down=False)      # inward: lo up, hi down
-    boxes[:, 3:6] = rounded(shi, T.precision, down=True)
-    boxes[:, 6:9] = sc
-    boxes[:, 9] = rounded(rs * rs, T.precision, down=True)
     off = device_array(T.UInt32, offsets)
-    src_t = device_array(T.Int32, source)
     empty = not len(index)
-    return ReflectBins(kind, SIDE, src_t, _upload(T, boxes), _upload(T, table),
+    return ReflectBins(kind, SIDE, src.source, src.boxes, _upload(T, table),
                        device_array(T.UInt32, np.zeros(1) if empty else index),
                        _upload(T, np.zeros(1) if empty else
-                               rounded(bound, T.precision, down=True)),
+                               directed(bound, T.precision, down=True)),
                        off, counts)
 
 
@@ -244,12 +272,8 @@ def closest_kind(ks, kind: str, d, o, rules, skip, st):
 
     def body(i, *state):
         obj = row_view(T, kind, rb.table, dr.gather(U, rb.index, i))
-
-        def fold(res, *state):
-            s = st.set(state)
-            s.fold(*res, obj.id, rules, False)
-            return s.state()
-        return (i + 1, *tested(d, o, obj, rules, vz, skip, fold, state))
+        return (i + 1, *tested(d, o, obj, rules, vz, skip, closest_fold(st, obj.id, rules),
+                               state))
 
     def more(i, *state):
         # rows left, and the next row not beyond the closest hit so far

@@ -51,6 +51,7 @@ from fractions import Fraction
 from types import SimpleNamespace
 
 import drjit as dr
+import numpy as np
 
 from .rules import Rules
 from .scene import Scene, Sphere, exact
@@ -696,7 +697,6 @@ def cone_k(q, radius, precision: str):
 
 @functools.lru_cache(maxsize=4096)
 def _cone_k(q, radius, precision: str):
-    import numpy as np
     f = np.float32 if precision == "f32" else np.float64
     u = 2.0 ** -24 if precision == "f32" else U64
     qk = [float(f(c)) for c in q]
@@ -710,10 +710,20 @@ def _cone_k(q, radius, precision: str):
     kd = float(k)                                   # nearest, then down
     if Fraction(kd) > k:
         kd = math.nextafter(kd, -math.inf)
-    kf = f(kd)
-    if float(kf) > kd:
-        kf = np.nextafter(kf, f(-np.inf))
-    return float(kf)
+    return float(directed(np.array(kd), precision, down=True))
+
+
+def directed(a: np.ndarray, precision: str, down: bool) -> np.ndarray:
+    """float64 values rounded to the kernel's precision, down (or up), as float64 (host
+    bounds that must stay below, or above, their float64 value in a float32 kernel)."""
+    if precision == "f64":
+        return a
+    f = a.astype(np.float32)
+    if down:
+        f = np.where(f > a, np.nextafter(f, np.float32(-np.inf)), f)
+    else:
+        f = np.where(f < a, np.nextafter(f, np.float32(np.inf)), f)
+    return f.astype(np.float64)
 
 
 def cone_rays(d):

@@ -25,9 +25,8 @@ from .decide import decide, decide_rays, prepare as prepare_exact
 from .rules import Rules
 from .scene import Scene, SceneError, locate
 from .kinds import KIND_CODE, PLANE_KINDS
-from .shapes import (ObjectConstants, least, numbers, object_constants, object_t,
-                     cone_rays, sphere_cone, sphere_live,
-                     sphere_t)
+from .shapes import (ObjectConstants, cone_rays, least, numbers, object_constants, object_t,
+                     sphere_cone, sphere_live, sphere_t)
 from .shapes_quadric import is_quadric, quadric_code, quadric_normal
 from .shapes_torus import torus_surface
 
