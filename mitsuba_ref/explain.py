@@ -41,6 +41,21 @@ def _norm(a):
     return np.sqrt(np.sum(a * a, axis=-1))
 
 
+def plane_terms(obj, extent: float):
+    """(unit normal, anchor point, size) of a planar object: the size is what its float32
+    numbers scale with in the bound (a finite plane's longer side, a disk's radius, a
+    triangle's longer edge from its first vertex; for an infinite or tiled plane the
+    reference's stand-in square, whose float32 vertices lie ~``extent`` away)."""
+    if obj.kind == "triangle":                 # mitsuba_ref/oracle_planar.py
+        P = [np.asarray(p, np.float64) for p in points(obj)]
+        return (np.asarray(unit(triangle_normal(obj))), P[0],
+                max(_norm(P[1] - P[0]), _norm(P[2] - P[0])))
+    if obj.kind == "disk":
+        return np.asarray(normal(obj)), np.asarray(obj.center, np.float64), obj.radius
+    size = max(obj.size) if obj.kind == "fplane" else extent
+    return np.asarray(normal(obj)), np.asarray(obj.point, np.float64), size
+
+
 class ObjectEval:
     """t, validity and decision margins of one object along rays O + t·d (float64).
 
@@ -87,14 +102,8 @@ class ObjectEval:
             self.scale = origin + qn + obj.radius
             return
         planar = obj.kind in ("triangle", "disk")      # mitsuba_ref/oracle_planar.py
-        if planar:
-            nrm = np.asarray(unit(triangle_normal(obj)) if obj.kind == "triangle"
-                             else normal(obj))
-            anchor = points(obj)[0] if obj.kind == "triangle" else obj.center
-        else:
-            nrm = np.asarray(normal(obj))
-            anchor = obj.point
-        q = np.asarray(anchor) - O
+        nrm, anchor, size = plane_terms(obj, extent)
+        q = anchor - O
         den = d @ nrm
         with np.errstate(divide="ignore", invalid="ignore"):
             t = (q @ nrm) / den
@@ -120,20 +129,17 @@ class ObjectEval:
             self.margin = np.where(inside, np.minimum.reduce([u, w - u, v, h - v]),
                                    np.hypot(du, dv))
             valid &= inside
-            size = max(w, h)
         elif planar:
             # signed distance of the hit inside the edges (triangle) or the rim (disk)
             H = O + t[:, None] * d
             with np.errstate(invalid="ignore"):
                 if obj.kind == "disk":
                     m = obj.radius - _norm(H - np.asarray(obj.center))
-                    size = obj.radius
                 else:
                     P = [np.asarray(p, np.float64) for p in points(obj)]
                     N = np.cross(P[1] - P[0], P[2] - P[0])
                     m = np.min([(np.cross(B - A, H - A) @ N) / (_norm(N) * _norm(B - A))
                                 for A, B in ((P[0], P[1]), (P[1], P[2]), (P[2], P[0]))], 0)
-                    size = max(_norm(P[1] - P[0]), _norm(P[2] - P[0]))
             inside = (m >= 0) if rules.edges == "closed" else (m > 0)
             self.margin = np.where(np.isfinite(m), np.abs(m), np.inf)
             valid &= inside
@@ -144,7 +150,6 @@ class ObjectEval:
                 rel = O + t[:, None] * d - np.asarray(foot)
                 far = np.maximum(np.abs(rel @ np.asarray(ax)), np.abs(rel @ np.asarray(ay)))
             self.beyond = valid & (far > extent * (1 - 1e-6))
-            size = extent       # the stand-in's float32 vertices lie ~extent away
         self.valid = valid
         self.scale = origin + _norm(q) + size
 
@@ -210,6 +215,8 @@ def depth_bound(scene: Scene, d: np.ndarray, ids: np.ndarray, t: np.ndarray, ext
     position bound along the ray, over t.  For a sphere the bound grows as the ray nears
     the outline (t is ill-conditioned there): ε·S/√(relative discriminant)."""
     out = np.full(len(d), np.inf)
+    V = np.asarray(scene.viewpoint, np.float64)
+    origin = 2 * np.sqrt(V @ V)              # |O| + |V| of ObjectEval, O = V
     # the rays of each object hit, by one sort (not a pass over every ray per object)
     order = np.argsort(ids, kind="stable")
     present, start = np.unique(ids[order], return_index=True)
@@ -217,15 +224,37 @@ def depth_bound(scene: Scene, d: np.ndarray, ids: np.ndarray, t: np.ndarray, ext
         if not 0 <= i < len(scene.objects):
             continue
         o = scene.objects[i]
-        ev = ObjectEval(scene, o, d[sel], rules, extent)
-        b = ev.bound(t[sel])
-        if o.kind in quadric.KINDS:
-            # as the sphere's: the root's condition near the outline or the rim, the margin
-            # relative to the object's size
-            rel_disc = np.clip(2 * ev.margin / max(ev.size, 1e-300), 1e-300, None)
-            b = np.maximum(b, K_ROUNDING * EPS32 * ev.scale / np.sqrt(np.minimum(rel_disc, 1.0)))
+        ds, ts = d[sel], t[sel]
         if o.kind == "sphere":
-            rel_disc = np.clip(ev.margin * (2 * o.radius) / (o.radius ** 2), 1e-300, None)
-            b = K_ROUNDING * EPS32 * ev.scale / np.sqrt(np.minimum(rel_disc, 1.0))
-        out[sel] = b / np.maximum(t[sel], 1e-300)
+            out[sel] = _sphere_depth_bound(o, V, ds) / np.maximum(ts, 1e-300)
+            continue
+        if o.kind not in quadric.KINDS:
+            # ObjectEval's bound at the given t, from the terms it needs only (the plane's
+            # normal, anchor and size): its hit, extent and edge tests are not needed here
+            nrm, anchor, size = plane_terms(o, extent)
+            scale = origin + np.sqrt((anchor - V) @ (anchor - V)) + size
+            with np.errstate(divide="ignore", invalid="ignore"):
+                b = K_ROUNDING * EPS32 * (scale + np.abs(ts)) / np.maximum(np.abs(ds @ nrm),
+                                                                          1e-300)
+            out[sel] = np.where(np.isfinite(b), b, np.inf) / np.maximum(ts, 1e-300)
+            continue
+        # a quadric: as the sphere's, the root's condition near the outline or the rim,
+        # the margin relative to the object's size
+        ev = ObjectEval(scene, o, ds, rules, extent)
+        rel_disc = np.clip(2 * ev.margin / max(ev.size, 1e-300), 1e-300, None)
+        b = np.maximum(ev.bound(ts),
+                       K_ROUNDING * EPS32 * ev.scale / np.sqrt(np.minimum(rel_disc, 1.0)))
+        out[sel] = b / np.maximum(ts, 1e-300)
     return out
+
+
+def _sphere_depth_bound(o, V, d):
+    """A sphere's position bound for rays from V along d: ε·S/√(relative discriminant), the
+    discriminant relative to r² taken as 2r·(distance of the ray from the outline) / r²
+    (ObjectEval's margin and scale, of which only these are needed)."""
+    q = np.asarray(o.center, np.float64) - V
+    a = np.sum(d * d, 1)
+    pn = _norm(q - d * ((d @ q) / a)[:, None])
+    scale = 2 * np.sqrt(V @ V) + np.sqrt(q @ q) + o.radius
+    rel_disc = np.clip(np.abs(pn - o.radius) * (2 * o.radius) / (o.radius ** 2), 1e-300, None)
+    return K_ROUNDING * EPS32 * scale / np.sqrt(np.minimum(rel_disc, 1.0))

@@ -100,18 +100,23 @@ def prepare(scene: Scene, T: Types) -> KernelScene:
 
 # object_constants of the scenes prepared last (each is frozen; its constants are computed
 # in exact arithmetic, ~3 ms a scene, and every render, precision and comparison of a scene
-# prepares it again)
+# prepares it again).  They depend on the objects and the viewpoint only: keyed on the
+# objects' tuple and the viewpoint, a copy of the scene with another window (compare's
+# camera mode, on square pixels) or another path finds them too
 _CONSTS: dict = {}
 
 
 def scene_constants(scene: Scene) -> list:
     """``shapes.object_constants(scene)``, computed once for the scenes prepared last (an
-    entry holds its scene, so its id stays that scene's)."""
-    hit = _CONSTS.get(id(scene))
+    entry holds its objects' tuple, so its id stays that tuple's)."""
+    if not isinstance(scene.objects, tuple):        # (a list could change under the key)
+        return object_constants(scene)
+    key = (id(scene.objects), tuple(scene.viewpoint))
+    hit = _CONSTS.get(key)
     if hit is None:
         if len(_CONSTS) >= 16:
             _CONSTS.clear()
-        hit = _CONSTS[id(scene)] = (scene, tuple(object_constants(scene)))
+        hit = _CONSTS[key] = (scene.objects, tuple(object_constants(scene)))
     return list(hit[1])
 
 

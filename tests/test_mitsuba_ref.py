@@ -24,6 +24,7 @@ from rt_core.tracer import closest_hit, prepare
 from tools.harness.compare import compare, write_evidence
 from mitsuba_ref.convert import (course_id, mitsuba, plane_extent, scene_dict, scene_xml,
                                  sensor_setup)
+from mitsuba_ref import quadric
 from mitsuba_ref.explain import CLASS_CODE, classify
 from mitsuba_ref.reference import MitsubaScene, trace_rays
 from tools.harness.validate import (COURSE_SCENES, default_scene_paths, is_course_scene,
@@ -228,6 +229,55 @@ def test21_wrong_depth_exceeds_bound(monkeypatch):
     monkeypatch.setattr(C, "trace_geometry", biased)
     cmp = compare(parse_scene(REPO / "scenes" / "sphere.txt"), 64, None, "f32", "rays")
     assert cmp.depth["over_bound"] > 0 and not cmp.ok
+
+
+@pytest.mark.parametrize("name", ["sphere.txt", "mixed.txt", "tplane.txt", "planar.txt",
+                                  "fplane_tilted.txt", "cylinders.txt"])
+def test21b_depth_bound_is_object_evals(name):
+    """depth_bound's lean per-kind terms (planes: normal, anchor, size; spheres: the distance
+    from the outline) give ObjectEval's bound, the one the classifier's explanations use."""
+    from mitsuba_ref.explain import K_ROUNDING, EPS32, ObjectEval, depth_bound
+    scene = parse_scene(REPO / "scenes" / name)
+    rng = np.random.default_rng(3)
+    n = 400
+    d = rng.normal(size=(n, 3)) + [0, 0, -3]
+    ids = rng.integers(0, len(scene.objects), n)
+    t = rng.uniform(0.1, 50, n)
+    extent = plane_extent(scene)
+    got = depth_bound(scene, d, ids, t, extent, Rules())
+    for i, o in enumerate(scene.objects):
+        sel = ids == i
+        ev = ObjectEval(scene, o, d[sel], Rules(), extent)
+        if o.kind == "sphere":
+            rel_disc = np.clip(ev.margin * 2 / o.radius, 1e-300, None)
+            want = K_ROUNDING * EPS32 * ev.scale / np.sqrt(np.minimum(rel_disc, 1.0))
+        elif o.kind in quadric.KINDS:
+            continue                         # (depth_bound itself goes through ObjectEval)
+        else:
+            want = ev.bound(t[sel])
+        np.testing.assert_allclose(got[sel], want / t[sel], rtol=1e-9, err_msg=o.kind)
+
+
+def test21c_constants_shared_by_window_copies(monkeypatch):
+    """A copy of a scene with another window (compare's camera mode) reuses its constants;
+    a copy with other objects or another viewpoint does not."""
+    import rt_core.tracer as TR
+    calls = []
+    real = TR.object_constants
+    monkeypatch.setattr(TR, "object_constants", lambda sc: calls.append(sc) or real(sc))
+    monkeypatch.setattr(TR, "_CONSTS", {})
+    scene = parse_scene(REPO / "scenes" / "mixed.txt")
+    T = backend.types("f64")
+    prepare(scene, T)
+    prepare(dataclasses.replace(scene, window=(7.0, 5.0)), T)
+    assert len(calls) == 1
+    moved = dataclasses.replace(scene, viewpoint=(0.5, 0.0, scene.viewpoint[2]))
+    ks = prepare(moved, T)
+    fewer = dataclasses.replace(scene, objects=scene.objects[1:])
+    ks2 = prepare(fewer, T)
+    assert len(calls) == 3
+    assert [c.q for c in ks.consts] == [c.q for c in real(moved)]
+    assert len(ks2.consts) == len(scene.objects) - 1
 
 
 def test22_evidence_written(tmp_path):
