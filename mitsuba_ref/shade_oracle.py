@@ -58,14 +58,20 @@ def _hit_margin(scene, h, base, d, skip, ties: bool = True, tmax: float = INF) -
     if any(o.kind in quadric.KINDS for o in scene.objects):
         m = min(m, h.disc_margin)        # a quadric's outline (its rim: edge_margin)
     tw = h.t if h.hit else INF
+    bv, dv = [x.v for x in base], [x.v for x in d]
     for i, o in enumerate(scene.objects):
         if o.kind != "sphere" or i == skip:
             continue
         c, r = _sphere_inputs(tuple(o.center), o.radius)
+        # along.v of the EF numbers below, in plain floats (EF arithmetic computes v as
+        # float64 does, in the same order): most spheres are behind the ray or beyond
+        # what decides it, and their error bounds are never needed
+        along_v = ((c[0].v - bv[0]) * dv[0] + (c[1].v - bv[1]) * dv[1]) + \
+            (c[2].v - bv[2]) * dv[2]
+        if along_v + r.v < 0 or along_v - r.v > min(tw, tmax):
+            continue                     # behind the ray, or beyond what decides it
         q = diff3(c, base)
         along = dot3(q, d)
-        if along.v + r.v < 0 or along.v - r.v > min(tw, tmax):
-            continue                     # behind the ray, or beyond what decides it
         p = length3(diff3(q, scale3(along, d)))
         m = min(m, _margin(p.v - r.v, p.e + r.e))
     return m

@@ -207,6 +207,53 @@ def test05_scene_against_oracle(path, precision):
         assert res.bounces >= 1 and (orc["bounces"] > 0).any()
 
 
+def test05a_oracle_sphere_margins_as_written():
+    """The oracle's sphere outline margins (_hit_margin) skip, by a plain-float test, the
+    spheres behind the ray or beyond what decides it: the margins are those of the loop
+    that computes every sphere in EF numbers first."""
+    from mitsuba_ref.oracle import diff3, dot3, length3, scale3, trace, vec
+    from mitsuba_ref.shade_oracle import _hit_margin, _margin, _sphere_inputs
+    rng = np.random.default_rng(5)
+    spheres = tuple(make_sphere(mat(amb=(0.2, 0.2, 0.2)), tuple(rng.uniform(-4, 4, 2)) +
+                                (float(rng.uniform(-12, -3)),), float(rng.uniform(0.3, 1.5)))
+                    for _ in range(12))
+    scene = Scene((8.0, 6.0), (0.0, 0.0, 5.0), (), spheres)
+
+    def literal(h, base, d, skip, tmax):
+        m = min(h.edge_margin, h.clip_margin, h.tmin_margin, h.graze, h.tie_gap)
+        tw = h.t if h.hit else math.inf
+        for i, o in enumerate(scene.objects):
+            if i == skip:
+                continue
+            c, r = _sphere_inputs(tuple(o.center), o.radius)
+            q = diff3(c, base)
+            along = dot3(q, d)
+            if along.v + r.v < 0 or along.v - r.v > min(tw, tmax):
+                continue
+            p = length3(diff3(q, scale3(along, d)))
+            m = min(m, _margin(p.v - r.v, p.e + r.e))
+        return m
+
+    misses = 0
+    for k in range(300):
+        # rays from the viewpoint towards the spheres (some graze their outlines), and from
+        # points among them in every direction (spheres behind them)
+        if k % 2:
+            base = vec(scene.viewpoint)
+            aim = spheres[k % 12].center
+            d = vec(tuple(a - b + rng.normal(0, 0.3) for a, b in zip(aim, scene.viewpoint)))
+        else:
+            base = vec(tuple(rng.uniform(-4, 4, 2)) + (float(rng.uniform(-12, -3)),))
+            d = vec(tuple(rng.normal(size=3)))
+        skip = int(rng.integers(-1, 12))
+        h = trace(scene, base, d, Rules(), skip)
+        tmax = math.inf if k % 3 else float(rng.uniform(0.5, 10))
+        got = _hit_margin(scene, h, base, d, skip, True, tmax)
+        assert got == literal(h, base, d, skip, tmax), k
+        misses += not h.hit
+    assert 0 < misses < 300           # hits and misses both
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("precision", PRECISIONS)
 def test05b_course_scenes_against_oracle(precision):
