@@ -41,6 +41,7 @@ from .rules import Rules
 from .scene import sub, unit
 from .kinds import KIND_CODE
 from .shapes import opaque3
+from . import accel
 from .accel import device_array, packet_type
 from .jitlog import NullLog
 from .textures import MODE_CODE, Texture
@@ -62,6 +63,17 @@ MAX_BOUNCES = 10_000
 # With max_bounces = 1, trace the one reflection bounce's rays in the primary rays' kernel
 # (``_one_bounce``) rather than as a compacted wavefront (tests compare the two)
 FUSE_ONE_BOUNCE = True
+# The reflection rays run their bounces in one kernel (``_tail``) instead of one compacted
+# wavefront a bounce (tests compare the two).  Where their closest hits walk a BVH or bins
+# (many objects), a bounce of more than TAIL_FRACTION of the pixels stays a wavefront: the
+# lanes that stop early idle in the loop's packets, and a long walk makes that cost more
+# than a bounce's launch and compaction.  Measured (the bench's shaded scenes, all bounces,
+# and two mirror scenes; 1920 columns, f32; CPU time of the image over the wavefront's,
+# median of 5): 16 spheres 0.50, scenes/shade_mirrors.txt 0.37, course sgw__spec3 0.40;
+# with this rule 256 spheres 0.79, fplanes 0.74, mixed 0.72, 4096 spheres 0.99, mixed 0.92
+# (the tail from the first reflection bounce at 4096 spheres: 1.06-1.10)
+TAIL = True
+TAIL_FRACTION = 1 / 16
 
 
 @dataclass
@@ -308,6 +320,8 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
     if reflect and max_bounces == 1 and not record and FUSE_ONE_BOUNCE:
         return _one_bounce(T, d, image, segment, out, log,
                            lambda d, o, skip: closest_hit(ks, d, o, rules, skip))
+    # reflection rays' closest hits through a BVH (or bins): ``TAIL_FRACTION``
+    deep = any(accel.looped(ks, k, True) for k in ks.kinds)
     while True:
         group = "primary" if bounce == 0 else "reflection"
         rays = count
@@ -368,8 +382,57 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
         weight = dr.gather(T.Array3, w_next, idx)
         bounce += 1
         out.bounces = bounce
+        if TAIL and bounce >= record and (count <= TAIL_FRACTION * n or not deep):
+            # the few rays left: their remaining bounces in one kernel
+            image = _tail(T, segment, image, pixel, o, d, skip, dist, weight, live, bounce,
+                          max_bounces, out, log, count)
+            break
     out.rgb = image
     return out
+
+
+def _tail(T, segment, image, pixel, o, d, skip, dist, weight, live, bounce: int,
+          max_bounces: int, out: ShadeResult, log, count: int):
+    """The rest of ``shade``'s wavefront loop for the rays of bounce ``bounce`` on (``live``:
+    the ``count`` real lanes), in one kernel: a symbolic loop in which each lane goes on to
+    its own end (no reflection, the cut-off, or the cap after bounce ``max_bounces``).
+
+    A wavefront bounce costs a kernel launch, its tracing in Python and a compaction (about
+    3 ms whatever its width), so a deep tail of few rays (mirrors facing each other: tens to
+    hundreds of bounces) took most of a render.  Each lane's arithmetic is the wavefront's,
+    and its sum into the pixel runs in the same order (the pixel's value so far, plus each
+    bounce's term), so the image is the same, bit for bit.  Returns the image; sets
+    ``out``'s bounces, capped and left_active as the wavefront loop would."""
+    U = T.UInt32
+    n = dr.width(d)
+    real = live
+    # each lane's pixel value so far, to which its bounces add their terms in turn
+    acc = dr.gather(T.Array3, image, pixel, real)
+    cap = dr.opaque(U, max_bounces)
+
+    def body(o, d, skip, dist, weight, live, acc, b, last, capped):
+        seg = segment(d, o, skip, dist, weight, live, 1, None)
+        acc = dr.select(seg.hit, acc + seg.add, acc)
+        last = dr.select(live, b, last)
+        go = seg.go                               # (only lanes that hit, so only live ones)
+        capped |= go & (b >= cap)
+        return (seg.H, seg.R, seg.oid, seg.total, seg.w_next, go & (b < cap), acc, b + 1,
+                last, capped)
+
+    state = (o, d, skip, dist, weight, live, acc, dr.opaque(U, bounce, n), dr.zeros(U, n),
+             dr.zeros(T.Bool, n))
+    state = dr.while_loop(state, lambda *s: s[5], body, label="shade_tail",
+                          labels=("o", "d", "skip", "dist", "weight", "live", "acc", "b",
+                                  "last", "capped"))
+    acc, last, capped = state[6], state[8], state[9]
+    dr.scatter(image, acc, pixel, real)
+    dr.eval(image, last, capped)
+    out.bounces = int(np.max(last.numpy()))
+    log.mark("tail", "reflection", bounce, count)
+    left = int(np.count_nonzero(capped.numpy()))
+    if left:
+        out.capped, out.left_active = True, left
+    return image
 
 
 def _one_bounce(T, d, image, segment, out: ShadeResult, log, trace) -> ShadeResult:

@@ -79,8 +79,9 @@ def test03_explain_names_passes_and_kernels(tmp_path):
     lines = [ln for ln in r.stderr.splitlines() if "explain:" in ln]
     text = "\n".join(lines)
     assert "sphere 1, plane 1, fplane 1, tplane 1" in text and "2 lights" in text
-    # one kernel per bounce (hit, shadows, shading): the primary one and a reflection
-    for row in ("primary  bounce", "1        bounce"):
+    # one kernel per bounce (hit, shadows, shading): the primary one and the reflection
+    # bounces' (the tail)
+    for row in ("primary  bounce", "1        tail"):
         assert row in text, text
     assert "up to 2 shadow rays per hit" in text
     assert "launched" in text and "compiled" in text
@@ -88,7 +89,7 @@ def test03_explain_names_passes_and_kernels(tmp_path):
     r = rtval("render", "scenes/sphere.txt", "--columns", 32, "--png", tmp_path / "s.png",
               "--explain")
     assert "no reflection pass" in r.stderr and "up to 1 shadow ray per hit" in r.stderr
-    assert "1        bounce" not in r.stderr
+    assert "tail" not in r.stderr
 
 
 def test04_usage_errors(tmp_path):

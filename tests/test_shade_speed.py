@@ -112,6 +112,87 @@ def test02_one_bounce_shades_reflection_hits_densely(monkeypatch):
     assert sizes[False][0] == cam.columns * cam.rows and sizes[False][-1] == len(idx)
 
 
+def full_render(scene, precision, tail: bool, monkeypatch, columns=48, **kw):
+    monkeypatch.setattr(shading, "TAIL", tail)
+    T = backend.types(precision)
+    cam = make_camera(scene, columns)
+    res = shade(prepare(scene, T), primary_directions(scene, cam, T), Rules(), cam=cam, **kw)
+    rgb = np.stack([np.asarray(getattr(res.rgb, c).numpy()) for c in "xyz"], 1)
+    return rgb, (res.bounces, res.capped, res.left_active)
+
+
+def deep_mirrors() -> Scene:
+    """Two facing mirror walls with a sphere between them, one NaN-free path bouncing
+    hundreds of times, and the ``mirrors`` scene's objects."""
+    wall = Material((0.05, 0.05, 0.05), (0.5, 0.5, 0.5), (0.9, 0.9, 0.9))
+    base = mirrors()
+    objs = base.objects + (make_plane(wall, (1, 0, 0), (-5.0, 0, 0)),
+                           make_plane(wall, (-1, 0, 0), (5.0, 0, 0)),
+                           make_sphere(MIRROR, (0.3, 1.5, -3.0), 0.6))
+    return Scene(base.window, base.viewpoint, base.lights, objs, path="<deep mirrors>")
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test01b_tail_in_one_kernel_is_the_wavefront(precision, monkeypatch):
+    """The bounces after the first wavefront in one kernel (``_tail``): the image, the
+    bounce count and the cap are the wavefront's, bit for bit, in scenes of a few bounces
+    and of hundreds, with the cap reached or not."""
+    scenes = [parse_scene(REPO / "scenes" / f"{n}.txt")
+              for n in ("mixed", "shade_mirrors", "shade_tiles")] + [mirrors(), deep_mirrors()]
+    deepest, capped = 0, set()
+    for scene in scenes:
+        for kw in ({}, {"max_bounces": 3}, {"max_dist": 40.0}):
+            wave, wave_stats = full_render(scene, precision, False, monkeypatch, **kw)
+            tail, tail_stats = full_render(scene, precision, True, monkeypatch, **kw)
+            assert np.array_equal(bits(wave), bits(tail)), \
+                f"{scene.path} {kw}: pixels " \
+                f"{np.flatnonzero((bits(wave) != bits(tail)).any((1, 2)))[:5]}"
+            assert tail_stats == wave_stats, (scene.path, kw)
+            if wave_stats[1]:
+                capped.add(scene.path)
+            else:
+                deepest = max(deepest, wave_stats[0])
+    assert deepest > 50                      # hundreds of bounces in one kernel
+    assert {"<deep mirrors>", str(REPO / "scenes" / "shade_mirrors.txt")} <= capped
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test01d_tail_after_wavefronts_is_the_wavefront(precision, monkeypatch):
+    """Many objects (reflection rays through the BVH): the first bounces of more than
+    TAIL_FRACTION of the pixels stay wavefronts, the rest runs in one kernel; the image and
+    the counts are the wavefront's, bit for bit."""
+    from tools.harness.bench_shaded import shaded_scene
+    scene = shaded_scene("mixed", 40)
+    T = backend.types(precision)
+    assert any(accel.looped(prepare(scene, T), k, True) for k in scene.kinds())
+    monkeypatch.setattr(shading, "TAIL_FRACTION", 0.05)
+    wave, wave_stats = full_render(scene, precision, False, monkeypatch, columns=96)
+    tail, tail_stats = full_render(scene, precision, True, monkeypatch, columns=96)
+    assert np.array_equal(bits(wave), bits(tail))
+    assert tail_stats == wave_stats and wave_stats[0] >= 3
+
+
+def test01c_tail_is_one_kernel(monkeypatch):
+    """A render of a mirror corridor: one kernel for the primary rays, one for the first
+    reflection wavefront's rays to their ends (the wavefront: one kernel a bounce)."""
+    from rt_core.jitlog import KernelLog
+    from rt_core.render import render_image
+    scene = parse_scene(REPO / "scenes" / "shade_mirrors.txt")
+    T = backend.types("f32")
+    cam = make_camera(scene, 32)
+    for tail in (True, False):
+        monkeypatch.setattr(shading, "TAIL", tail)
+        with KernelLog() as log:
+            _, res = render_image(scene, cam, T, geometry=False, shade=True, log=log)
+        bounces = [p for p in log.passes if p.name in ("bounce", "tail")]
+        assert res.bounces > 20
+        if tail:
+            assert [(p.name, p.bounce) for p in bounces] == [("bounce", 0), ("tail", 1)]
+            assert all(p.kernels == 1 for p in bounces)
+        else:
+            assert len(bounces) == res.bounces + 1
+
+
 # --- the bounding-sphere cull ---------------------------------------------------------------
 
 def cull_scene() -> Scene:

@@ -319,18 +319,22 @@ def explain_lines(scene, log, res, max_dist: float) -> list[str]:
         stop = ("no ray left" if not res.capped else
                 f"SAFETY CAP reached with {res.left_active} rays active")
         n = len(scene.lights)
-        lines.append("shading: one kernel per bounce (hit, shadow rays, shading); "
+        reflects = any_specular(scene) and max_dist > 0
+        lines.append("shading: one kernel per bounce (hit, shadow rays, shading)"
+                     + (", the reflection rays to their ends in one ('tail')" if reflects
+                        else "") + "; "
                      + (f"up to {_n(n, 'shadow ray')} per hit (one per light it faces)" if n else
                         "no lights: no shadow rays") + "; "
                      + (f"{_n(res.bounces, 'reflection bounce')} (max-dist {max_dist:g}; "
-                        f"stopped: {stop})" if any_specular(scene) and max_dist > 0
-                        else "no reflection pass"))
+                        f"stopped: {stop})" if reflects else "no reflection pass"))
     lines.append(f"{'bounce':<9}{'pass':<12}{'rays':>9}{'kernels':>9}{'compiled':>10}"
                  f"{'disk':>6}{'memory':>8}  other launches")
     # the primary rays and the first reflection pass by pass; deeper bounces summed
     rows: dict = {}
     for p in log.passes:
-        label = ("primary" if p.bounce == 0 else str(p.bounce) if p.bounce == 1
+        label = ("primary" if p.bounce == 0 else
+                 f"{p.bounce}-{res.bounces}" if p.name == "tail" and res.bounces > p.bounce
+                 else str(p.bounce) if p.bounce == 1 or p.name == "tail"
                  else f"2-{res.bounces}")
         rows.setdefault((label, p.name), []).append(p)
     for (label, name), ps in rows.items():
