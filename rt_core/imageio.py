@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .inputfile import check_input
+from .native import native_output_captured
 from .outputs import atomic_write
 from .usererror import InputError
 
@@ -108,7 +109,8 @@ def open_input(path, what: str = "image", error=ImageError):
         raise error(f"{path}: the file is empty")
     config = oiio.ImageSpec()
     config.attribute("oiio:UnassociatedAlpha", 1)    # colours as stored, not premultiplied
-    inp = oiio.ImageInput.open(path, config)
+    with native_output_captured(fds=(2,)):            # libpng's own "libpng error: ..."
+        inp = oiio.ImageInput.open(path, config)
     if inp is None:
         raise error(f"{path}: cannot read it as an image ({_reason(_error_of(oiio), path)}); "
                     "rtval reads what OpenImageIO reads: EXR, PPM, PNG, TIFF, ...")
@@ -137,7 +139,8 @@ def _read_part(inp, path: str, error, index: int, deep_ok: bool):
                         f"({_reason(_error_of(inp), path)})")
         return spec, {}, types
     _needs_bytes(path, error, spec, 4)
-    px = inp.read_image(index, 0, 0, len(names), "float")
+    with native_output_captured(fds=(2,)):
+        px = inp.read_image(index, 0, 0, len(names), "float")
     if px is None:
         raise error(f"{path}: cannot read the pixels, truncated or corrupt "
                     f"({_reason(_error_of(inp), path)})")
@@ -210,7 +213,8 @@ def read_image(path: str) -> np.ndarray:
         if spec.deep:
             raise ImageError(f"{path}: a deep image; expected the 8-bit image a tracer writes")
         _needs_bytes(path, ImageError, spec, 1)
-        px = inp.read_image(0, 0, 0, spec.nchannels, "uint8")
+        with native_output_captured(fds=(2,)):
+            px = inp.read_image(0, 0, 0, spec.nchannels, "uint8")
         if px is None:
             raise ImageError(f"{path}: cannot read the pixels, truncated or corrupt "
                              f"({_reason(_error_of(inp), path)})")

@@ -326,6 +326,58 @@ def _remove_dirs(created: list) -> None:
             break
 
 
+def _probe(directory: str, shown: str) -> None:
+    """Can a file be created in ``directory`` (permissions, read-only or pseudo file
+    systems such as /proc)?  A WriteError naming ``shown`` if not."""
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".tmp-rtval-probe-", dir=directory)
+    except OSError as e:
+        reason = (e.strerror or str(e)).lower()
+        raise WriteError(shown, f"cannot create a file in {directory} ({reason})",
+                         _HINTS.get(e.errno, "write elsewhere")) from None
+    os.close(fd)
+    os.unlink(probe)
+
+
+def _existing_parent(path: str, shown: str) -> str:
+    """The nearest existing directory at or above ``path`` (which atomic_write would create
+    the rest below); a WriteError if that is not a directory."""
+    d = os.path.abspath(path)
+    while not os.path.exists(d) and d != os.path.dirname(d):
+        d = os.path.dirname(d)
+    if not os.path.isdir(d):
+        raise WriteError(shown, f"{d} is not a directory")
+    return d
+
+
+def check_file_target(path: str, make_dirs: bool = True) -> None:
+    """Refuse, before any work, an output file that cannot be written: a directory, a
+    missing directory (unless ``make_dirs``: atomic_write creates it), a file below a
+    non-directory, or a place where no file can be created.  An existing non-regular file
+    (/dev/null, a pipe) is written through and not probed."""
+    from .usererror import InputError
+    shown = os.fspath(path)
+    if os.path.isdir(shown):
+        raise InputError(f"{shown}: is a directory; give a file name")
+    if os.path.exists(shown) and not os.path.isfile(shown):
+        return
+    parent = os.path.dirname(os.path.abspath(shown))
+    if not make_dirs and not os.path.exists(parent):
+        # a typo in a directory name should not become a new directory tree
+        raise InputError(f"{shown}: no directory {parent}; create it first")
+    _probe(_existing_parent(parent, shown), shown)
+
+
+def check_dir_target(path: str) -> None:
+    """Refuse, before any work, an output directory that cannot be made or written into:
+    an existing file, a path below a non-directory, or a place where no file can be
+    created."""
+    shown = os.fspath(path)
+    if os.path.exists(shown) and not os.path.isdir(shown):
+        raise WriteError(shown, "is not a directory", "give a directory, or a new name")
+    _probe(_existing_parent(shown, shown), shown)
+
+
 def jsonable(x):
     """NaN and ±Inf become the strings "nan", "inf", "-inf", so that JSON stays strict."""
     if isinstance(x, float) and not math.isfinite(x):

@@ -270,6 +270,23 @@ def test08_run_reports_each_failure_per_scene(ctracer, tmp_path):
         assert r.status == "error" and why in r.reason, (cmd, r.reason)
 
 
+def test08b_run_commands_with_braces_and_escaped_children(ctracer, tmp_path):
+    """Only {scene} {out} {columns} {rows} {hits} are filled in: awk's braces and an unknown
+    name stay as written (no traceback); a child that leaves the process group does not
+    hold the check past its timeout."""
+    import time
+    scene = str(REPO / "scenes" / "seed_fplane.txt")
+    course = f"{ctracer / 'course'} {{columns}} {{rows}} < {{scene}} > {{out}}"
+    r, = check_run("awk '{print $1}' {scene} > /dev/null && " + course, [scene], 40, None)
+    assert r.status == "pass", r.reason
+    r, = check_run(f"cp {scene} {{output}} # {{scene}} {{out}}", [scene], 40, None)
+    assert r.status == "error" and "wrote no image" in r.reason and "{output}" in r.reason
+    t0 = time.monotonic()
+    r, = check_run("setsid sleep 60 # {scene} {out}", [scene], 40, None, timeout=1.0)
+    assert r.status == "error" and "timed out" in r.reason
+    assert time.monotonic() - t0 < 30             # not the child's 60 s
+
+
 def test09_cli_outputs_and_exit_codes(ctracer, tmp_path):
     from tools.cli import main
     scene = REPO / "scenes" / "shade_shadows.txt"
@@ -322,8 +339,16 @@ def test12_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
     trunc.write_bytes(b"P6 40 30 255\n" + b"\0" * 100)
     assert main(["check", str(scene), str(trunc)]) == 2
     assert "truncated" in capsys.readouterr().err
-    assert main(["check", str(scene)]) == 2          # no image, no --run
-    assert main(["check", str(scene), "--run", "x {scene}", "--columns", "8"]) == 2
+    # usage errors: one line, exit 64 (README "Exit codes")
+    for argv in ([str(scene)],                                  # no image, no --run
+                 [str(scene), "--run", "x {scene}", "--columns", "8"],     # no {out}
+                 [str(scene), "--run", "x {scene} {out}"],      # no --columns
+                 [str(scene), "--run", "", "--columns", "8"]):  # an empty command
+        with pytest.raises(SystemExit) as e:
+            main(["check", *argv])
+        assert e.value.code == 64, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("rtval check: error: "), err
 
 
 def test13_hint_for_outline_only_differences():

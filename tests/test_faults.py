@@ -125,6 +125,33 @@ def test04_full_file_system_other_commands(full_dir, tmp_path):
     assert sorted(p.name for p in full_dir.iterdir()) == ["fill"]
 
 
+@pytest.mark.parametrize("argv", [
+    ("validate", SEED, "--columns", 16, "-o", "/proc/rtval-v"),
+    ("validate", SEED, "--columns", 16, "--junit", "/proc/v.xml"),
+    ("bench", "--objects", 1, "--columns", 64, "-o", "/proc/b.json"),
+    ("stability", "--quick", "--families", "parallel", "--serial", "--json", "/proc/s.json"),
+    ("stability", "--quick", "--families", "parallel", "--serial", "-o", "/proc/rtval-s"),
+    ("compare", SEED, "--columns", 16, "--junit", "/proc/c.xml"),
+    ("report", "--quick", "-o", "/proc/rtval-r"),
+    ("gallery", SEED, "--columns", 16, "-o", "/proc/rtval-g"),
+    ("convert", SEED, "--columns", 16, "-o", "/proc/x.xml"),
+    ("check", SEED, "x.ppm", "--junit", "/proc/j.xml"),
+], ids=lambda a: " ".join(map(str, a[:1] + a[-2:-1])))
+def test04g_outputs_refused_before_the_work(argv):
+    """An output where no file can be created is one line and exit 2 before the command's
+    work (it used to come after a whole validate, bench or stability run, whose other
+    outputs were written by then)."""
+    one_line(rtval(*argv, timeout=60), 2, "/proc/", "cannot create a file in /proc")
+
+
+def test04h_gallery_leaves_nothing_when_a_named_scene_fails(tmp_path):
+    bad = tmp_path / "bad.txt"
+    bad.write_text(SEED.read_text().splitlines()[0] + "\n")
+    out = tmp_path / "gal" / "b"
+    one_line(rtval("gallery", SEED, bad, "--columns", 16, "-o", out), 2, "bad.txt")
+    assert not (tmp_path / "gal").exists()
+
+
 def test04b_several_outputs_all_or_none(full_dir, tmp_path):
     """render -o (a good directory) --ppm (a full one): the EXR, written first, is not left
     behind when the PPM fails; with both writable both are there."""

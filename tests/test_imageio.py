@@ -63,21 +63,26 @@ def test03_course_ppm_bytes_and_channels_of_each_format(tmp_path):
 @pytest.mark.parametrize("name, data, why", [
     ("short.ppm", b"P6 40 30 255\n" + b"\0" * 100, "truncated or corrupt"),
     ("short.png", None, "truncated or corrupt"),
+    ("header.png", 500, "cannot read it as an image ("),      # cut in its text chunk
     ("text.ppm", b"P6 garbage\n", "cannot read it as an image ("),
     ("empty.png", b"", "the file is empty"),
 ])
-def test04_unreadable_images_are_one_line(tmp_path, name, data, why):
+def test04_unreadable_images_are_one_line(tmp_path, name, data, why, capfd):
     p = tmp_path / name
-    if data is None:                            # a PNG cut in half
+    if data is None or isinstance(data, int):   # a PNG cut in half, or after ``data`` bytes
         write_png(str(tmp_path / "whole.png"),
-                  np.random.default_rng(0).integers(0, 256, (40, 30, 3), np.uint8))
+                  np.random.default_rng(0).integers(0, 256, (40, 30, 3), np.uint8),
+                  {"rtval.note": "x" * 1000})
         whole = (tmp_path / "whole.png").read_bytes()
-        data = whole[: len(whole) // 2]
+        data = whole[: len(whole) // 2 if data is None else data]
     p.write_bytes(data)
+    capfd.readouterr()
     with pytest.raises(ImageError) as e:
         read_image(str(p))
     msg = str(e.value)
     assert msg.startswith(f"{p}: ") and why in msg and "\n" not in msg, msg
+    # nothing printed besides (libpng's own "libpng error: ..." on descriptor 2)
+    assert capfd.readouterr() == ("", "")
 
 
 def test05_a_size_beyond_memory_is_refused_before_reading(tmp_path, monkeypatch):

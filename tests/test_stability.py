@@ -363,7 +363,9 @@ def test07_cli_quick(tmp_path):
     assert set(data["summary"]) == {"straddle", "size"}
     assert all(f["ok"] for f in data["summary"].values())
     assert (tmp_path / "stability.png").stat().st_size > 10000
-    assert main(["stability", "--quick", "--families", "nosuch"]) == 2
+    with pytest.raises(SystemExit) as e:             # a usage error (README "Exit codes")
+        main(["stability", "--quick", "--families", "nosuch"])
+    assert e.value.code == 64
 
 
 def test07b_cli_json_on_stdout_and_junit(tmp_path, capsys):

@@ -89,6 +89,9 @@ def run(args) -> int:
                          "do not go together (--shaded is a mode of its own)")
     from rt_core.backend import require
     require(args.backend)       # no CUDA device: one line, exit 2, before any work
+    if args.output:             # refused before the run, not after it
+        from rt_core.outputs import check_file_target
+        check_file_target(args.output)
     if args.whole_command:      # (not args.command: that is the subcommand's name)
         return run_command(args)
     # too large a request: one line (exit 2) before any ray is traced

@@ -41,37 +41,41 @@ def add_parser(sub) -> None:
     p.add_argument("--junit", metavar="FILE", help="write JUnit XML (one test case per scene)")
     p.add_argument("--json", action="store_true", help="print the results as JSON on stdout")
     add_parallel(p, "checks of --run's images (the tracer itself runs here)")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, usage_error=p.error)
 
 
 def run(args) -> int:
-    from rt_core.errors import InputError
-    from rt_core.outputs import atomic_write
+    from rt_core.outputs import atomic_write, check_file_target
     from tools.harness.check import check_image, check_run, junit_xml, text_report
     kw = {"rules": args.rules, "max_dist": args.max_dist, "texture_dirs": args.texture_dir}
     if args.report:                     # refused before the runs, not after them
         from tools.harness.html_report import check_target
         check_target(args.report)
-    if args.run:
+    if args.junit:
+        check_file_target(args.junit)
+    if args.run is not None:
+        if not args.run.strip():
+            args.usage_error("--run: give the tracer's command line, e.g. "
+                             "'./ray {columns} {rows} < {scene} > {out}'")
         if args.columns is None:
-            raise InputError("--run needs --columns (the image width to ask the tracer for)")
+            args.usage_error("--run needs --columns (the image width to ask the tracer for)")
         for need in ("{scene}", "{out}"):
             if need not in args.run:
-                raise InputError(f"--run: the command must contain {need} (e.g. "
+                args.usage_error(f"--run: the command must contain {need} (e.g. "
                                  "'./ray {columns} {rows} < {scene} > {out}')")
         if args.hits:
-            raise InputError("--hits is for a given image; with --run put {hits} in the "
+            args.usage_error("--hits is for a given image; with --run put {hits} in the "
                              "command")
         from tools.harness.parallel import plan_of
         results = check_run(args.run, args.inputs, args.columns, args.rows, args.timeout,
                             plan_of(args), **kw)
     else:
         if args.scheduler or (args.workers or 0) > 1:
-            raise InputError("--workers/--scheduler: only with --run (one image is checked "
+            args.usage_error("--workers/--scheduler: only with --run (one image is checked "
                              "in this process)")
         if len(args.inputs) != 2:
-            raise InputError(f"expected SCENE IMAGE, got {len(args.inputs)} argument(s); to run "
-                             "a tracer on several scenes use --run")
+            args.usage_error(f"expected SCENE IMAGE, got {len(args.inputs)} argument(s); to "
+                             "run a tracer on several scenes use --run")
         results = [check_image(args.inputs[0], args.inputs[1], columns=args.columns,
                                rows=args.rows, hits_path=args.hits, **kw)]
     if args.json:

@@ -49,6 +49,11 @@ def run(args) -> int:
     if args.report:
         from tools.harness.html_report import check_target
         check_target(args.report, {"--evidence": args.evidence})
+    # the outputs refused before the comparison, not after it
+    from rt_core.outputs import check_dir_target, check_file_target
+    check_dir_target(args.evidence)
+    if args.junit:
+        check_file_target(args.junit)
     scene = parse_scene(args.scene)
     if args.shaded:
         return _run_shaded(args, scene)

@@ -45,15 +45,14 @@ def run(args) -> int:
     from rt_core.parser import parse_scene
     from mitsuba_ref.convert import DEFAULT_MAX_DIST, oracle_only, scene_xml, sensor_setup
 
-    from rt_core.usererror import InputError
+    from rt_core.outputs import check_file_target
+    check_file_target(args.output, make_dirs=False)
     parent = os.path.dirname(os.path.abspath(args.output))
-    if not os.path.isdir(parent):
-        raise InputError(f"{args.output}: no directory {parent}; create it first")
     scene = parse_scene(args.scene, code27=args.code27)
     setup = sensor_setup(scene, args.columns, args.rows, args.sampling)
     course = args.shading or args.aovs
-    if setup.note and not course:           # the course integrator makes its own rays
-        print(f"rtval convert: warning: {setup.note}", file=sys.stderr)
+    # (said once the files are written: a failed write is then the one line on stderr)
+    said = [f"rtval convert: warning: {setup.note}"] if setup.note and not course else []
     if not course and (args.rules or args.max_dist is not None):
         args.usage_error("--rules and --max-dist go with --shading or --aovs")
     if args.shading:                        # the course image needs the textures
@@ -63,8 +62,7 @@ def run(args) -> int:
     xml = scene_xml(scene, args.columns, args.rows, args.sampling, args.shading,
                     rules=args.rules, max_dist=DEFAULT_MAX_DIST if args.max_dist is None else args.max_dist,
                     aovs=args.aovs, files=plys, stem=Path(args.output).name)
-    for note in oracle_only(scene):
-        print(f"rtval convert: note: {note}", file=sys.stderr)
+    said += [f"rtval convert: note: {note}" for note in oracle_only(scene)]
     with together():                        # the XML and its side files, or none of them
         for name, data in plys.items():
             if isinstance(data, str):
@@ -74,6 +72,8 @@ def run(args) -> int:
                 atomic_write(os.path.join(parent, name),
                              lambda tmp, bm=data: bm.write(tmp, type(bm).FileFormat.OpenEXR))
         atomic_write(args.output, lambda tmp: Path(tmp).write_text(xml))
+    for line in said:
+        print(line, file=sys.stderr)
     print(f"{args.output}: {len(scene.objects)} shapes, {setup.columns}x{setup.rows}",
           file=sys.stderr)
     return 0

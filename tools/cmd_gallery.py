@@ -74,49 +74,52 @@ def run(args) -> int:
     from rt_core.imageio import ImageError
     from rt_core.textures import attach
 
+    from rt_core.outputs import check_dir_target, together
     outdir = Path(args.output)
-    if outdir.exists() and not outdir.is_dir():
-        raise InputError(f"{outdir}: not a directory")
+    check_dir_target(str(outdir))           # refused before any render, not after
     T = backend.types(args.precision)
     done, skipped = [], []
-    for name, path in scene_files(args.scenes):
-        note = ""
-        try:
-            scene = parse_scene(str(path))
+    # every PNG, the page and the sheet are renamed into place at the end, or none is (a
+    # scene named on the command line that fails leaves no partial gallery)
+    with together():
+        for name, path in scene_files(args.scenes):
+            note = ""
             try:
-                scene = attach(scene, args.texture_dir)
-            except (SceneError, ImageError) as e:
+                scene = parse_scene(str(path))
+                try:
+                    scene = attach(scene, args.texture_dir)
+                except (SceneError, ImageError) as e:
+                    if args.scenes:
+                        raise          # a scene named on the command line renders as asked
+                    # the default list: the geometry still renders; the MAT stands in (its
+                    # stand-in note stays in the PNG's provenance) and the caption says why
+                    note = f"{e}: shaded with its MAT"
+                    print(f"rtval gallery: {note}", file=sys.stderr)
+                cam = make_camera(scene, args.columns)
+                guard(lambda px: render_bytes(px, args.precision, True, False, px), "render",
+                      cam.columns, cam.rows)
+                images, res = render_image(scene, cam, T, geometry=False, shade=True)
+            except (SceneError, InputError, ImageError) as e:
                 if args.scenes:
-                    raise          # a scene named on the command line renders as asked
-                # the default list: the geometry still renders; the MAT stands in (its
-                # stand-in note stays in the PNG's provenance) and the caption says why
-                note = f"{e}: shaded with its MAT"
-                print(f"rtval gallery: {note}", file=sys.stderr)
-            cam = make_camera(scene, args.columns)
-            guard(lambda px: render_bytes(px, args.precision, True, False, px), "render",
-                  cam.columns, cam.rows)
-            images, res = render_image(scene, cam, T, geometry=False, shade=True)
-        except (SceneError, InputError, ImageError) as e:
-            if args.scenes:
-                raise              # a scene named on the command line must render
-            why = str(e) if isinstance(e, SceneError) else f"{path}: {e}"
-            category = e.category if isinstance(e, SceneError) else "too large"
-            skipped.append((name, f"{category}: {why}"))
-            print(f"rtval gallery: skipped ({category}) {why}", file=sys.stderr)
-            continue
-        pixels = quantize(np.stack([images[c] for c in "RGB"], -1))
-        file = name.replace("/", "__") + ".png"
-        write_png(str(outdir / file), pixels,
-                  provenance(scene, cam, args.precision, "llvm", Rules(), shading="on",
-                             max_dist=repr(DEFAULT_MAX_DIST)))
-        done.append((name, file, pixels, res.bounces, note))
-    page = outdir / "index.html"
-    sheet = outdir / "contact.png"
-    atomic_write(str(page), lambda tmp: Path(tmp).write_text(_html(done, skipped, args)))
-    write_png(str(sheet), _contact_sheet(done, args.columns),
-              {"rtval.gallery": f"{len(done)} scenes", "rtval.precision": args.precision,
-               "rtval.backend": "llvm", "rtval.columns": str(args.columns),
-               "rtval.versions": " ".join(f"{k}={v}" for k, v in versions().items())})
+                    raise              # a scene named on the command line must render
+                why = str(e) if isinstance(e, SceneError) else f"{path}: {e}"
+                category = e.category if isinstance(e, SceneError) else "too large"
+                skipped.append((name, f"{category}: {why}"))
+                print(f"rtval gallery: skipped ({category}) {why}", file=sys.stderr)
+                continue
+            pixels = quantize(np.stack([images[c] for c in "RGB"], -1))
+            file = name.replace("/", "__") + ".png"
+            write_png(str(outdir / file), pixels,
+                      provenance(scene, cam, args.precision, "llvm", Rules(), shading="on",
+                                 max_dist=repr(DEFAULT_MAX_DIST)))
+            done.append((name, file, pixels, res.bounces, note))
+        page = outdir / "index.html"
+        sheet = outdir / "contact.png"
+        atomic_write(str(page), lambda tmp: Path(tmp).write_text(_html(done, skipped, args)))
+        write_png(str(sheet), _contact_sheet(done, args.columns),
+                  {"rtval.gallery": f"{len(done)} scenes", "rtval.precision": args.precision,
+                   "rtval.backend": "llvm", "rtval.columns": str(args.columns),
+                   "rtval.versions": " ".join(f"{k}={v}" for k, v in versions().items())})
     print(f"rtval gallery: {len(done)} scenes rendered, {len(skipped)} skipped", file=sys.stderr)
     if args.json:
         from rt_core.outputs import json_text

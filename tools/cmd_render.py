@@ -8,7 +8,6 @@ floor(255·clamp(I, 0, 1)) is the 8-bit image.
 from __future__ import annotations
 
 import os
-import tempfile
 import sys
 
 from .options import (add_code27, add_image_options, add_max_dist, add_texture_dir,
@@ -85,29 +84,6 @@ def _outputs(args) -> list[tuple[str, str]]:
     return outs
 
 
-def _check_writable(path: str) -> None:
-    """Fail before rendering on an output that cannot be a file."""
-    from rt_core.errors import InputError
-    if os.path.isdir(path):
-        raise InputError(f"{path}: is a directory; give a file name")
-    parent = os.path.dirname(os.path.abspath(path))
-    if not os.path.exists(parent):
-        # a typo in a directory name should not become a new directory tree
-        raise InputError(f"{path}: no directory {parent}; create it first")
-    if not os.path.isdir(parent):
-        raise InputError(f"{path}: {parent} is not a directory")
-    # can a file be created there? (permissions, read-only or pseudo file systems): checked
-    # before rendering, so that one bad path among -o/--ppm/--png leaves no file written
-    if os.path.isfile(path) or not os.path.exists(path):
-        try:
-            fd, probe = tempfile.mkstemp(prefix=".tmp-", dir=parent)
-        except OSError as e:
-            raise InputError(f"{path}: cannot create a file in {parent} "
-                             f"({(e.strerror or str(e)).lower()})") from None
-        os.close(fd)
-        os.unlink(probe)
-
-
 def run(args) -> int:
     import contextlib
     import time
@@ -125,7 +101,7 @@ def run(args) -> int:
     from rt_core.errors import InputError
     from rt_core.imageio import write_png, write_ppm
     from rt_core.jitlog import KernelLog
-    from rt_core.outputs import WriteError, together
+    from rt_core.outputs import WriteError, check_file_target, together
     from rt_core.parser import parse_scene
     from rt_core.memory import band_that_fits, guard, render_bytes
     from rt_core.render import (TILE_PIXELS, nonfinite_count, provenance, render_tiled,
@@ -150,7 +126,7 @@ def run(args) -> int:
     max_dist = DEFAULT_MAX_DIST if args.max_dist is None else args.max_dist
     shade = bool(args.ppm or args.png or args.shade)
     for _, path in outs:
-        _check_writable(path)
+        check_file_target(path, make_dirs=False)
     scene = parse_scene(args.scene, code27=args.code27)
     if shade:                   # textures are read only where shading needs them
         from rt_core.textures import attach
@@ -238,6 +214,7 @@ def _run_mitsuba(args, outs) -> tuple[int, list]:
     from rt_core.errors import InputError
     from rt_core.imageio import write_png, write_ppm
     from rt_core.inputfile import check_input
+    from rt_core.outputs import check_file_target
     from rt_core.render import write_images, versions
     from mitsuba_ref.convert import mitsuba
     from tools.harness.shaded import quantize32
@@ -248,7 +225,7 @@ def _run_mitsuba(args, outs) -> tuple[int, list]:
                              "XML scene holds the camera, the rules and max_dist (give them "
                              "to rtval convert)")
     for _, path in outs:
-        _check_writable(path)
+        check_file_target(path, make_dirs=False)
     check_input(args.scene, "scene")
     mi = mitsuba()
     try:

@@ -38,6 +38,8 @@ def run(args) -> int:
     from rt_core.parser import parse_scene
     from tools.harness.report import QUICK, Settings, run_report, write_report
     from tools.harness.validate import REPO
+    from rt_core.outputs import check_dir_target
+    check_dir_target(args.output)            # refused before the run, not after it
     paths = args.scenes or sorted((REPO / "scenes").glob("*.txt"))
     scenes = [parse_scene(p) for p in paths]
     s = QUICK if args.quick else Settings()

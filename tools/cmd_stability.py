@@ -41,12 +41,11 @@ def add_parser(sub) -> None:
     p.add_argument("-o", "--output", metavar="DIR", default="out/stability",
                    help="where stability.png goes (default out/stability)")
     add_parallel(p, "cases")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, usage_error=p.error)
 
 
 def run(args) -> int:
     from tqdm import tqdm
-    from rt_core.errors import InputError
     from rt_core.render import versions
     from tools.harness import stability as S
     from tools.harness.parallel import plan_of
@@ -54,8 +53,14 @@ def run(args) -> int:
     fams = args.families or list(S.FAMILIES)
     unknown = [f for f in fams if f not in S.FAMILIES]
     if unknown:
-        raise InputError(f"unknown famil{'y' if len(unknown) == 1 else 'ies'} "
+        args.usage_error(f"unknown famil{'y' if len(unknown) == 1 else 'ies'} "
                          f"{', '.join(unknown)}; expected some of {', '.join(S.FAMILIES)}")
+    # the outputs refused before the cases run, not after them
+    from rt_core.outputs import check_dir_target, check_file_target
+    for f in (args.json if args.json not in (None, "-") else None, args.junit):
+        if f:
+            check_file_target(f)
+    check_dir_target(args.output)
     mode = "quick" if args.quick else "full"
     seeds = tuple(range(args.seeds))
     total = len(S.case_specs(mode, fams, seeds))

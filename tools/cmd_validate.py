@@ -65,9 +65,13 @@ def run(args) -> int:
                                         load_supported, seconds_per_comparison, skip_counts,
                                         stem_of, validate, write_report)
 
+    from rt_core.outputs import check_dir_target, check_file_target
     if args.report:                     # refused before the run, not after it
         from tools.harness.html_report import check_target
         check_target(args.report, {"-o": args.output})
+    check_dir_target(args.output)
+    if args.junit:
+        check_file_target(args.junit)
     paths = args.scenes or default_scene_paths()
     scenes, skipped = load_supported(paths, explicit=bool(args.scenes))
     if args.shaded_columns > 0:         # the shaded comparisons need the textures

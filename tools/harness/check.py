@@ -27,6 +27,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import os
+import re
 import shlex
 import signal
 import subprocess
@@ -585,6 +586,16 @@ def _stop_running() -> None:
             os.killpg(p.pid, signal.SIGKILL)
 
 
+PLACEHOLDERS = ("scene", "out", "columns", "rows", "hits")
+
+
+def fill_command(template: str, **values) -> str:
+    """``template`` with each {scene} {out} {columns} {rows} {hits} replaced by its value;
+    every other brace stays as written (awk '{print $1}', a shell's ${VAR} or {a,b})."""
+    return re.sub(r"\{(" + "|".join(PLACEHOLDERS) + r")\}",
+                  lambda m: str(values[m.group(1)]), template)
+
+
 def run_tracer(template: str, scene: str, columns: int, rows: int, workdir: str,
                timeout: float) -> tuple[str | None, str | None, str]:
     """Run ``template`` for one scene: (image path or None, hit-dump path or None, failure
@@ -594,8 +605,8 @@ def run_tracer(template: str, scene: str, columns: int, rows: int, workdir: str,
     stem = Path(scene).stem
     out = os.path.join(workdir, f"{stem}.ppm")
     hits = os.path.join(workdir, f"{stem}.hits")
-    cmd = template.format(scene=shlex.quote(str(scene)), out=shlex.quote(out),
-                          columns=columns, rows=rows, hits=shlex.quote(hits))
+    cmd = fill_command(template, scene=shlex.quote(str(scene)), out=shlex.quote(out),
+                       columns=columns, rows=rows, hits=shlex.quote(hits))
     try:
         p = subprocess.Popen(cmd, shell=True, stdout=subprocess.DEVNULL,
                              stderr=subprocess.PIPE, stdin=subprocess.DEVNULL,
@@ -607,7 +618,13 @@ def run_tracer(template: str, scene: str, columns: int, rows: int, workdir: str,
         _, err = p.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:
         os.killpg(p.pid, signal.SIGKILL)
-        p.communicate()
+        try:
+            p.communicate(timeout=2)
+        except subprocess.TimeoutExpired:
+            # a child that left the process group (setsid) still holds the stderr pipe:
+            # stop reading it rather than wait for that child's end
+            p.stderr.close()
+            p.wait()
         return None, None, f"timed out after {timeout:g} s: {cmd}"
     except BaseException:             # rtval itself interrupted or terminated: stop the run
         with contextlib.suppress(OSError):
