@@ -42,6 +42,18 @@ def test02_did_you_mean(args, said):
     assert said in err and f"(did you mean {want[typo]}?)" in err, err
 
 
+@pytest.mark.parametrize("args, said", [
+    (("check", SPHERE, "--run", "x {scene} {out}", "--columns", 8, "--timeout", 0),
+     "--timeout: must be > 0"),
+    (("render", SPHERE, "--columns", 8, "--ppm", "x.ppm", "--texture-dir", "no/such/dir"),
+     "--texture-dir: no directory 'no/such/dir'"),
+], ids=["timeout-0", "texture-dir"])
+def test02b_invalid_option_values(args, said):
+    r = rtval(*args)
+    err = r.stderr.strip()
+    assert r.returncode == 64 and len(err.splitlines()) == 1 and said in err, err
+
+
 @pytest.mark.parametrize("opt, name, other", [("-o", "x.png", "--png"), ("--png", "z.exr", "-o"),
                                               ("--ppm", "y.png", "--png")])
 def test03_an_output_is_named_for_what_it_holds(tmp_path, opt, name, other):

@@ -468,6 +468,19 @@ def test15_preview_rgb_diff_and_default_channel(pair, tmp_path, capsys):
     assert code == 0 and "t.png" in out and "depth.Z" in out and err == ""
 
 
+def test15b_preview_of_a_tall_narrow_image(tmp_path, capsys):
+    """A 2-column image is not enlarged past PREVIEW_MAX_SIDE rows (×128 made a PNG beyond
+    libpng's limits: minutes, then three lines of libpng errors)."""
+    tall = tmp_path / "tall.ppm"
+    tall.write_bytes(b"P6\n2 20000\n255\n" + bytes(range(256)) * 468 + bytes(192))
+    code, r = run_json(capsys, "preview", tall, "-o", tmp_path / "t.png")
+    assert code == 0 and r["scale"] == 1 and r["height"] <= exrtool.PREVIEW_MAX_SIDE + 20000
+    small = tmp_path / "small.ppm"
+    small.write_bytes(b"P6\n2 3\n255\n" + bytes(18))
+    code, r = run_json(capsys, "preview", small, "-o", tmp_path / "s.png")
+    assert code == 0 and r["scale"] == exrtool.PREVIEW_MIN_WIDTH // 2
+
+
 def test16_preview_write_failure_leaves_no_file(pair, tmp_path, capsys):
     target = tmp_path / "adir.png"                      # a directory of that name
     target.mkdir()

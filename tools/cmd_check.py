@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import sys
 
-from .options import (add_max_dist, add_parallel, add_rules, add_texture_dir, nonneg_float,
+from .options import (add_max_dist, add_parallel, add_rules, add_texture_dir, positive_float,
                       positive_int)
 
 
@@ -33,7 +33,7 @@ def add_parser(sub) -> None:
     add_texture_dir(p)
     p.add_argument("--hits", metavar="FILE",
                    help="a hit dump of the image: 'column row object t' per pixel")
-    p.add_argument("--timeout", type=nonneg_float, default=60.0, metavar="S",
+    p.add_argument("--timeout", type=positive_float, default=60.0, metavar="S",
                    help="with --run: seconds before a run is killed (default 60)")
     p.add_argument("--report", metavar="DIR",
                    help="write an HTML report into DIR (new, empty or an earlier report): "

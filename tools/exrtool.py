@@ -486,6 +486,7 @@ def _flip_diff(a: Image, b: Image, names, th: Thresholds, out, result: dict) -> 
 # ----------------------------------------------------------------------------- preview
 
 PREVIEW_MIN_WIDTH = 256     # small images are enlarged by an integer factor to this width
+PREVIEW_MAX_SIDE = 8192     # ... unless that makes them taller than this
 LEGEND_HEIGHT = 40          # the colour bar strip below the image
 NONFINITE_RGB = (255, 0, 255)       # NaN/Inf where a value was expected
 NONFINITE_DIFF_RGB = (0, 255, 255)  # ...and in a difference image (inferno has magentas)
@@ -656,7 +657,8 @@ def preview(path, out, channel: str | None = None) -> dict:
     kind = preview_kind(img, channel)
     rgb, legend, ids = _render(img, channel, kind)
     W = img.width
-    scale = max(1, math.ceil(PREVIEW_MIN_WIDTH / W))
+    # (not past PREVIEW_MAX_SIDE rows: a tall, narrow image stays within PNG's limits)
+    scale = max(1, min(math.ceil(PREVIEW_MIN_WIDTH / W), PREVIEW_MAX_SIDE // img.height))
     pic = np.repeat(np.repeat(rgb, scale, 0), scale, 1)          # each pixel a scale² block
     canvas = np.concatenate([pic, np.asarray(_legend_strip(W * scale, legend, ids))], 0)
     out = os.fspath(out)

@@ -40,6 +40,23 @@ def nonneg_float(text: str) -> float:
     return v
 
 
+def positive_float(text: str) -> float:
+    """A finite number > 0."""
+    v = nonneg_float(text)
+    if v == 0:
+        raise argparse.ArgumentTypeError("must be > 0, got 0")
+    return v
+
+
+def existing_dir(text: str) -> str:
+    """A directory that exists (a typo in it would otherwise go unnoticed)."""
+    import os
+    if not os.path.isdir(text):
+        raise argparse.ArgumentTypeError(f"no directory {text!r}" if not os.path.exists(text)
+                                         else f"{text!r} is not a directory")
+    return text
+
+
 def percent(text: str) -> float:
     v = nonneg(text)
     if v > 100:
@@ -106,6 +123,7 @@ def add_texture_dir(p: argparse.ArgumentParser, more: str = "") -> None:
     """--texture-dir DIR (repeatable): where the textures a scene names are looked for
     first; then the scene file's own directory (rt_core/textures.py)."""
     p.add_argument("--texture-dir", action="append", default=[], metavar="DIR",
+                   type=existing_dir,
                    help="look for the scene's texture files (PPM) here first, then next to "
                         "the scene; repeatable; needed only for shaded outputs" + more)
 
