@@ -326,6 +326,10 @@ def test11_hit_dump(ctracer, tmp_path):
     bad = _render(ctracer / "course_alias_xform", scene, 65, tmp_path, hits=True)
     r = check_image(scene, bad, hits_path=str(bad.with_suffix(".hits")))
     assert r.status == "fail" and r.hits["id_wrong"] > 50
+    # said in words, not as a dict
+    from tools.harness.check import text_report
+    said = next(ln for ln in text_report([r]).splitlines() if "hit dump:" in ln)
+    assert f"{65 * 48} pixels listed; {r.hits['id_wrong']} with another object" in said, said
 
 
 def test12_bad_input_is_one_line_and_exit_2(tmp_path, capsys):

@@ -787,7 +787,12 @@ def text_report(results) -> str:
                              f"{r.worst['rows'][1]}, columns {r.worst['columns'][0]}-"
                              f"{r.worst['columns'][1]}; " + "; ".join(r.worst["objects"]))
             if r.hits:
-                lines.append(f"  hit dump: {r.hits}")
+                h = r.hits
+                lines.append(f"  hit dump: {h['pixels']} pixels listed"
+                             + (f", {h['missing']} missing" if h["missing"] else "")
+                             + f"; {h['id_wrong']} with another object, {h['depth_wrong']} "
+                             f"with another depth (max relative depth error "
+                             f"{h['depth_max_rel']:.3g}; 1e-09 allowed)")
     n = len(results)
     ok = sum(r.ok for r in results)
     lines.append(f"{ok} of {n} scenes pass")
