@@ -64,7 +64,7 @@ MAX_BOUNCES = 10_000
 # (``_one_bounce``) rather than as a compacted wavefront (tests compare the two)
 FUSE_ONE_BOUNCE = True
 # The reflection rays run their bounces in one kernel (``_tail``) instead of one compacted
-# wavefront a bounce (tests compare the two).  Where their closest hits walk a BVH or bins
+# wavefront a bounce (tests compare the two); the bounces ``record`` keeps stay wavefronts.  Where their closest hits walk a BVH or bins
 # (many objects), a bounce of more than TAIL_FRACTION of the pixels stays a wavefront: the
 # lanes that stop early idle in the loop's packets, and a long walk makes that cost more
 # than a bounce's launch and compaction.  Measured (the bench's shaded scenes, all bounces,

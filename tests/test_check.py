@@ -279,12 +279,13 @@ def test08b_run_commands_with_braces_and_escaped_children(ctracer, tmp_path):
     course = f"{ctracer / 'course'} {{columns}} {{rows}} < {{scene}} > {{out}}"
     r, = check_run("awk '{print $1}' {scene} > /dev/null && " + course, [scene], 40, None)
     assert r.status == "pass", r.reason
-    r, = check_run(f"cp {scene} {{output}} # {{scene}} {{out}}", [scene], 40, None)
+    r, = check_run(f"cp {scene} {tmp_path}/{{output}} # {{scene}} {{out}}", [scene], 40, None)
     assert r.status == "error" and "wrote no image" in r.reason and "{output}" in r.reason
+    assert (tmp_path / "{output}").exists()       # the unknown name stayed as written
     t0 = time.monotonic()
-    r, = check_run("setsid sleep 60 # {scene} {out}", [scene], 40, None, timeout=1.0)
+    r, = check_run("setsid sleep 20 # {scene} {out}", [scene], 40, None, timeout=1.0)
     assert r.status == "error" and "timed out" in r.reason
-    assert time.monotonic() - t0 < 30             # not the child's 60 s
+    assert time.monotonic() - t0 < 15             # not the escaped child's 20 s
 
 
 def test09_cli_outputs_and_exit_codes(ctracer, tmp_path):

@@ -112,11 +112,12 @@ def test02_one_bounce_shades_reflection_hits_densely(monkeypatch):
     assert sizes[False][0] == cam.columns * cam.rows and sizes[False][-1] == len(idx)
 
 
-def full_render(scene, precision, tail: bool, monkeypatch, columns=48, **kw):
+def full_render(scene, precision, tail: bool, monkeypatch, columns=48, log=None, **kw):
     monkeypatch.setattr(shading, "TAIL", tail)
     T = backend.types(precision)
     cam = make_camera(scene, columns)
-    res = shade(prepare(scene, T), primary_directions(scene, cam, T), Rules(), cam=cam, **kw)
+    res = shade(prepare(scene, T), primary_directions(scene, cam, T), Rules(), cam=cam,
+                log=log, **kw)
     rgb = np.stack([np.asarray(getattr(res.rgb, c).numpy()) for c in "xyz"], 1)
     return rgb, (res.bounces, res.capped, res.left_active)
 
@@ -165,11 +166,18 @@ def test01d_tail_after_wavefronts_is_the_wavefront(precision, monkeypatch):
     scene = shaded_scene("mixed", 40)
     T = backend.types(precision)
     assert any(accel.looped(prepare(scene, T), k, True) for k in scene.kinds())
+    from rt_core.jitlog import KernelLog
     monkeypatch.setattr(shading, "TAIL_FRACTION", 0.05)
     wave, wave_stats = full_render(scene, precision, False, monkeypatch, columns=96)
-    tail, tail_stats = full_render(scene, precision, True, monkeypatch, columns=96)
+    with KernelLog() as log:
+        tail, tail_stats = full_render(scene, precision, True, monkeypatch, columns=96,
+                                       log=log)
     assert np.array_equal(bits(wave), bits(tail))
     assert tail_stats == wave_stats and wave_stats[0] >= 3
+    # reflection wavefronts first, then the tail
+    passes = [(p.name, p.group, p.bounce) for p in log.passes]
+    assert passes[:2] == [("bounce", "primary", 0), ("bounce", "reflection", 1)], passes
+    assert passes[-1][0] == "tail" and 1 < passes[-1][2] < wave_stats[0], passes
 
 
 def test01c_tail_is_one_kernel(monkeypatch):

@@ -365,8 +365,8 @@ def test09_other_numbers_compile_nothing(name, precision):
 
 
 def test10_wavefront_shrinks_and_kernels_repeat(monkeypatch):
-    # (the compacted wavefront, as record mode runs it: renders run the reflection bounces
-    # in one kernel, test_shade_speed.py test01c)
+    # (the compacted wavefront, as it runs the bounces validation records: renders run the
+    # reflection bounces in one kernel, test_shade_speed.py test01c)
     from rt_core import shading
     monkeypatch.setattr(shading, "TAIL", False)
     log, res = logged(parse_scene(REPO / "scenes" / "shade_mirrors.txt"), columns=64)

@@ -308,11 +308,14 @@ def explain_lines(scene, log, res, max_dist: float) -> list[str]:
                  f"{'disk':>6}{'memory':>8}  other launches")
     # the primary rays and the first reflection pass by pass; deeper bounces summed
     rows: dict = {}
+    # the wavefront bounces before the tail (or to the end), and the tail's
+    tail = next((p.bounce for p in log.passes if p.name == "tail"), res.bounces + 1
+                if res is not None else 1)
+    span = lambda a, b: str(a) if b <= a else f"{a}-{b}"
     for p in log.passes:
         label = ("primary" if p.bounce == 0 else
-                 f"{p.bounce}-{res.bounces}" if p.name == "tail" and res.bounces > p.bounce
-                 else str(p.bounce) if p.bounce == 1 or p.name == "tail"
-                 else f"2-{res.bounces}")
+                 span(p.bounce, res.bounces) if p.name == "tail"
+                 else str(p.bounce) if p.bounce == 1 else span(2, tail - 1))
         rows.setdefault((label, p.name), []).append(p)
     for (label, name), ps in rows.items():
         k, c, dk = (sum(getattr(p, a) for p in ps) for a in ("kernels", "compiled", "disk"))
