@@ -212,6 +212,10 @@ def read_image(path: str) -> np.ndarray:
         spec = inp.spec()
         if spec.deep:
             raise ImageError(f"{path}: a deep image; expected the 8-bit image a tracer writes")
+        if inp.format_name() == "pnm" and spec.get_int_attribute("oiio:BitsPerSample", 8) == 0:
+            # (OpenImageIO reads every sample of such a file as full white)
+            raise ImageError(f"{path}: a PPM whose maxval is 0; expected 1 to 65535 (255 for "
+                             "the course's 8-bit image)")
         _needs_bytes(path, ImageError, spec, 1)
         with native_output_captured(fds=(2,)):
             px = inp.read_image(0, 0, 0, spec.nchannels, "uint8")

@@ -65,6 +65,7 @@ def test03_course_ppm_bytes_and_channels_of_each_format(tmp_path):
     ("short.png", None, "truncated or corrupt"),
     ("header.png", 500, "cannot read it as an image ("),      # cut in its text chunk
     ("text.ppm", b"P6 garbage\n", "cannot read it as an image ("),
+    ("maxval0.ppm", b"P6 4 3 0\n" + bytes(36), "maxval is 0; expected 1 to 65535"),
     ("empty.png", b"", "the file is empty"),
 ])
 def test04_unreadable_images_are_one_line(tmp_path, name, data, why, capfd):
