@@ -564,6 +564,12 @@ def _shared_code_form(content: list, idx: int, flags) -> bool:
 # --- public API ---------------------------------------------------------------------------
 
 def _parse(text: str, path: str, sha: str, code27: str = "auto") -> Scene:
+    if "\0" in text:
+        # (a NUL is no separator: a file whose line ends are NULs read as one comment line)
+        k = text.index("\0")
+        line = text.count("\n", 0, k) + 1
+        raise SceneError("a NUL byte: a scene file is text, numbers and words separated by "
+                         "spaces and line ends", path, line, k - text.rfind("\n", 0, k))
     ctx = _Ctx(text, path)
     if code27 not in CODE27_CHOICES:
         raise ValueError(f"code27 must be one of {', '.join(CODE27_CHOICES)}, not {code27!r}")

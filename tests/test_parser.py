@@ -333,8 +333,8 @@ def test10_window_not_positive():
 
 def test11_error_text_is_one_line_with_the_path():
     err = fails(KW + "sph\x00ere\n", path="dir/my scene.txt")
-    assert str(err).startswith("dir/my scene.txt:3:1: ")
-    assert "\\x00" in str(err) and "\x00" not in str(err)
+    assert str(err).startswith("dir/my scene.txt:3:4: ")          # at the NUL itself
+    assert "NUL byte" in str(err) and "\x00" not in str(err)
 
 
 # --- what parses -----------------------------------------------------------------------------
@@ -595,6 +595,19 @@ def _only_scene_errors(data: bytes) -> None:
 def test40_fuzz_never_crashes():
     for data in _mutants(seed=40, count=1500):
         _only_scene_errors(data)
+
+
+def test40b_nul_bytes_are_named_where_they_are():
+    """A file whose line ends are NULs (or any NUL) is refused at the first NUL, not read as
+    one comment line ("empty scene file")."""
+    text = "8 6\n0 0 5\n\n13\n1 1 1\n0 0 0\n0 0 0\n0 0 -3\n1\n"
+    with pytest.raises(SceneError) as e:
+        parse_text(text.replace("\n", "\0").encode(), "nul.txt")
+    assert (e.value.line, e.value.col) == (1, 4) and "NUL byte" in e.value.message
+    with pytest.raises(SceneError) as e:
+        parse_text(text.replace("0 0 -3", "0 0\0-3").encode(), "nul.txt")
+    assert (e.value.line, e.value.col) == (8, 4)
+    assert parse_text(text, "ok.txt").objects          # (the scene itself is fine)
 
 
 def test41_long_non_number_fails_fast():
