@@ -216,6 +216,8 @@ def read_image(path: str) -> np.ndarray:
             # (OpenImageIO reads every sample of such a file as full white)
             raise ImageError(f"{path}: a PPM whose maxval is 0; expected 1 to 65535 (255 for "
                              "the course's 8-bit image)")
+        if inp.format_name() == "pnm" and not spec.get_int_attribute("pnm:binary", 1):
+            _ascii_samples_in_range(path)
         _needs_bytes(path, ImageError, spec, 1)
         with native_output_captured(fds=(2,)):
             px = inp.read_image(0, 0, 0, spec.nchannels, "uint8")
@@ -228,6 +230,40 @@ def read_image(path: str) -> np.ndarray:
     if spec.nchannels < 3:
         return np.repeat(px[..., :1], 3, -1)
     return np.ascontiguousarray(px[..., :3])
+
+
+def _ascii_samples_in_range(path: str) -> None:
+    """An ASCII PNM (P1-P3) whose samples exceed its maxval is bad input: OpenImageIO clamps
+    them, so a tracer that writes 300 where the notes clamp to 255 would look right.  The
+    first such sample is named by line."""
+    with open(path, "rb") as f:
+        text = f.read().decode("latin-1")
+    lines = [ln.split("#", 1)[0] for ln in text.splitlines()]
+    header, where = [], None
+    for no, ln in enumerate(lines, 1):
+        toks = ln.split()
+        if len(header) < 4:
+            need = 4 - len(header)
+            header += toks[:need]
+            toks = toks[need:]
+            if len(header) < 4 or header[0] == "P1":     # (P1: bits, no maxval)
+                continue
+            try:
+                maxval = int(header[3])
+            except ValueError:
+                return                              # OpenImageIO read it: its reading holds
+        if not toks:
+            continue
+        try:
+            vals = np.array(toks, np.int64)
+        except ValueError:
+            return
+        if vals.size and vals.max() > maxval:
+            where = (no, int(vals.max()))
+            break
+    if where:
+        raise ImageError(f"{path}:{where[0]}: sample {where[1]} above the maxval {maxval}; "
+                         f"clamp each colour to 0..{maxval} before writing it")
 
 
 # ----------------------------------------------------------------------------- writing

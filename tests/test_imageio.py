@@ -66,6 +66,7 @@ def test03_course_ppm_bytes_and_channels_of_each_format(tmp_path):
     ("header.png", 500, "cannot read it as an image ("),      # cut in its text chunk
     ("text.ppm", b"P6 garbage\n", "cannot read it as an image ("),
     ("maxval0.ppm", b"P6 4 3 0\n" + bytes(36), "maxval is 0; expected 1 to 65535"),
+    ("over.ppm", b"P3\n# c\n2 1\n255\n1 2 3\n300 0 0\n", "ppm:6: sample 300 above the maxval 255"),
     ("empty.png", b"", "the file is empty"),
 ])
 def test04_unreadable_images_are_one_line(tmp_path, name, data, why, capfd):
@@ -81,7 +82,7 @@ def test04_unreadable_images_are_one_line(tmp_path, name, data, why, capfd):
     with pytest.raises(ImageError) as e:
         read_image(str(p))
     msg = str(e.value)
-    assert msg.startswith(f"{p}: ") and why in msg and "\n" not in msg, msg
+    assert msg.startswith(f"{p}:") and why in msg and "\n" not in msg, msg
     # nothing printed besides (libpng's own "libpng error: ..." on descriptor 2)
     assert capfd.readouterr() == ("", "")
 
