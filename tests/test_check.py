@@ -33,10 +33,13 @@ CT_KINDS = {"sphere", "plane", "fplane", "tplane"}
 
 
 def _ct_scene(path) -> bool:
+    """Can tests/ctracer/course.c render it: the notes' objects in their plain forms (no
+    lens, textured or displaced sphere), and in the numeric dialect the notes' codes only
+    (its spotlight, code 11 or 12, is the keyword dialect's alone)?"""
     from rt_core.parser import parse_scene
-    from rt_core.textures import TEXTURED
-    return all(o.kind in CT_KINDS and o.form not in ("lens", *TEXTURED)
-               for o in parse_scene(path).objects)
+    sc = parse_scene(path)
+    return all(o.kind in CT_KINDS and not o.form for o in sc.objects) and \
+        (sc.dialect == "keyword" or all(light.kind == "pointlight" for light in sc.lights))
 
 
 SCENES = [p for p in sorted((REPO / "scenes").glob("*.txt")) + sorted((CT / "scenes").glob(
