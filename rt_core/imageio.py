@@ -233,37 +233,35 @@ def read_image(path: str) -> np.ndarray:
 
 
 def _ascii_samples_in_range(path: str) -> None:
-    """An ASCII PNM (P1-P3) whose samples exceed its maxval is bad input: OpenImageIO clamps
-    them, so a tracer that writes 300 where the notes clamp to 255 would look right.  The
-    first such sample is named by line."""
+    """An ASCII PPM or PGM (P3, P2) whose samples exceed its maxval is bad input: OpenImageIO
+    clamps them, so a tracer that writes 300 where the notes clamp to 255 would look right.
+    The first such sample is named by line.  (Anything else odd is left to OpenImageIO.)"""
     with open(path, "rb") as f:
         text = f.read().decode("latin-1")
-    lines = [ln.split("#", 1)[0] for ln in text.splitlines()]
-    header, where = [], None
-    for no, ln in enumerate(lines, 1):
-        toks = ln.split()
-        if len(header) < 4:
-            need = 4 - len(header)
-            header += toks[:need]
-            toks = toks[need:]
-            if len(header) < 4 or header[0] == "P1":     # (P1: bits, no maxval)
+    header, maxval = [], None
+    for no, ln in enumerate(text.splitlines(), 1):
+        toks = ln.split("#", 1)[0].split()
+        if maxval is None:                  # the header: magic, width, height, maxval
+            take = 4 - len(header)
+            header += toks[:take]
+            toks = toks[take:]
+            if len(header) < 4:
                 continue
+            if header[0] not in ("P2", "P3"):
+                return
             try:
                 maxval = int(header[3])
             except ValueError:
-                return                              # OpenImageIO read it: its reading holds
+                return
         if not toks:
             continue
         try:
             vals = np.array(toks, np.int64)
-        except ValueError:
+        except (ValueError, OverflowError):
             return
-        if vals.size and vals.max() > maxval:
-            where = (no, int(vals.max()))
-            break
-    if where:
-        raise ImageError(f"{path}:{where[0]}: sample {where[1]} above the maxval {maxval}; "
-                         f"clamp each colour to 0..{maxval} before writing it")
+        if vals.max() > maxval:
+            raise ImageError(f"{path}:{no}: sample {int(vals.max())} above the maxval "
+                             f"{maxval}; clamp each colour to 0..{maxval} before writing it")
 
 
 # ----------------------------------------------------------------------------- writing

@@ -18,6 +18,8 @@ from rt_core.render import trace_geometry
 from rt_core.rules import Rules
 from rt_core.scene import SceneError
 
+REPO = Path(__file__).resolve().parents[1]
+
 COURSE = Path(__file__).resolve().parents[2] / "shared" / "course-scenes"
 FILES = ["numeric/nw__a3t4.txt", "numeric/nw__cyltest.txt", "numeric/nw__conetest.txt",
          "keyword/rm768__bowling.txt", "keyword/rm768__ellipsoid_bullets.txt"]
@@ -285,3 +287,17 @@ def test10_rays_at_the_rims_and_outlines_are_decided_exactly(text, rules):
     wrong = np.flatnonzero(ids != ex.id)
     assert not len(wrong), f"{len(wrong)} of {len(d)} rays wrong: {wrong[:8]}"
     assert ks.decided > 0.05 * len(d) and ex.hit.any() and (~ex.hit).any()
+
+
+@pytest.mark.parametrize("axis", ["1e308 0.3 1", "1e-320 0 0", "-1e-310 1e-311 0"])
+def test_extreme_centerlines_are_directions(axis):
+    """A centerline is a direction whatever its length: one whose |axis|² overflows or
+    underflows float64 (found by test_fuzz's long run: a ZeroDivisionError in rt_core's
+    frame, and in the classifier's float64 view) renders and compares like any other."""
+    from tools.harness.compare import compare
+    text = (REPO / "scenes" / "cylinder_rim_shadow.txt").read_text()
+    old = next(ln for ln in text.splitlines() if "centerline" in ln)
+    scene = parse_text(text.replace(old, axis + "   centerline"), "extreme.txt")
+    for precision in ("f32", "f64"):
+        cmp = compare(scene, 24, None, precision, "rays")
+        assert cmp.ok, cmp.summary()
