@@ -156,10 +156,14 @@ class ObjectEval:
     def bound(self, t=None):
         """Position error bound (world units) at distance t along the ray (default: the
         object's own t)."""
-        t = self.t if t is None else t
-        with np.errstate(divide="ignore", invalid="ignore"):
-            b = K_ROUNDING * EPS32 * (self.scale + np.abs(t)) / np.maximum(self.cos, 1e-300)
-        return np.where(np.isfinite(b), b, np.inf)
+        return position_bound(self.scale, self.t if t is None else t, self.cos)
+
+
+def position_bound(scale, t, cos):
+    """K·ε·(S + |t|)/|cos θ| (module docstring), inf where that is not finite."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        b = K_ROUNDING * EPS32 * (scale + np.abs(t)) / np.maximum(cos, 1e-300)
+    return np.where(np.isfinite(b), b, np.inf)
 
 
 def classify(scene: Scene, d: np.ndarray, ours: dict, ref: dict, rules: Rules,
@@ -233,10 +237,7 @@ def depth_bound(scene: Scene, d: np.ndarray, ids: np.ndarray, t: np.ndarray, ext
             # normal, anchor and size): its hit, extent and edge tests are not needed here
             nrm, anchor, size = plane_terms(o, extent)
             scale = origin + np.sqrt((anchor - V) @ (anchor - V)) + size
-            with np.errstate(divide="ignore", invalid="ignore"):
-                b = K_ROUNDING * EPS32 * (scale + np.abs(ts)) / np.maximum(np.abs(ds @ nrm),
-                                                                          1e-300)
-            out[sel] = np.where(np.isfinite(b), b, np.inf) / np.maximum(ts, 1e-300)
+            out[sel] = position_bound(scale, ts, np.abs(ds @ nrm)) / np.maximum(ts, 1e-300)
             continue
         # a quadric: as the sphere's, the root's condition near the outline or the rim,
         # the margin relative to the object's size

@@ -64,10 +64,11 @@ MAX_BOUNCES = 10_000
 # (``_one_bounce``) rather than as a compacted wavefront (tests compare the two)
 FUSE_ONE_BOUNCE = True
 # The reflection rays run their bounces in one kernel (``_tail``) instead of one compacted
-# wavefront a bounce (tests compare the two); the bounces ``record`` keeps stay wavefronts.  Where their closest hits walk a BVH or bins
-# (many objects), a bounce of more than TAIL_FRACTION of the pixels stays a wavefront: the
-# lanes that stop early idle in the loop's packets, and a long walk makes that cost more
-# than a bounce's launch and compaction.  Measured (the bench's shaded scenes, all bounces,
+# wavefront a bounce (tests compare the two); the bounces ``record`` keeps stay wavefronts.
+# Where their closest hits walk a BVH or bins (many objects), a bounce of more than
+# TAIL_FRACTION of the pixels stays a wavefront: the lanes that stop early idle in the
+# loop's packets, and a long walk makes that cost more than a bounce's launch and
+# compaction.  Measured (the bench's shaded scenes, all bounces,
 # and two mirror scenes; 1920 columns, f32; CPU time of the image over the wavefront's,
 # median of 5): 16 spheres 0.50, scenes/shade_mirrors.txt 0.37, course sgw__spec3 0.40;
 # with this rule 256 spheres 0.79, fplanes 0.74, mixed 0.72, 4096 spheres 0.99, mixed 0.92

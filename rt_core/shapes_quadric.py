@@ -37,7 +37,7 @@ import drjit as dr
 
 from .quadrics import KINDS as QUADRICS, OPEN, equation
 from .rules import Rules
-from .scene import exact
+from .scene import exact, unit
 from .shapes import KB, U64, ObjectConstants, clip_ok, opaque, opaque3, rounded
 
 KQ = 4 * KB * U64          # the bound per unit of |term| (128 units of float64 roundoff)
@@ -78,12 +78,9 @@ def row_view(out, v, A3):
 def _frame(axis):
     """Orthonormal rows (g0, g1, g2) with g2 = unit(axis), float64."""
     n = math.sqrt(sum(c * c for c in axis))
-    if not 0.0 < n < math.inf:
-        # |axis|² overflows (or underflows): its direction from the axis scaled to ±1
-        m = max(abs(c) for c in axis)
-        axis = tuple(c / m for c in axis)
-        n = math.sqrt(sum(c * c for c in axis))
-    g2 = tuple(c / n for c in axis)
+    # (where |axis|² overflows or underflows, scene.unit's scaled form: a centerline is a
+    # direction whatever its length)
+    g2 = tuple(c / n for c in axis) if 0.0 < n < math.inf else unit(axis, "centerline")
     helper = (1.0, 0.0, 0.0) if abs(g2[0]) < 0.6 else (0.0, 1.0, 0.0)
     c = (helper[1] * g2[2] - helper[2] * g2[1], helper[2] * g2[0] - helper[0] * g2[2],
          helper[0] * g2[1] - helper[1] * g2[0])

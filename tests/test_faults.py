@@ -144,6 +144,19 @@ def test04g_outputs_refused_before_the_work(argv):
     one_line(rtval(*argv, timeout=60), 2, "/proc/", "cannot create a file in /proc")
 
 
+def test04g2_compare_default_evidence_is_not_probed():
+    """compare writes its default evidence directory (out/compare) only when a comparison
+    fails: run where nothing can be written (/proc), a passing compare exits 0; an
+    --evidence given there is refused first."""
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    run = lambda *a: subprocess.run([sys.executable, "-m", "tools.cli", "compare", str(SEED),
+                                     "--columns", "16", "--mode", "rays", *a], cwd="/proc",
+                                    env=env, capture_output=True, text=True, timeout=120)
+    r = run()
+    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
+    one_line(run("--evidence", "/proc/rtval-e"), 2, "cannot create a file in /proc")
+
+
 def test04h_gallery_leaves_nothing_when_a_named_scene_fails(tmp_path):
     bad = tmp_path / "bad.txt"
     bad.write_text(SEED.read_text().splitlines()[0] + "\n")

@@ -28,7 +28,7 @@ def add_parser(sub) -> None:
                         "from the float64 shading oracle) or wrong; exit 1 on a wrong pixel")
     add_max_dist(p, "--shaded: reflections stop at this path length (default 1000)")
     add_texture_dir(p)
-    p.add_argument("--evidence", default=EVIDENCE_DIR, metavar="DIR",
+    p.add_argument("--evidence", metavar="DIR",
                    help="where evidence EXRs go on failure (default out/compare)")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
     p.add_argument("--report", metavar="DIR",
@@ -49,13 +49,16 @@ def run(args) -> int:
     if args.max_dist is not None and not args.shaded:
         args.usage_error("--max-dist goes with --shaded (the geometry comparison has no "
                          "reflections)")
+    # the outputs refused before the comparison, not after it (the default evidence
+    # directory is not probed: it is written only if a comparison fails)
+    from rt_core.outputs import check_dir_target, check_file_target
+    if args.evidence is None:
+        args.evidence = EVIDENCE_DIR
+    else:
+        check_dir_target(args.evidence)
     if args.report:
         from tools.harness.html_report import check_target
         check_target(args.report, {"--evidence": args.evidence})
-    # the outputs refused before the comparison, not after it
-    from rt_core.outputs import check_dir_target, check_file_target
-    if args.evidence != EVIDENCE_DIR:       # (the default: written only if one fails)
-        check_dir_target(args.evidence)
     if args.junit:
         check_file_target(args.junit)
     scene = parse_scene(args.scene)
