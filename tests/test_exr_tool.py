@@ -676,6 +676,26 @@ def test23_flip_zero_for_identical_positive_for_changed_and_the_map(tmp_path, ca
     assert r["flip"]["dynamic_range"] == "HDR" and r["flip_mean"] > 0
 
 
+def test23b_flip_same_colours_in_8_and_16_bits_are_equal(tmp_path, capsys):
+    """k/255 and 257k/65535 are the same colour: OpenImageIO reads them an ulp apart, which
+    FLIP (steep near 0) turned into errors of 1e-4, a FAILURE at the default --fail; a
+    16-bit level off by one still fails."""
+    rng = np.random.default_rng(7)
+    k = rng.integers(0, 256, (40, 48, 3))
+    p8, p16, off = tmp_path / "a8.ppm", tmp_path / "a16.ppm", tmp_path / "off16.ppm"
+    p8.write_bytes(b"P6\n48 40\n255\n" + k.astype(np.uint8).tobytes())
+    p16.write_bytes(b"P6\n48 40\n65535\n" + (k * 257).astype(">u2").tobytes())
+    k16 = k * 257
+    k16[5, 7, 1] += 1 if k16[5, 7, 1] < 65535 else -1
+    off.write_bytes(b"P6\n48 40\n65535\n" + k16.astype(">u2").tobytes())
+    code, r = run_json(capsys, "diff", p8, p16)            # (idiff: an ulp, within 1e-6)
+    assert code == 0 and 0 < r["max_error"] < 1e-6
+    code, r = run_json(capsys, "diff", p8, p16, "--metric", "flip")
+    assert code == 0 and r["max_error"] == 0 and r["flip_mean"] == 0
+    code, r = run_json(capsys, "diff", p8, off, "--metric", "flip")
+    assert code == 2 and (r["worst"]["x"], r["worst"]["y"]) == (7, 5)
+
+
 @pytest.mark.parametrize("extra", [["--fail-relative", "0.1"], ["--warn-relative", "0.1"],
                                    ["--channels", "R,G"], ["--metric", "ssim"]])
 def test24_flip_invalid_options_exit_64(tmp_path, capsys, extra):

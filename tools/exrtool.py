@@ -440,12 +440,30 @@ def write_flip_map(out, err: np.ndarray, attrs: dict) -> str:
     return out
 
 
+# the largest level of an integer pixel type (OpenImageIO reads level k as about k/M)
+INT_LEVELS = {"UINT8": 255, "UINT16": 65535}
+
+
+def _levels(img: Image, names) -> np.ndarray:
+    """``_stack`` for FLIP: an 8- or 16-bit channel's values are levels k/M, which
+    OpenImageIO reads within a float32 rounding of k/M, so that the same colour written in
+    8 and in 16 bits (k/255 = 257k/65535) can come out an ulp apart, and FLIP, steep near 0,
+    turns that ulp into an error of about 1e-4.  Each such value is taken as k/M rounded
+    once from float64 instead: equal levels, equal floats."""
+    out = _stack(img, names)
+    for j, n in enumerate(names):
+        m = INT_LEVELS.get(img.types.get(n))
+        if m:
+            out[..., j] = np.rint(out[..., j].astype(np.float64) * m) / m
+    return out
+
+
 def _flip_diff(a: Image, b: Image, names, th: Thresholds, out, result: dict) -> dict:
     """``diff`` with metric flip: A is the reference, B the test image; a pixel's error is
     its FLIP value, judged by the same thresholds and verdict as idiff's errors."""
     if len(names) != 3:
         raise ValueError(f"FLIP compares three colour channels, got {len(names)}")
-    A, B = _stack(a, names), _stack(b, names)
+    A, B = _levels(a, names), _levels(b, names)
     for img, arr in ((a, A), (b, B)):
         n_bad = int((~np.isfinite(arr)).sum())
         if n_bad:
