@@ -2,6 +2,7 @@
 PASS/FAIL word, digits that tell values apart, progress in a log, a closed pipe."""
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -174,3 +175,34 @@ def test12_building_the_parser_loads_no_dr_jit():
     from rt_core.kinds_planar import CODE27_CHOICES
     from tools.options import CODE27_CHOICES as copy
     assert tuple(copy) == tuple(CODE27_CHOICES)
+
+
+def test13_in_env_runs_the_command_where_it_was_called(tmp_path):
+    """tools/in-env.sh sets up in the repository but runs the command in the caller's
+    directory, so that its relative paths are the caller's."""
+    (tmp_path / "here.txt").write_text("x")
+    r = subprocess.run([str(REPO / "tools" / "in-env.sh"), "python", "-c",
+                        "import os; print(os.getcwd()); print(open('here.txt').read())"],
+                       cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == [str(tmp_path), "x"]
+
+
+def test14_in_env_finds_the_installed_llvm_whatever_ldconfig_prints_after_it(tmp_path):
+    """have_llvm under pipefail: with grep -q, grep quit at the LLVM line and an ldconfig
+    still writing died of SIGPIPE, failing the pipeline (3 in 200 calls on a loaded
+    machine), and the script reinstalled LLVM with apt-get.  Here a stand-in ldconfig
+    prints the library first and then more than a pipe holds, so that race always
+    happens."""
+    fake = tmp_path / "ldconfig"
+    fake.write_text("#!/bin/sh\necho '\tlibLLVM.so.19.1 (libc6,x86-64) => /lib/libLLVM.so.19.1'\n"
+                    "yes '\tlibfoo.so.1 (libc6,x86-64) => /lib/libfoo.so.1' | head -n 20000\n")
+    fake.chmod(0o755)
+    script = (REPO / "tools" / "in-env.sh").read_text()
+    start = script.index("have_llvm()")
+    func = script[start:script.index("; }", start) + 3]
+    r = subprocess.run(["bash", "-c", f"set -o pipefail; {func}\n"
+                        "for i in 1 2 3 4 5; do have_llvm || { echo missed; exit 1; }; done"],
+                       capture_output=True, text=True, timeout=60,
+                       env={**os.environ, "PATH": f"{tmp_path}:{os.environ['PATH']}"})
+    assert r.returncode == 0, r.stdout + r.stderr

@@ -6,6 +6,7 @@
 #  3. when the command runs the tests (python -m pytest): Chromium and its driver, for the
 #     HTML report's browser test (tests/test_html_report.py).
 set -euo pipefail
+here=$PWD                   # the command runs here: its relative paths are the caller's
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "$root"
 
@@ -16,7 +17,10 @@ apt_install() {
     DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq "$@" >&2
 }
 
-have_llvm() { ldconfig -p 2>/dev/null | grep -Eq 'libLLVM(-(1[6-9]|[2-9][0-9])|\.so\.(1[6-9]|[2-9][0-9]))'; }
+# (grep reads to the end, not -q: under pipefail an early exit of grep -q can kill ldconfig
+# with SIGPIPE and fail the pipeline although the library is there)
+have_llvm() { ldconfig -p 2>/dev/null |
+              grep -E 'libLLVM(-(1[6-9]|[2-9][0-9])|\.so\.(1[6-9]|[2-9][0-9]))' >/dev/null; }
 if ! have_llvm; then
     echo "in-env: installing libllvm19 (Dr.Jit needs LLVM >= 16)" >&2
     apt_install libllvm19
@@ -58,4 +62,5 @@ esac
 
 [ $# -gt 0 ] || exit 0
 export PATH="$venv/bin:$PATH" VIRTUAL_ENV="$venv"
+cd "$here"
 exec "$@"
