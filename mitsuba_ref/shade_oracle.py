@@ -119,65 +119,78 @@ def primary_ray(scene, x: int, y: int, W: int, H: int, sampling: str = "corners"
 
 def ray_trace(scene, base, d, total_dist, skip, rules: Rules, max_dist: float, px: _Pixel):
     """The notes' trace(): intensity (3 EF) of the ray base + t·d, path length so far
-    ``total_dist`` (EF), ignoring object ``skip``; margins go into ``px``."""
-    h = trace(scene, base, d, rules, skip)
-    px.geo = min(px.geo, _hit_margin(scene, h, base, d, skip))
-    if not h.hit:
-        return (EF(0.0, 0.0),) * 3
-    obj = scene.objects[h.id]
-    total_dist = total_dist + EF(h.t, h.err_t)
-    H = _ef3(h.position, h.err_position)
-    N = _ef3(h.normal, h.err_normal)
-    mat = obj.material
-    if obj.kind == "tplane":
-        # floor(OFF + u/w): the oracle's float64 sum rounds by up to ulp(OFF)/2
-        k = oracle.tile_scale(obj, rules)
-        u = EF(h.uv[0], h.err_uv[0]) * EF(k)
-        vv = EF(h.uv[1], h.err_uv[1])
-        if rules.tile_add_first:
-            u, vv = u + EF(oracle.OFF, 0.0), vv + EF(oracle.OFF, 0.0)
-        x = u / EF(obj.size[0])
-        y = vv / EF(obj.size[1])
-        off = oracle.OFF * 2.0 ** -53
-        px.tile = min(px.tile, _int_margin(x, off), _int_margin(y, off))
-        if not oracle.tile_foreground(obj, h.uv[0], h.uv[1], rules):
-            mat = obj.background
-    I = [EF(a) for a in mat.ambient]
-    if getattr(obj, "texture", None) is not None:
-        I = _textured_ambient(scene, obj, h, N, px)
-    for light in scene.lights:
-        D = diff3(vec(light.center), H)
-        dist = length3(D)
-        L = unit3(D)
-        c = dot3(L, N)
-        if c.v <= 0:
-            continue                                    # light behind the surface
-        if light.kind == "spotlight":
-            # inside the cone iff unit(H − centre)·unit(aim − centre) > cos θ: a decision
-            # (its margin joins the shadow tests': whether the light reaches H)
-            axis = unit3(diff3(vec(light.aim), vec(light.center)))
-            cos_t = math.cos(math.radians(light.theta))       # within a few ulps
-            s = dot3(scale3(EF(-1.0, 0.0), L), axis) - EF(cos_t, 4.0 * abs(cos_t))
-            px.shadow = min(px.shadow, _margin(s.v, s.e))
-            if s.v <= 0:
-                continue                                # outside the spotlight's cone
-        s = trace(scene, H, L, rules, h.id)
-        px.shadow = min(px.shadow, _hit_margin(scene, s, H, L, h.id, False, dist.v))
-        if s.hit:
-            px.shadow = min(px.shadow, _margin(s.t - dist.v, s.err_t + dist.e))
-            if s.t < dist.v:
-                continue                                # shadow
-        for i in range(3):
-            I[i] = I[i] + EF(mat.diffuse[i]) * EF(light.emissivity[i]) * c / dist
-    seg = EF(h.t, h.err_t) if rules.reflect == "segment" else total_dist
-    I = [a / seg for a in I]
-    if any(mat.specular):
+    ``total_dist`` (EF), ignoring object ``skip``; margins go into ``px``.
+
+    The notes recurse, I = local + specular · trace(reflection ray); here the bounces run in
+    a loop that keeps each bounce's (local, specular), and the sums are made afterwards from
+    the last bounce back: the same operations in the same order, without Python's recursion
+    limit (a corridor of mirrors reaches thousands of bounces before a long MAX_DIST)."""
+    stack = []                          # (local intensity, specular) of the bounces so far
+    while True:
+        h = trace(scene, base, d, rules, skip)
+        px.geo = min(px.geo, _hit_margin(scene, h, base, d, skip))
+        if not h.hit:
+            I = [EF(0.0, 0.0)] * 3
+            break
+        obj = scene.objects[h.id]
+        total_dist = total_dist + EF(h.t, h.err_t)
+        H = _ef3(h.position, h.err_position)
+        N = _ef3(h.normal, h.err_normal)
+        mat = obj.material
+        if obj.kind == "tplane":
+            # floor(OFF + u/w): the oracle's float64 sum rounds by up to ulp(OFF)/2
+            k = oracle.tile_scale(obj, rules)
+            u = EF(h.uv[0], h.err_uv[0]) * EF(k)
+            vv = EF(h.uv[1], h.err_uv[1])
+            if rules.tile_add_first:
+                u, vv = u + EF(oracle.OFF, 0.0), vv + EF(oracle.OFF, 0.0)
+            x = u / EF(obj.size[0])
+            y = vv / EF(obj.size[1])
+            off = oracle.OFF * 2.0 ** -53
+            px.tile = min(px.tile, _int_margin(x, off), _int_margin(y, off))
+            if not oracle.tile_foreground(obj, h.uv[0], h.uv[1], rules):
+                mat = obj.background
+        I = [EF(a) for a in mat.ambient]
+        if getattr(obj, "texture", None) is not None:
+            I = _textured_ambient(scene, obj, h, N, px)
+        for light in scene.lights:
+            D = diff3(vec(light.center), H)
+            dist = length3(D)
+            L = unit3(D)
+            c = dot3(L, N)
+            if c.v <= 0:
+                continue                                    # light behind the surface
+            if light.kind == "spotlight":
+                # inside the cone iff unit(H − centre)·unit(aim − centre) > cos θ: a decision
+                # (its margin joins the shadow tests': whether the light reaches H)
+                axis = unit3(diff3(vec(light.aim), vec(light.center)))
+                cos_t = math.cos(math.radians(light.theta))       # within a few ulps
+                s = dot3(scale3(EF(-1.0, 0.0), L), axis) - EF(cos_t, 4.0 * abs(cos_t))
+                px.shadow = min(px.shadow, _margin(s.v, s.e))
+                if s.v <= 0:
+                    continue                                # outside the spotlight's cone
+            s = trace(scene, H, L, rules, h.id)
+            px.shadow = min(px.shadow, _hit_margin(scene, s, H, L, h.id, False, dist.v))
+            if s.hit:
+                px.shadow = min(px.shadow, _margin(s.t - dist.v, s.err_t + dist.e))
+                if s.t < dist.v:
+                    continue                                # shadow
+            for i in range(3):
+                I[i] = I[i] + EF(mat.diffuse[i]) * EF(light.emissivity[i]) * c / dist
+        seg = EF(h.t, h.err_t) if rules.reflect == "segment" else total_dist
+        I = [a / seg for a in I]
+        if not any(mat.specular):
+            break
         px.maxdist = min(px.maxdist, _margin(total_dist.v - max_dist, total_dist.e))
-        if total_dist.v < max_dist:
-            px.bounces += 1
-            R = unit3(diff3(d, scale3(2.0 * dot3(d, N), N)))
-            Ir = ray_trace(scene, H, R, total_dist, h.id, rules, max_dist, px)
-            I = [I[i] + EF(mat.specular[i]) * Ir[i] for i in range(3)]
+        if not total_dist.v < max_dist:
+            break
+        # the reflection ray: trace it next, and add specular · its intensity afterwards
+        px.bounces += 1
+        stack.append((I, mat.specular))
+        R = unit3(diff3(d, scale3(2.0 * dot3(d, N), N)))
+        base, d, skip = H, R, h.id
+    for local, spec in reversed(stack):
+        I = [local[i] + EF(spec[i]) * I[i] for i in range(3)]
     return tuple(I)
 
 

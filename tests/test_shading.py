@@ -427,3 +427,21 @@ def test13_material_tables_built_once_per_tile_rule(monkeypatch):
     assert np.array_equal(images[0], fresh[0]) and np.array_equal(images[2], fresh[1])
     assert np.array_equal(images[4], fresh[0])
     assert not np.array_equal(fresh[0], fresh[1]), "the tile rule changes this scene"
+
+
+def test14_shade_oracle_follows_thousands_of_bounces():
+    """The shading oracle's bounces run in a loop, not Python's recursion: a pixel of the
+    mirror corridor under MAX_DIST 50000 bounces some 250 times, and one looking along the
+    corridor thousands (recursing, it died at 1000, in `rtval check`'s cut-off inference);
+    its intensity is still the recursion's, the fold running from the last bounce back."""
+    from mitsuba_ref.shade_oracle import shade_pixels
+    scene = parse_scene(REPO / "scenes" / "shade_mirrors.txt")
+    W, H = 65, 48
+    px = [2630, 19 * W]             # (row 19 looks up a little: no floor to end it)
+    far = shade_pixels(scene, W, H, px, max_dist=50000.0)
+    near = shade_pixels(scene, W, H, px, max_dist=1000.0)
+    assert far["bounces"].max() > 1000 and (far["bounces"] > near["bounces"]).all()
+    assert np.isfinite(far["I"]).all() and (far["I"] >= near["I"]).all()
+    # 2630: the C course tracer's value (247 levels, printed to 17 digits)
+    assert far["I"][0] * 255 == pytest.approx([0.80295325107786342, 0.72596709809387094,
+                                               1.0119644941568138], rel=1e-12)
