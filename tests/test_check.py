@@ -149,7 +149,10 @@ def test03_each_deviation_is_named(ctracer, build, scene, rule, value, tmp_path)
 BUGS = [("course_alias_xform", REPO / "scenes" / "fplane_tilted.txt"),
         ("course_inv_square", REPO / "scenes" / "shade_shadows.txt"),
         ("course_no_shadows", REPO / "scenes" / "shade_shadows.txt"),
-        ("course_spot_full_angle", REPO / "scenes" / "shade_spot.txt")]
+        ("course_spot_full_angle", REPO / "scenes" / "shade_spot.txt"),
+        ("course_quant_round", REPO / "scenes" / "shade_shadows.txt"),
+        ("course_rows_flipped", REPO / "scenes" / "mixed.txt"),
+        ("course_dir_not_unit", REPO / "scenes" / "shade_mirrors.txt")]
 
 
 @pytest.mark.parametrize("build,scene", BUGS, ids=[b[0] for b in BUGS])
@@ -158,6 +161,47 @@ def test04_each_bug_fails(ctracer, build, scene, tmp_path):
     r = check_image(scene, img)
     assert r.status == "fail" and r.counts["wrong"] > 50, r.counts
     assert r.worst["pixels"] == r.counts["wrong"] and r.worst["objects"]
+
+
+# what a bug that is no variant looks like: wrong, no deviation named, a hint in words
+# (found by a student's run: rounding passed as 'rounding', an upside-down image was
+# called 'rows shifted', a direction not made unit 'reflections divided by the segment')
+BUG_HINTS = [("course_quant_round", "mixed.txt", "one level brighter than floor(255 I)"),
+             ("course_quant_round", "shade_mirrors.txt", "one level brighter"),
+             ("course_rows_flipped", "mixed.txt", "upside down"),
+             ("course_rows_flipped", "shade_mirrors.txt", "upside down"),
+             ("course_dir_not_unit", "mixed.txt", "is dir made unit?"),
+             ("course_dir_not_unit", "shade_mirrors.txt", "is dir made unit?")]
+
+
+@pytest.mark.parametrize("build,scene,hint", BUG_HINTS,
+                         ids=[f"{b[0]}-{b[1]}" for b in BUG_HINTS])
+def test04b_a_bug_names_no_deviation_and_gets_a_hint(ctracer, build, scene, hint, tmp_path):
+    scene = REPO / "scenes" / scene
+    img = _render(ctracer / build, scene, 65, tmp_path, hits=True)
+    r = check_image(scene, img, hits_path=img.with_suffix(".hits"))
+    assert r.status == "fail" and r.counts["wrong"] > 0.1 * r.columns * r.rows, r.counts
+    assert r.deviations == [], r.deviations
+    assert not [f for f in r.findings if f.determined and f.value != f.notes
+                and f.rule != "max_dist"], r.findings
+    assert any(hint in h for h in r.hints), r.hints
+    if build == "course_quant_round":           # one level off, all one way: not rounding
+        assert r.counts["rounding"] == 0
+
+
+def test04c_one_level_differences_decide_the_cut_off(ctracer, tmp_path):
+    """The notes' build stops reflecting at total_dist >= 50000; on the mirror corridor
+    that changes 6 pixels by one level only.  They were passed as 'rounding' under rtval's
+    1000; the intensities lie nowhere near an 8-bit level, so the cut-off is inferred from
+    them instead (and a one-level difference no level explains is wrong)."""
+    scene = REPO / "scenes" / "shade_mirrors.txt"
+    img = _render(ctracer / "course", scene, 65, tmp_path)
+    r = check_image(scene, img)
+    assert r.status == "pass" and r.counts["match"] == r.columns * r.rows, r.counts
+    md = next(f for f in r.findings if f.rule == "max_dist")
+    assert md.value == 50000.0 and md.determined and md.pixels >= 6, md
+    r = check_image(scene, img, max_dist=1000.0)
+    assert r.status == "fail" and r.counts["wrong"] == 6 and r.counts["rounding"] == 0
 
 
 # --- rt_core's own images under each variant --------------------------------------------------
@@ -304,8 +348,29 @@ def test09_cli_outputs_and_exit_codes(ctracer, tmp_path):
     html = (report / "index.html").read_text()
     # reference, theirs, classes and their difference (tests/test_html_report.py: the page)
     assert "wrong" in html and len(list(report.glob("*.png"))) == 4
+    # the failure's text in JUnit is sentences, as on stdout, not Python's dicts
+    body = next(suite.iter("failure")).text
+    assert "wrong: " in body and "the largest group" in body and "{'" not in body
+    assert "{'" not in html
     good = _render(ctracer / "course", scene, 40, tmp_path)
     assert main(["check", str(scene), str(good)]) == 0
+
+
+def test09b_run_with_a_refused_scene_exits_2_unless_one_fails(ctracer, tmp_path, capsys):
+    """A malformed scene under --run was listed REFUSED and the run exited 0 ('0 of 1
+    scenes pass'); bad input is 2, a failing scene still 1."""
+    from tools.cli import main
+    bad = tmp_path / "bad.txt"
+    bad.write_text("sphere\n1 2\n")
+    good, fails = REPO / "scenes" / "mixed.txt", REPO / "scenes" / "shade_shadows.txt"
+    notes = f"{ctracer / 'course'} {{columns}} < {{scene}} > {{out}}"
+    bug = f"{ctracer / 'course_no_shadows'} {{columns}} < {{scene}} > {{out}}"
+    for run, scenes, code in ((notes, [bad], 2), (notes, [bad, good], 2), (notes, [good], 0),
+                              (bug, [bad, fails], 1)):
+        assert main(["check", "--serial", "--run", run, "--columns", "32",
+                     *map(str, scenes)]) == code, (run, scenes)
+        out = capsys.readouterr().out
+        assert ("REFUSED" in out) == (bad in scenes)
 
 
 def test10_json(ctracer, tmp_path, capsys):

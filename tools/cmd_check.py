@@ -17,9 +17,10 @@ def add_parser(sub) -> None:
                     "SCENE and check what it writes.  Every pixel is classed match, rounding, "
                     "boundary (within a float64 error bound of a decision), variant (explained "
                     "by a rule variant of real course programs, inferred from the image) or "
-                    "wrong.  Exit 0 if no pixel is wrong, 1 if some are, 2 on bad input.")
-    p.add_argument("inputs", nargs="+", metavar="SCENE [IMAGE]",
-                   help="SCENE IMAGE, or with --run one or more scenes")
+                    "wrong.  Exit 0 if no pixel is wrong, 1 if some are (or, with --run, a run "
+                    "failed), 2 on bad input (with --run: a scene refused, and none failed).")
+    p.add_argument("inputs", nargs="+", metavar="INPUT",
+                   help="SCENE IMAGE; with --run: one or more SCENEs")
     p.add_argument("--run", metavar="CMD",
                    help="the tracer's command line, with {scene} {out} {columns} {rows} and "
                         "optionally {hits}, e.g. './ray {columns} {rows} < {scene} > {out}'")
@@ -103,4 +104,8 @@ def run(args) -> int:
         return 1
     if any(r.status == "error" for r in results):
         return 1 if args.run else 2
+    # (--run) a scene that could not be checked at all: malformed, or of a kind rtval
+    # does not implement; it is listed as REFUSED
+    if any(r.status == "refused" for r in results):
+        return 2
     return 0

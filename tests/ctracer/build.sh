@@ -41,4 +41,7 @@ build course_inv_square      -DINV_SQUARE
 build course_no_shadows      -DNO_SHADOWS
 build course_spot_full_angle -DSPOT_FULL_ANGLE
 build course_tile_add_first  -DTILE_ADD_FIRST
-echo "built 15 binaries in $out"
+build course_quant_round     -DQUANT_ROUND
+build course_rows_flipped    -DROWS_FLIPPED
+build course_dir_not_unit    -DDIR_NOT_UNIT
+echo "built 18 binaries in $out"

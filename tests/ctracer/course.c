@@ -42,6 +42,10 @@
  *   -DNO_SHADOWS      no shadow rays at all (a bug)
  *   -DSPOT_FULL_ANGLE a spotlight's theta taken as the cone's full angle, not the half-angle
  *                     (a bug: the lit cone is half as wide)
+ *   -DQUANT_ROUND     the pixel is floor(255 I + 0.5), rounded instead of floored (a bug)
+ *   -DROWS_FLIPPED    the bottom row written first: the image upside down (a bug)
+ *   -DDIR_NOT_UNIT    the primary ray's direction is not made unit, so t (and the path
+ *                     length the shading divides by) is not a distance (a bug)
  * One more variant from the notes, beyond the list above:
  *   -DTILE_ADD_FIRST  tile parity floor((OFF + u)/w) instead of floor(OFF + u/w): OFF is
  *                     added before dividing, which shifts the pattern unless w divides OFF
@@ -977,7 +981,11 @@ static unsigned char quant(double I)
         return 0;                       /* also NaN */
     if (I > 1.0)
         I = 1.0;
+#ifdef QUANT_ROUND
+    return (unsigned char)floor(255.0 * I + 0.5);   /* the bug: rounds, the notes floor */
+#else
     return (unsigned char)floor(255.0 * I);
+#endif
 }
 
 /* ------------------------------------------------------------------ main */
@@ -1047,6 +1055,8 @@ int main(int argc, char **argv)
     for (r = 0; r < H; r++) {               /* image row r, top first */
 #ifdef ROWS_SHIFTED
         long y = H - r;                      /* the bug: one row too high */
+#elif defined(ROWS_FLIPPED)
+        long y = r;                          /* the bug: the bottom row written first */
 #else
         long y = H - 1 - r;                  /* course row, 0 = bottom */
 #endif
@@ -1058,7 +1068,11 @@ int main(int argc, char **argv)
             world[1] = wy;
             world[2] = 0.0;
             diff3(tmp, world, g_view);
+#ifdef DIR_NOT_UNIT
+            dir[0] = tmp[0], dir[1] = tmp[1], dir[2] = tmp[2];   /* the bug: not a unit */
+#else
             unit3(dir, tmp);
+#endif
             id = trace(g_view, dir, I, &t);
             i = ((long)r * W + x) * 3;
             img[i] = quant(I[0]);

@@ -4,7 +4,10 @@ For one scene and the image a tracer wrote (PPM P6/P3 or PNG), rt_core renders t
 image in float64 (exact decisions) and every pixel gets one class:
 
 * ``match``: the same 8-bit colour;
-* ``rounding``: a channel off by one (truncation of an intensity at an 8-bit level);
+* ``rounding``: a channel off by one where the intensity lies within its float64 error bound
+  of an 8-bit level (computed by the shading oracle), so a float64 tracer may floor it to
+  either side; one-level differences in more than 5% of the image are a systematic offset
+  (rounding instead of flooring, say): ``wrong``;
 * ``boundary``: a ray of the pixel (primary, shadow or reflection) passes within a float64
   error bound of a decision — an edge, a tie, the window plane, a sphere outline, a shadow's
   blocker, a tile border, the distance cut-off — so either answer is defensible.  The bound is
@@ -177,6 +180,13 @@ def _config(rules, max_dist, name, value):
     return dataclasses.replace(rules, **{name: value}), max_dist
 
 
+def _shading(rules) -> tuple:
+    """The rules a pixel's intensity depends on away from the decisions (which the hit
+    rules move: there the pixel's 'jump' flag is set anyway): the camera, the division,
+    the tile parity."""
+    return rules.rows, rules.reflect, rules.tile_add_first, rules.tile_project
+
+
 class Boundary:
     """Which pixels are ``boundary``: a decision of one of their rays within the float64
     shading oracle's bound (mitsuba_ref/shade_oracle.py), under the given rules.  The
@@ -190,27 +200,49 @@ class Boundary:
 
     def __init__(self, r: Renderer, max_dist: float):
         self.r, self.max_dist = r, max_dist
-        self.known = {}          # (rows, pixel) -> bool
+        self.known = {}          # (rows, max_dist, pixel) -> bool
+        self.quant = {}          # (rules, max_dist, pixel) -> bool
         # one fixed random order of the pixels: every sample takes the first ones in it, so
         # the samples of different variants share their pixels (and the oracle's work)
         n = r.cam.columns * r.cam.rows
         self.rank = np.random.default_rng(1).permutation(n)
 
-    def of(self, pixels, rules) -> np.ndarray:
-        from mitsuba_ref.shade_oracle import K_DECISION, MARGINS, U, shade_pixels
-        pixels = np.asarray(pixels, np.int64)
-        todo = [int(p) for p in pixels if (rules.rows, int(p)) not in self.known]
-        if todo:
-            cam = self.r.cam
-            orc = shade_pixels(self.r.scene, cam.columns, cam.rows, todo, cam.sampling, rules,
-                               self.max_dist)
-            near = np.zeros(len(todo), bool)
-            for m in MARGINS:
-                near |= orc[m] < K_DECISION * U["f64"]
-            self.known.update({(rules.rows, p): bool(n) for p, n in zip(todo, near)})
-        return np.array([self.known[(rules.rows, int(p))] for p in pixels], bool)
+    def _oracle(self, todo, rules, md: float) -> None:
+        """The float64 shading oracle's flags of pixels ``todo`` under (rules, md) into the
+        caches: a decision within its bound ('jump'), an intensity within its bound of an
+        8-bit level ('quant')."""
+        from mitsuba_ref.shade_oracle import flags, shade_pixels
+        cam = self.r.cam
+        f = flags(shade_pixels(self.r.scene, cam.columns, cam.rows, todo, cam.sampling, rules,
+                               md), "f64")
+        for p, j, q in zip(todo, f["jump"], f["quant"]):
+            self.known.setdefault((rules.rows, md, p), bool(j))
+            self.quant[(_shading(rules), md, p)] = bool(q)
 
-    def unexcused(self, mask: np.ndarray, rules) -> float:
+    def of(self, pixels, rules, md: float | None = None) -> np.ndarray:
+        """Which ``pixels`` have a decision within its float64 bound (under the cut-off
+        ``md``, default the first one's)."""
+        md = self.max_dist if md is None else md
+        pixels = np.asarray(pixels, np.int64)
+        todo = [int(p) for p in pixels if (rules.rows, md, int(p)) not in self.known]
+        if todo:
+            self._oracle(todo, rules, md)
+        return np.array([self.known[(rules.rows, md, int(p))] for p in pixels], bool)
+
+    def levels(self, pixels, rules, md: float) -> tuple:
+        """(jump, quant) of ``pixels`` under exactly (rules, md): a decision within its bound,
+        and an intensity within its bound of an 8-bit level (where a tracer's rounding may
+        put the pixel on either side of the level)."""
+        pixels = [int(p) for p in np.asarray(pixels, np.int64)]
+        key = _shading(rules)
+        todo = [p for p in pixels if (key, md, p) not in self.quant]
+        if todo:
+            self._oracle(todo, rules, md)
+        return (np.array([self.known[(rules.rows, md, p)] for p in pixels], bool),
+                np.array([self.quant[(key, md, p)] for p in pixels], bool))
+
+
+    def unexcused(self, mask: np.ndarray, rules, md: float | None = None) -> float:
         """How many differing pixels are not boundary (estimated from a fixed sample when
         there are more than SAMPLE)."""
         px = np.flatnonzero(mask.ravel())
@@ -218,8 +250,16 @@ class Boundary:
             return float(len(px))
         if len(px) > self.SAMPLE:
             pick = px[np.argsort(self.rank[px])[:self.SAMPLE]]
-            return len(px) * (1.0 - self.of(pick, rules).mean())
-        return float(len(px) - self.of(px, rules).sum())
+            return len(px) * (1.0 - self.of(pick, rules, md).mean())
+        return float(len(px) - self.of(px, rules, md).sum())
+
+
+# the share of the pixels a variant's render changes that the image must take its colour at
+# for the variant to be named (``infer``)
+CONSISTENT = 0.5
+# one-level differences in more than this share of the image are systematic (a tracer that
+# rounds, say), not a float64 tracer's rounding at 8-bit levels: wrong without the oracle
+SYSTEMATIC = 0.05
 
 
 def infer(r: Renderer, theirs: np.ndarray, start_rules, start_max_dist: float, fixed=()):
@@ -228,8 +268,10 @@ def infer(r: Renderer, theirs: np.ndarray, start_rules, start_max_dist: float, f
     are not ``boundary``: a variant that only explains pixels either answer of which is
     defensible is not named (a correct float64 tracer rounds those either way), unless the
     image follows it systematically (it removes 95% of the differing pixels, and they are 5%
-    of the image: rounding flips some pixels of a region, not all).  Two values are compared
-    on the pixels where they differ only (the oracle's work stays small)."""
+    of the image: rounding flips some pixels of a region, not all), and the image takes the
+    value's colour at most pixels where the value's render differs (``CONSISTENT``).  Two
+    values are compared on the pixels where they differ only (the oracle's work stays
+    small)."""
     kinds = set(r.scene.kinds())
     specular = any(any(o.material.specular) for o in r.scene.objects)
     dims = [(n, v) for n, v, relevant in DIMENSIONS if n not in fixed and (
@@ -241,22 +283,41 @@ def infer(r: Renderer, theirs: np.ndarray, start_rules, start_max_dist: float, f
     masks = {}
 
     def diff(cfg):
-        """The pixels that differ by more than one level under config ``cfg`` (kept)."""
+        """The pixels that differ under config ``cfg`` by more than one level, or by one
+        where the intensity is not within its float64 bound of an 8-bit level (kept).  (An
+        image that differs by more than one level in over THIN of the pixels is judged on
+        those: its one-level pixels would cost the oracle's work and decide nothing.)"""
         if cfg not in masks:
-            masks[cfg] = _differs(r.image(*cfg), theirs)
+            lv = np.abs(r.image(*cfg).astype(np.int16) - theirs.astype(np.int16)).max(-1)
+            m = lv > 1
+            one = np.flatnonzero(lv.ravel() == 1)
+            if len(one) > SYSTEMATIC * lv.size:
+                m |= lv == 1
+            elif len(one) and m.sum() <= bnd.THIN * lv.size:
+                m.ravel()[one[~bnd.levels(one, *cfg)[1]]] = True
+            masks[cfg] = m
         return masks[cfg]
 
     def delta(a, b) -> float:
         """Unexcused differing pixels of config a minus those of config b."""
         da, db = diff(a), diff(b)
-        return bnd.unexcused(da & ~db, a[0]) - bnd.unexcused(db & ~da, b[0])
+        return bnd.unexcused(da & ~db, *a) - bnd.unexcused(db & ~da, *b)
+
+    def consistent(v, cur) -> bool:
+        """Does the image follow config v where v's render differs from cur's?  At most of
+        those pixels (CONSISTENT) it must have v's colour exactly: an image wrong for
+        another reason (upside down, t not a distance) matches a variant's render by
+        chance at a few of them, which a pixel count alone would take for the variant."""
+        a = r.image(*v)
+        changed = (a != r.image(*cur)).any(-1)
+        return (changed & (a == theirs).all(-1)).sum() >= CONSISTENT * changed.sum()
 
     def better(v, cur) -> bool:
         d = delta(v, cur)
-        if d < 0:
-            return True
         if d > 0:
             return False
+        if d < 0:
+            return consistent(v, cur)
         n0, n1 = int(diff(cur).sum()), int(diff(v).sum())
         return n0 >= 0.05 * total and n1 <= 0.05 * n0
 
@@ -410,6 +471,7 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
             return res
     wrong = res.classes == CLASSES.index("wrong")
     res.status = "pass" if not wrong.any() and not res.hits.get("wrong") else "fail"
+    res.hints += hit_hints(scene, res.hits)
     if wrong.any():
         res.worst = worst_region(wrong)
         ids, _ = r.ids(final_rules)
@@ -417,7 +479,7 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
         objs = [(int(k), int(n)) for k, n in zip(*np.unique(on, return_counts=True))]
         objs.sort(key=lambda kn: -kn[1])
         res.worst["objects"] = [_describe(scene, k, n) for k, n in objs[:3]]
-        res.hints = hints(ids, wrong)
+        res.hints = hints(ids, wrong, ours, img) + res.hints
     res.seconds = round(time.perf_counter() - t0, 3)
     return res
 
@@ -450,9 +512,13 @@ def provenance(scene, img: np.ndarray) -> dict:
             "versions": versions()}
 
 
-def hints(ids: np.ndarray, wrong: np.ndarray) -> list:
-    """Plain-words guesses about what the wrong pixels look like (not part of the verdict)."""
+def hints(ids: np.ndarray, wrong: np.ndarray, ours=None, theirs=None) -> list:
+    """Plain-words guesses about what the wrong pixels look like (not part of the verdict):
+    outlines only; the image as rt_core's upside down or mirrored; a one-level offset all
+    one way."""
     out = []
+    if ours is not None:
+        out += _orientation(ours, theirs) + _level_offset(ours, theirs)
     edge = np.zeros_like(wrong)
     edge[:, 1:] |= ids[:, 1:] != ids[:, :-1]
     edge[:, :-1] |= ids[:, 1:] != ids[:, :-1]
@@ -464,6 +530,44 @@ def hints(ids: np.ndarray, wrong: np.ndarray) -> list:
                    "or jittered samples? (a pixel-exact comparison needs one sample per "
                    "pixel at the course's grid corners)")
     return out
+
+
+def _orientation(ours: np.ndarray, theirs: np.ndarray) -> list:
+    """The image matches rt_core's flipped (upside down, left to right, or both) far better
+    than rt_core's as it is."""
+    straight = int(_differs(ours, theirs).sum())
+    rev, keep = slice(None, None, -1), slice(None)
+    words = [((rev, keep), "upside down: rows written bottom first? (the image's first row "
+              "is the top one, y = H - 1)"),
+             ((keep, rev), "mirrored left to right: columns written right to left? "
+              "(column 0 is x = -w/2)"),
+             ((rev, rev), "turned by 180 degrees: rows and columns both written in "
+              "reverse?")]
+    for flip, what in words:
+        n = int(_differs(ours[flip], theirs).sum())
+        if n <= 0.05 * ours[..., 0].size and n <= 0.2 * straight:
+            return [f"your image is rt_core's {what} ({n} pixels differ that way, "
+                    f"{straight} as it is)"]
+    return []
+
+
+def _level_offset(ours: np.ndarray, theirs: np.ndarray) -> list:
+    """One-level differences in more than SYSTEMATIC of the image, nearly all one way."""
+    d = theirs.astype(np.int16) - ours.astype(np.int16)
+    one = np.abs(d).max(-1) == 1
+    if one.sum() <= SYSTEMATIC * one.size:
+        return []
+    up = int((one & (d.max(-1) == 1)).sum())
+    down = int(one.sum()) - up
+    if up >= 0.9 * one.sum():
+        return [f"{up} pixels are one level brighter than floor(255 I) and {down} darker: "
+                "the notes floor 255 I (rounding, floor(255 I + 0.5), makes about half the "
+                "lit pixels one level brighter)"]
+    if down >= 0.9 * one.sum():
+        return [f"{down} pixels are one level darker than floor(255 I) and {up} brighter: "
+                "a scale below 255, or an intensity made a little smaller (float instead "
+                "of double)?"]
+    return []
 
 
 def _describe(scene, k: int, n: int) -> str:
@@ -478,11 +582,30 @@ def classify(r: Renderer, theirs: np.ndarray, rules, md: float, notes, bnd: Boun
     ours = r.image(rules, md)
     diff = np.abs(ours.astype(np.int16) - theirs.astype(np.int16)).max(-1)
     cls = np.where(diff == 0, 0, np.where(diff == 1, 1, 4)).astype(np.int8)
-    bad = np.flatnonzero(cls.ravel() == 4)
+    flat = cls.ravel()
+    one = np.flatnonzero(flat == 1)
+    if len(one) > SYSTEMATIC * flat.size:
+        flat[one] = CLASSES.index("wrong")          # a systematic offset, not rounding
+    elif len(one):
+        # rounding where the intensity lies within its float64 bound of an 8-bit level
+        # (the shading oracle's), boundary where a decision does, else wrong
+        jump, quant = bnd.levels(one, rules, md)
+        flat[one[jump & ~quant]] = CLASSES.index("boundary")
+        flat[one[~jump & ~quant]] = CLASSES.index("wrong")
+    bad = np.flatnonzero((flat == 4) & (diff.ravel() > 1))
+    if len(bad) > bnd.THIN * flat.size:
+        # more than THIN of the image: a fixed sample first (the oracle's work grows with
+        # the pixels and their bounces); one pixel in it that no decision excuses fails the
+        # image, and the rest stay wrong unasked.  A sample all boundary (a plane lying in
+        # z = 0, say) has every pixel asked.
+        pick = bad[np.argsort(bnd.rank[bad])[:bnd.SAMPLE]]
+        near = bnd.of(pick, rules, md)
+        if not near.all():
+            flat[pick[near]] = CLASSES.index("boundary")
+            bad = bad[:0]
     if len(bad):
         # the float64 shading oracle's margins: a decision within K·u of its threshold
-        flat = cls.ravel()
-        flat[bad[bnd.of(bad, rules)]] = CLASSES.index("boundary")
+        flat[bad[bnd.of(bad, rules, md)]] = CLASSES.index("boundary")
     # pixels the inferred variants explain: wrong under the notes' value of that rule
     variants = {}
     for name, values, _ in DIMENSIONS:
@@ -567,10 +690,42 @@ def check_hits(r: Renderer, rules, path) -> dict:
     both = listed & (theirs == ids) & (ids >= 0)
     rel = np.where(both, np.abs(tt - t) / np.maximum(np.abs(t), 1e-300), 0.0)
     depth_wrong = both & ~(rel <= 1e-9)
+    pairs = [(int(a), int(b), int(n)) for (a, b), n in zip(*np.unique(
+        np.stack([theirs[id_wrong], ids[id_wrong]], 1), axis=0, return_counts=True))]
+    pairs.sort(key=lambda p: -p[2])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = tt[depth_wrong] / t[depth_wrong]
+    ratio = ratio[np.isfinite(ratio)]
     return {"pixels": int(listed.sum()), "missing": int((~listed).sum()),
             "id_wrong": int(id_wrong.sum()), "depth_wrong": int(depth_wrong.sum()),
             "depth_max_rel": float(rel.max(initial=0.0)),
-            "wrong": int(id_wrong.sum() + depth_wrong.sum() + (~listed).sum())}
+            "wrong": int(id_wrong.sum() + depth_wrong.sum() + (~listed).sum()),
+            # (your id, rt_core's id, pixels), most pixels first
+            "confusions": [list(p) for p in pairs[:3]],
+            "depth_ratio_median": float(np.median(ratio)) if len(ratio) else None,
+            "depth_compared": int(both.sum())}
+
+
+def hit_hints(scene, h: dict) -> list:
+    """What a hit dump's differences suggest: t not a distance; the objects mixed up."""
+    out = []
+    if not h:
+        return out
+    q = h.get("depth_ratio_median")
+    if q is not None and h["depth_wrong"] >= 0.5 * max(h["depth_compared"], 1) and \
+            abs(q - 1) > 1e-3:
+        out.append(f"your t differs from rt_core's distance in {h['depth_wrong']} of "
+                   f"{h['depth_compared']} hits on the same object (yours / rt_core's: "
+                   f"{q:.4g} in the median): the notes' t is the distance along a unit "
+                   "direction; is dir made unit?")
+    for yours, ref, n in h.get("confusions", [])[:1]:
+        def name(k):
+            return "no object" if k < 0 else (
+                f"object {k} ({scene.objects[k].kind}, line {scene.objects[k].line})"
+                if k < len(scene.objects) else f"object {k} (no such object)")
+        out.append(f"the hit dump has {name(yours)} where rt_core has {name(ref)} in "
+                   f"{n} pixels")
+    return out
 
 
 # --- running the user's tracer --------------------------------------------------------------------
@@ -750,8 +905,8 @@ def junit_xml(results) -> str:
         c = Case(Path(r.scene).name, "rtval.check", r.seconds)
         if r.status == "fail":
             c.failure = f"{r.counts.get('wrong', 0)} wrong pixels"
-            c.body = "\n".join([f"rules: {r.rules}, max_dist={r.max_dist:g}"] + r.deviations +
-                               [f"worst region: {r.worst}"])
+            c.body = "\n".join([f"rules: {r.rules}, max_dist={r.max_dist:g}"] +
+                               details(r, ("deviation", "hint", "wrong", "hit dump")))
         elif r.status in ("error", "refused"):
             c.error = r.reason
         else:
@@ -767,32 +922,41 @@ def _one_line(r: SceneCheck) -> str:
     return f"{'PASS' if r.ok else 'FAIL'} {r.scene} {r.columns}x{r.rows}: {counts}"
 
 
+def details(r: SceneCheck, kinds=("rules", "deviation", "hint", "wrong", "hit dump")) -> list:
+    """The lines under a checked scene's verdict, in words (the text report, the HTML
+    report, JUnit): the rules, each deviation and hint, the wrong pixels, the hit dump."""
+    out = []
+    if "rules" in kinds:
+        det = [f"{f.rule}={f.value:g}" if isinstance(f.value, float) else f"{f.rule}={f.value}"
+               for f in r.findings if f.determined]
+        und = [f.rule for f in r.findings if not f.determined]
+        out.append("rules: " + (", ".join(det) if det else "none determined") +
+                   (f"; undetermined: {', '.join(und)}" if und else ""))
+    if "deviation" in kinds:
+        out += [f"deviation: {d}" for d in r.deviations]
+    if "hint" in kinds:
+        out += [f"hint: {h}" for h in r.hints]
+    if r.worst and "wrong" in kinds:
+        w = r.worst
+        out.append(f"wrong: {w['pixels']} pixels, the largest group {w['largest_group']} in "
+                   f"rows {w['rows'][0]}-{w['rows'][1]}, columns {w['columns'][0]}-"
+                   f"{w['columns'][1]}; " + "; ".join(w.get("objects", [])))
+    if r.hits and "hit dump" in kinds:
+        h = r.hits
+        out.append(f"hit dump: {h['pixels']} pixels listed"
+                   + (f", {h['missing']} missing" if h["missing"] else "")
+                   + f"; {h['id_wrong']} with another object, {h['depth_wrong']} "
+                   f"with another depth (max relative depth error "
+                   f"{h['depth_max_rel']:.3g}; 1e-09 allowed)")
+    return out
+
+
 def text_report(results) -> str:
     lines = []
     for r in results:
         lines.append(_one_line(r))
         if r.status in ("pass", "fail"):
-            det = [f"{f.rule}={f.value:g}" if isinstance(f.value, float) else f"{f.rule}={f.value}"
-                   for f in r.findings if f.determined]
-            und = [f.rule for f in r.findings if not f.determined]
-            lines.append("  rules: " + (", ".join(det) if det else "none determined") +
-                         (f"; undetermined: {', '.join(und)}" if und else ""))
-            for d in r.deviations:
-                lines.append(f"  deviation: {d}")
-            for h in r.hints:
-                lines.append(f"  hint: {h}")
-            if r.worst:
-                lines.append(f"  wrong: {r.worst['pixels']} pixels, the largest group "
-                             f"{r.worst['largest_group']} in rows {r.worst['rows'][0]}-"
-                             f"{r.worst['rows'][1]}, columns {r.worst['columns'][0]}-"
-                             f"{r.worst['columns'][1]}; " + "; ".join(r.worst["objects"]))
-            if r.hits:
-                h = r.hits
-                lines.append(f"  hit dump: {h['pixels']} pixels listed"
-                             + (f", {h['missing']} missing" if h["missing"] else "")
-                             + f"; {h['id_wrong']} with another object, {h['depth_wrong']} "
-                             f"with another depth (max relative depth error "
-                             f"{h['depth_max_rel']:.3g}; 1e-09 allowed)")
+            lines += ["  " + d for d in details(r)]
     n = len(results)
     ok = sum(r.ok for r in results)
     lines.append(f"{ok} of {n} scenes pass")

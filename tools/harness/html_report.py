@@ -291,7 +291,7 @@ def check_rows(results, **command) -> tuple[list, list]:
     """(rows, skipped) of ``rtval check`` results: a refused scene (one rtval cannot read)
     is skipped; a run that failed (a crash, a bad image) is an error row.  ``command``:
     check_command's options."""
-    from .check import CLASSES
+    from .check import CLASSES, details as check_details
     rows, skipped = [], []
     for r in results:
         if r.status == "refused":
@@ -302,21 +302,7 @@ def check_rows(results, **command) -> tuple[list, list]:
                             command=check_command(r, **command)))
             continue
         listed = ", ".join(f"{c} {r.counts.get(c, 0)}" for c in CLASSES if r.counts.get(c))
-        det = [f"{f.rule}={f.value:g}" if isinstance(f.value, float) else f"{f.rule}={f.value}"
-               for f in r.findings if f.determined]
-        und = [f.rule for f in r.findings if not f.determined]
-        details = ["rules: " + (", ".join(det) if det else "none determined")
-                   + (f"; undetermined: {', '.join(und)}" if und else "")]
-        details += [f"deviation: {d}" for d in r.deviations]
-        details += [f"hint: {h}" for h in r.hints]
-        if r.worst:
-            w = r.worst
-            details.append(f"wrong: {w['pixels']} pixels, the largest group "
-                           f"{w['largest_group']} in rows {w['rows'][0]}-{w['rows'][1]}, "
-                           f"columns {w['columns'][0]}-{w['columns'][1]}; "
-                           + "; ".join(w.get("objects", [])))
-        if r.hits:
-            details.append(f"hit dump: {r.hits}")
+        details = check_details(r)
         image = "" if r.image in (None, "(--run)") else f" ({r.image})"
         rows.append(Row(f"{Path(r.scene).name}{image}", r.status,
                         f"{r.columns}×{r.rows}: {listed}", details, check_pictures(r),
