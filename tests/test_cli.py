@@ -120,6 +120,18 @@ def test08_a_missing_directory_is_not_created(tmp_path, cmd):
     assert not (tmp_path / "no").exists()
 
 
+@pytest.mark.parametrize("cmd", [("validate", SPHERE, "--columns", 8, "--shaded-columns", 0),
+                                 ("compare", SPHERE, "--columns", 8),
+                                 ("check", SPHERE, SPHERE.with_suffix(".ppm"))])
+def test08b_junit_into_a_missing_directory_is_refused_first(tmp_path, cmd):
+    """--junit names a file: its directory is not made (it was, for all three), and the
+    refusal comes before any work."""
+    r = rtval(*cmd, "--junit", tmp_path / "no" / "such" / "j.xml", "-o" if cmd[0] == "validate"
+              else "--json", *([tmp_path / "v"] if cmd[0] == "validate" else []))
+    assert r.returncode == 2 and "no directory" in r.stderr and "create it first" in r.stderr
+    assert not (tmp_path / "no").exists() and not (tmp_path / "v").exists()
+
+
 def test09_junit_for_validate_and_compare(tmp_path):
     import xml.etree.ElementTree as ET
     j = tmp_path / "v.xml"

@@ -53,7 +53,7 @@ def run(args) -> int:
         from tools.harness.html_report import check_target
         check_target(args.report)
     if args.junit:
-        check_file_target(args.junit)
+        check_file_target(args.junit, make_dirs=False)
     if args.run is not None:
         if not args.run.strip():
             args.usage_error("--run: give the tracer's command line, e.g. "

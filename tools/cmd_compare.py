@@ -60,7 +60,7 @@ def run(args) -> int:
         from tools.harness.html_report import check_target
         check_target(args.report, {"--evidence": args.evidence})
     if args.junit:
-        check_file_target(args.junit)
+        check_file_target(args.junit, make_dirs=False)
     scene = parse_scene(args.scene)
     if args.shaded:
         return _run_shaded(args, scene)

@@ -71,7 +71,7 @@ def run(args) -> int:
         check_target(args.report, {"-o": args.output})
     check_dir_target(args.output)
     if args.junit:
-        check_file_target(args.junit)
+        check_file_target(args.junit, make_dirs=False)
     paths = args.scenes or default_scene_paths()
     scenes, skipped = load_supported(paths, explicit=bool(args.scenes))
     if args.shaded_columns > 0:         # the shaded comparisons need the textures

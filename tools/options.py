@@ -97,8 +97,10 @@ def add_image_options(p: argparse.ArgumentParser, columns_required: bool = True)
     add_rules(p)
 
 
-RULES_HELP = ("hit-rule variants: t_min=1e-4, screen_clip='>'|'>='|off, clip_spheres=true, "
-              "edges=closed|open, ties=first|last")
+RULES_HELP = ("rule variants of real course programs: t_min=1e-4, screen_clip='>'|'>='|off, "
+              "clip_spheres=true, edges=closed|open, ties=first|last, "
+              "reflect=total|segment, rows=course|shifted, tile_add_first=true, "
+              "tile_project=false")
 
 
 def add_rules(p: argparse.ArgumentParser, help: str = RULES_HELP) -> None:
