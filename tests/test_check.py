@@ -161,6 +161,8 @@ def test04_each_bug_fails(ctracer, build, scene, tmp_path):
     r = check_image(scene, img)
     assert r.status == "fail" and r.counts["wrong"] > 50, r.counts
     assert r.worst["pixels"] == r.counts["wrong"] and r.worst["objects"]
+    # (no bug here leaves shadow specks: that hint would mislead)
+    assert not any("surface they start on" in h for h in r.hints), r.hints
 
 
 # what a bug that is no variant looks like: wrong, no deviation named, a hint in words
@@ -171,7 +173,9 @@ BUG_HINTS = [("course_quant_round", "mixed.txt", "one level brighter than floor(
              ("course_rows_flipped", "mixed.txt", "upside down"),
              ("course_rows_flipped", "shade_mirrors.txt", "upside down"),
              ("course_dir_not_unit", "mixed.txt", "is dir made unit?"),
-             ("course_dir_not_unit", "shade_mirrors.txt", "is dir made unit?")]
+             ("course_dir_not_unit", "shade_mirrors.txt", "is dir made unit?"),
+             ("course_self_shadow", "shade_shadows.txt", "hit the surface they start on"),
+             ("course_self_shadow", "mixed.txt", "hit the surface they start on")]
 
 
 @pytest.mark.parametrize("build,scene,hint", BUG_HINTS,
@@ -180,7 +184,8 @@ def test04b_a_bug_names_no_deviation_and_gets_a_hint(ctracer, build, scene, hint
     scene = REPO / "scenes" / scene
     img = _render(ctracer / build, scene, 65, tmp_path, hits=True)
     r = check_image(scene, img, hits_path=img.with_suffix(".hits"))
-    assert r.status == "fail" and r.counts["wrong"] > 0.1 * r.columns * r.rows, r.counts
+    least = 20 if build == "course_self_shadow" else 0.1 * r.columns * r.rows    # specks
+    assert r.status == "fail" and r.counts["wrong"] > least, r.counts
     assert r.deviations == [], r.deviations
     assert not [f for f in r.findings if f.determined and f.value != f.notes
                 and f.rule != "max_dist"], r.findings

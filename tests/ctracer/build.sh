@@ -44,4 +44,5 @@ build course_tile_add_first  -DTILE_ADD_FIRST
 build course_quant_round     -DQUANT_ROUND
 build course_rows_flipped    -DROWS_FLIPPED
 build course_dir_not_unit    -DDIR_NOT_UNIT
-echo "built 18 binaries in $out"
+build course_self_shadow     -DSELF_SHADOW
+echo "built 19 binaries in $out"

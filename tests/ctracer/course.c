@@ -46,6 +46,8 @@
  *   -DROWS_FLIPPED    the bottom row written first: the image upside down (a bug)
  *   -DDIR_NOT_UNIT    the primary ray's direction is not made unit, so t (and the path
  *                     length the shading divides by) is not a distance (a bug)
+ *   -DSELF_SHADOW     shadow rays do not skip the object they start on: speckles of
+ *                     shadow where rounding puts that object at a tiny t > 0 (a bug)
  * One more variant from the notes, beyond the list above:
  *   -DTILE_ADD_FIRST  tile parity floor((OFF + u)/w) instead of floor(OFF + u/w): OFF is
  *                     added before dividing, which shifts the pattern unless w divides OFF
@@ -926,7 +928,11 @@ static int trace(const double base0[3], const double dir0[3], double out[3], dou
                     continue;
             }
 #ifndef NO_SHADOWS
+#ifdef SELF_SHADOW
+            if (shadowed(h.hitloc, U, d, -1))   /* the bug: may hit its own surface */
+#else
             if (shadowed(h.hitloc, U, d, id))
+#endif
                 continue;
 #endif
             for (c3 = 0; c3 < 3; c3++)
