@@ -74,7 +74,7 @@ def load(path, deep_ok: bool = False) -> Image:
     ``part.channel``); a deep file only with ``deep_ok`` (``info``: no pixels kept)."""
     from rt_core.imageio import read_channels
     path = os.fspath(path)
-    data = read_channels(path, deep_ok, "EXR", ExrError)
+    data = read_channels(path, deep_ok, "EXR or other image", ExrError)
     if not data.types:
         raise ExrError(f"{path}: the file has no channels")
     return Image(path, {k: data.channels[k] for k in sorted(data.channels)}, data.header,
