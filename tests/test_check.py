@@ -169,9 +169,9 @@ def test04_each_bug_fails(ctracer, build, scene, tmp_path):
 # (found by a student's run: rounding passed as 'rounding', an upside-down image was
 # called 'rows shifted', a direction not made unit 'reflections divided by the segment')
 BUG_HINTS = [("course_quant_round", "mixed.txt", "one level brighter than floor(255 I)"),
-             ("course_quant_round", "shade_mirrors.txt", "one level brighter"),
+             ("course_quant_round", "shade_tiles.txt", "one level brighter"),
              ("course_rows_flipped", "mixed.txt", "upside down"),
-             ("course_rows_flipped", "shade_mirrors.txt", "upside down"),
+             ("course_rows_flipped", "shade_tiles.txt", "upside down"),
              ("course_dir_not_unit", "mixed.txt", "is dir made unit?"),
              ("course_dir_not_unit", "shade_mirrors.txt", "is dir made unit?"),
              ("course_self_shadow", "shade_shadows.txt", "hit the surface they start on"),
@@ -207,6 +207,69 @@ def test04c_one_level_differences_decide_the_cut_off(ctracer, tmp_path):
     assert md.value == 50000.0 and md.determined and md.pixels >= 6, md
     r = check_image(scene, img, max_dist=1000.0)
     assert r.status == "fail" and r.counts["wrong"] == 6 and r.counts["rounding"] == 0
+
+
+TIE_PLANES = """8 6
+0 0 5
+
+plane
+1 1 1
+0 0 0
+0 0 0
+1 2 3
+0 0 -8
+
+plane
+1.05 1.05 1.05
+0 0 0
+0 0 0
+1 2 3
+2 -1 -8
+"""
+
+
+def test04d_either_side_one_level_apart_is_boundary_not_systematic(tmp_path):
+    """Two coincident planes one level apart: a correct tracer's exact ties go either way
+    over the whole image.  Counting every one-level pixel as a systematic offset (over 5%
+    of the image, before asking about decisions) failed it with a false 'float instead of
+    double?' hint (a second reader's reproducer)."""
+    from rt_core.imageio import write_ppm
+    scene = tmp_path / "tie.txt"
+    scene.write_text(TIE_PLANES)
+    a, b = _rt_image(TIE_PLANES, 65, 48), _rt_image(TIE_PLANES, 65, 48, "ties=last")
+    pick = np.random.default_rng(0).random(a.shape[:2]) < 0.5
+    img = tmp_path / "mix.ppm"
+    write_ppm(str(img), np.where(pick[..., None], b, a))
+    r = check_image(scene, img)
+    assert r.status == "pass" and r.counts["boundary"] > 1000, r.counts
+    assert r.hints == [] and r.deviations == []
+
+
+def test04e_two_deviations_together_are_both_found(ctracer, tmp_path):
+    """A value is checked against the image once the search is over, with every other
+    rule as found (checked at each step, a reflection rule blocked the cut-off that goes
+    with it); a second bug that adds a level keeps a deviation named."""
+    from rt_core.imageio import write_ppm
+    mirrors = REPO / "scenes" / "shade_mirrors.txt"
+    img = tmp_path / "m.ppm"
+    write_ppm(str(img), _rt_image(mirrors.read_text(), 65, 48, "reflect=segment", 200.0))
+    r = check_image(mirrors, img)
+    assert r.status == "pass" and r.max_dist == 200.0 and "reflect=segment" in r.rules
+    binary = tmp_path / "rs_qr"
+    subprocess.run(["cc", "-std=c99", "-O2", "-DROWS_SHIFTED", "-DQUANT_ROUND", "-o",
+                    str(binary), str(CT / "course.c"), "-lm"], check=True)
+    tiles = REPO / "scenes" / "shade_tiles.txt"
+    r = check_image(tiles, _render(binary, tiles, 65, tmp_path))
+    assert r.status == "fail" and "rows=shifted" in r.rules
+    assert any("one row too high" in d for d in r.deviations)
+    assert any("one level brighter" in h for h in r.hints)
+    # and a scene symmetric left to right is no image 'mirrored' (0 pixels differing by
+    # more than a level either way)
+    sym = tmp_path / "sym.txt"
+    sym.write_text("8 6\n0 0 5\n\npointlight\n5 5 5\n0 6 0\n\nplane\n1 1 1\n4 4 4\n0 0 0\n"
+                   "0 1 0\n0 -2 0\n\nsphere\n1 0.5 0.5\n6 3 3\n0 0 0\n0 0 -5\n1.5\n")
+    r = check_image(sym, _render(ctracer / "course_quant_round", sym, 65, tmp_path))
+    assert r.status == "fail" and not any("mirrored" in h for h in r.hints), r.hints
 
 
 # --- rt_core's own images under each variant --------------------------------------------------
