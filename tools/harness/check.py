@@ -640,7 +640,7 @@ def _describe(scene, k: int, n: int) -> str:
     if k < 0:
         return f"{n} where rt_core sees no object"
     o = scene.objects[k]
-    return f"{n} on object {k} ({o.kind}, line {o.line})"
+    return f"{n} where rt_core sees object {k} ({o.kind}, line {o.line})"
 
 
 def classify(r: Renderer, theirs: np.ndarray, rules, md: float, notes, bnd: Boundary):
