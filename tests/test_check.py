@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tools.harness.check import CLASSES, check_image, check_run
+from tools.harness.check import details, CLASSES, check_image, check_run
 
 REPO = Path(__file__).resolve().parents[1]
 CT = REPO / "tests" / "ctracer"
@@ -175,6 +175,9 @@ BUG_HINTS = [("course_quant_round", "mixed.txt", "one level brighter than floor(
              ("course_dir_not_unit", "mixed.txt", "is dir made unit?"),
              ("course_dir_not_unit", "shade_mirrors.txt", "is dir made unit?"),
              ("course_self_shadow", "shade_shadows.txt", "hit the surface they start on"),
+             # (a plane in z = 0: every pixel has a decision at its threshold, which excused
+             # every one-level pixel of a rounding tracer)
+             ("course_quant_round", "../tests/ctracer/scenes/clip_z0.txt", "one level brighter"),
              ("course_self_shadow", "mixed.txt", "hit the surface they start on")]
 
 
@@ -189,6 +192,11 @@ def test04b_a_bug_names_no_deviation_and_gets_a_hint(ctracer, build, scene, hint
     assert r.deviations == [], r.deviations
     assert not [f for f in r.findings if f.determined and f.value != f.notes
                 and f.rule != "max_dist"], r.findings
+    if build == "course_rows_flipped" and scene.name == "mixed.txt":
+        # rows=shifted was found, then vetoed: said so, not 'undetermined'
+        rows = next(f for f in r.findings if f.rule == "rows")
+        assert rows.unfollowed and not rows.determined
+        assert "followed by no value: rows" in details(r)[0]
     assert any(hint in h for h in r.hints), r.hints
     if build == "course_quant_round":           # one level off, all one way: not rounding
         assert r.counts["rounding"] == 0

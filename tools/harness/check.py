@@ -6,8 +6,9 @@ image in float64 (exact decisions) and every pixel gets one class:
 * ``match``: the same 8-bit colour;
 * ``rounding``: a channel off by one where the intensity lies within its float64 error bound
   of an 8-bit level (computed by the shading oracle), so a float64 tracer may floor it to
-  either side; one-level differences in more than 5% of the image are a systematic offset
-  (rounding instead of flooring, say): ``wrong``;
+  either side; ``boundary`` where a decision is within its bound (but for a systematic
+  offset, over 5% of the image nine in ten one way, only where the colour is another rule
+  variant's); else ``wrong``;
 * ``boundary``: a ray of the pixel (primary, shadow or reflection) passes within a float64
   error bound of a decision — an edge, a tie, the window plane, a sphere outline, a shadow's
   blocker, a tile border, the distance cut-off — so either answer is defensible.  The bound is
@@ -93,6 +94,9 @@ class RuleFinding:
     determined: bool
     pixels: int          # differing pixels the next-best value would add (0: undetermined)
     notes: object        # the notes' value
+    # no value fits: the image does not follow the one the search found (``infer``'s veto),
+    # and the notes' is reported
+    unfollowed: bool = False
 
     def as_dict(self):
         return dataclasses.asdict(self)
@@ -117,6 +121,8 @@ class SceneCheck:
     worst: dict = field(default_factory=dict)
     seconds: float = 0.0
     hits: dict = field(default_factory=dict)
+    # wrong pixels not asked about: the oracle's sample of their set had one nothing excuses
+    unasked: int = 0
     provenance: dict = field(default_factory=dict)   # what was checked, by what
     classes: np.ndarray | None = None        # (rows, columns) class index
     ours: np.ndarray | None = None
@@ -265,8 +271,9 @@ class Boundary:
 # the share of the pixels a variant's render changes that the image must take its colour at
 # for the variant to be named (``infer``)
 CONSISTENT = 0.5
-# one-level differences in more than this share of the image are systematic (a tracer that
-# rounds, say), not a float64 tracer's rounding at 8-bit levels: wrong without the oracle
+# one-level differences in more than this share of the image, nine in ten one way, are
+# systematic (a tracer that rounds, say): a decision near its threshold excuses them only
+# where the colour is another variant's (``classify``)
 SYSTEMATIC = 0.05
 # one-level pixels the inference asks the oracle about per candidate (evidence, not the
 # verdict: classify asks a sample of Boundary.SAMPLE, then all of them if need be)
@@ -375,8 +382,10 @@ def infer(r: Renderer, theirs: np.ndarray, start_rules, start_max_dist: float, f
         return rules, md
 
     rules, md = descend(rules, md, dims)
-    # the veto: a value the image does not follow goes back to the notes' (and the others
-    # are looked for again without it: it may have steered them)
+    # the veto: a value the image does not follow goes back to the notes' and the others are
+    # looked for again without it (it may have steered them), once; a second veto only
+    # resets
+    unfollowed = set()
     for again in (True, False):
         vetoed = [(n, v) for n, v in dims if _value(rules, md, n) != notes_value(n)
                   and not consistent(n, (rules, md))]
@@ -384,6 +393,7 @@ def infer(r: Renderer, theirs: np.ndarray, start_rules, start_max_dist: float, f
             break
         for n, _ in vetoed:
             rules, md = _config(rules, md, n, notes_value(n))
+            unfollowed.add(n)
         dims = [d for d in dims if d not in vetoed]
         if again:
             rules, md = descend(rules, md, dims)
@@ -392,7 +402,7 @@ def infer(r: Renderer, theirs: np.ndarray, start_rules, start_max_dist: float, f
         notes = values[0] if name != "max_dist" else None
         here = _value(rules, md, name)
         if (name, values) not in dims:
-            findings.append(RuleFinding(name, here, False, 0, notes))
+            findings.append(RuleFinding(name, here, False, 0, notes, name in unfollowed))
             continue
         alts = [_config(rules, md, name, v) for v in values if v != here]
         extra = min(delta(c, (rules, md)) for c in alts) if alts else 0
@@ -506,7 +516,8 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
     res.rules, res.max_dist = final_rules.describe(), md
     ours = r.image(final_rules, md)
     res.ours = ours
-    res.classes, res.variant_counts = classify(r, img, final_rules, md, notes, bnd)
+    res.classes, res.variant_counts, res.unasked = classify(r, img, final_rules, md, notes,
+                                                            bnd)
     res.counts = {c: int((res.classes == i).sum()) for i, c in enumerate(CLASSES)}
     res.deviations = [WORDS[(f.rule, f.value)] for f in res.findings
                       if (f.rule, f.value) in WORDS and f.determined]
@@ -567,7 +578,7 @@ def hints(ids: np.ndarray, wrong: np.ndarray, ours=None, theirs=None) -> list:
     one way."""
     out = []
     if ours is not None:
-        out += _orientation(ours, theirs) + _level_offset(ours, theirs) + \
+        out += _orientation(ours, theirs) + _level_offset(ours, theirs, wrong) + \
             _speckles(wrong, ours, theirs)
     edge = np.zeros_like(wrong)
     edge[:, 1:] |= ids[:, 1:] != ids[:, :-1]
@@ -617,10 +628,11 @@ def _speckles(wrong: np.ndarray, ours: np.ndarray, theirs: np.ndarray) -> list:
             "t > 0)? the notes test only the other objects"]
 
 
-def _level_offset(ours: np.ndarray, theirs: np.ndarray) -> list:
-    """One-level differences in more than SYSTEMATIC of the image, nearly all one way."""
+def _level_offset(ours: np.ndarray, theirs: np.ndarray, wrong: np.ndarray) -> list:
+    """Wrong one-level differences in more than SYSTEMATIC of the image, nearly all one
+    way."""
     d = theirs.astype(np.int16) - ours.astype(np.int16)
-    one = np.abs(d).max(-1) == 1
+    one = (np.abs(d).max(-1) == 1) & wrong
     if one.sum() <= SYSTEMATIC * one.size:
         return []
     up = int((one & (d.max(-1) == 1)).sum())
@@ -643,39 +655,72 @@ def _describe(scene, k: int, n: int) -> str:
     return f"{n} where rt_core sees object {k} ({o.kind}, line {o.line})"
 
 
+def _variant_colour(r: Renderer, ours: np.ndarray, theirs: np.ndarray) -> np.ndarray:
+    """Where the image is within one level of a render under another rule variant that
+    differs from ``ours`` there (every render made so far: they flip the decisions exactly
+    at their thresholds, ties, the clip, the edges)."""
+    out = np.zeros(theirs.shape[:2], bool)
+    for img in r.cache.values():
+        out |= (np.abs(img.astype(np.int16) - theirs.astype(np.int16)).max(-1) <= 1) & \
+            (img != ours).any(-1)
+    return out
+
+
 def classify(r: Renderer, theirs: np.ndarray, rules, md: float, notes, bnd: Boundary):
-    """(classes (rows, columns) of CLASSES indices, {rule: pixels it explains})."""
+    """(classes (rows, columns) of CLASSES indices, {rule: pixels it explains}, pixels left
+    wrong unasked (below))."""
     ours = r.image(rules, md)
     diff = np.abs(ours.astype(np.int16) - theirs.astype(np.int16)).max(-1)
     cls = np.where(diff == 0, 0, np.where(diff == 1, 1, 4)).astype(np.int8)
     flat = cls.ravel()
+    variant = _variant_colour(r, ours, theirs).ravel()
+    unasked = 0
     # Each set below is asked about in a fixed sample first when it holds more than
     # SAMPLE pixels (the oracle's work grows with the pixels and their bounces: 0.1-0.3 s a
     # pixel on deep mirror paths).  A sampled pixel that nothing excuses fails the image,
-    # and the set's other pixels stay wrong unasked; a sample all excused has every pixel
-    # asked (a decision a float64 tracer takes either way over a whole region: a plane
-    # lying in z = 0).  So the verdict is the one asking every pixel would give.
+    # and the set's other pixels stay wrong unasked (counted: ``unasked``); a sample all
+    # excused has every pixel asked (a decision a float64 tracer takes either way over a
+    # whole region: a plane lying in z = 0).  So the verdict is the one asking every pixel
+    # would give.
     one = np.flatnonzero(flat == 1)
     if len(one):
         # rounding where the intensity lies within its float64 bound of an 8-bit level
-        # (the shading oracle's), boundary where a decision does, else wrong
-        pick = bnd.sample(one)
-        jump, quant = bnd.levels(pick, rules, md)
-        if len(pick) < len(one) and (jump | quant).all():
-            pick = one
+        # (the shading oracle's); boundary where a decision does; else wrong.  A systematic
+        # offset (over SYSTEMATIC of the image, nine in ten one way: a tracer that rounds)
+        # is boundary only where the colour is another variant's (an exact tie taken the
+        # other way, say): on a plane lying in z = 0 every pixel has a decision at its
+        # threshold, which excused the rounding tracer's every pixel
+        d = (theirs.astype(np.int16) - ours.astype(np.int16)).reshape(-1, 3)[one]
+        up = int((d.max(-1) == 1).sum())
+        systematic = len(one) > SYSTEMATIC * flat.size and \
+            max(up, len(one) - up) >= 0.9 * len(one)
+
+        def judge(pick):
             jump, quant = bnd.levels(pick, rules, md)
+            edge = jump & ~quant
+            return quant, (edge & variant[pick]) if systematic else edge
+        pick = bnd.sample(one)
+        rnd, edge = judge(pick)
+        if len(pick) < len(one) and (rnd | edge).all():
+            pick = one
+            rnd, edge = judge(pick)
+        unasked += len(one) - len(pick)
         flat[one] = CLASSES.index("wrong")
-        flat[pick[quant]] = CLASSES.index("rounding")
-        flat[pick[jump & ~quant]] = CLASSES.index("boundary")
+        flat[pick[rnd]] = CLASSES.index("rounding")
+        flat[pick[edge]] = CLASSES.index("boundary")
     bad = np.flatnonzero((flat == 4) & (diff.ravel() > 1))
     if len(bad):
         # the float64 shading oracle's margins: a decision within K·u of its threshold
+        # (whatever the colour: README "A limit of boundary")
+        def judge(pick):
+            return bnd.of(pick, rules, md)
         pick = bnd.sample(bad)
-        near = bnd.of(pick, rules, md)
-        if len(pick) < len(bad) and near.all():
+        edge = judge(pick)
+        if len(pick) < len(bad) and edge.all():
             pick = bad
-            near = bnd.of(pick, rules, md)
-        flat[pick[near]] = CLASSES.index("boundary")
+            edge = judge(pick)
+        unasked += len(bad) - len(pick)
+        flat[pick[edge]] = CLASSES.index("boundary")
     # pixels the inferred variants explain: wrong under the notes' value of that rule
     variants = {}
     for name, values, _ in DIMENSIONS:
@@ -688,7 +733,7 @@ def classify(r: Renderer, theirs: np.ndarray, rules, md: float, notes, bnd: Boun
         if name != "max_dist":
             cls[flips] = CLASSES.index("variant")
             variants[f"{name}={v}"] = int(flips.sum())
-    return cls, variants
+    return cls, variants, unasked
 
 
 def _groups(mask: np.ndarray) -> list:
@@ -1004,9 +1049,11 @@ def details(r: SceneCheck, kinds=("rules", "deviation", "hint", "wrong", "hit du
     if "rules" in kinds:
         det = [f"{f.rule}={f.value:g}" if isinstance(f.value, float) else f"{f.rule}={f.value}"
                for f in r.findings if f.determined]
-        und = [f.rule for f in r.findings if not f.determined]
+        und = [f.rule for f in r.findings if not f.determined and not f.unfollowed]
+        unf = [f.rule for f in r.findings if f.unfollowed]
         out.append("rules: " + (", ".join(det) if det else "none determined") +
-                   (f"; undetermined: {', '.join(und)}" if und else ""))
+                   (f"; undetermined: {', '.join(und)}" if und else "") +
+                   (f"; followed by no value: {', '.join(unf)}" if unf else ""))
     if "deviation" in kinds:
         out += [f"deviation: {d}" for d in r.deviations]
     if "hint" in kinds:
@@ -1015,7 +1062,9 @@ def details(r: SceneCheck, kinds=("rules", "deviation", "hint", "wrong", "hit du
         w = r.worst
         out.append(f"wrong: {w['pixels']} pixels, the largest group {w['largest_group']} in "
                    f"rows {w['rows'][0]}-{w['rows'][1]}, columns {w['columns'][0]}-"
-                   f"{w['columns'][1]}; " + "; ".join(w.get("objects", [])))
+                   f"{w['columns'][1]}; " + "; ".join(w.get("objects", []))
+                   + (f" ({r.unasked} of them not asked about: a sample of their kind had "
+                      "pixels nothing excuses)" if r.unasked else ""))
     if r.hits and "hit dump" in kinds:
         h = r.hits
         out.append(f"hit dump: {h['pixels']} pixels listed"
