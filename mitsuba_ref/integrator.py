@@ -449,8 +449,8 @@ def _classes(mi):
                 size = att("tile_size")
                 u = dr.dot(rel, att("xdir"))
                 v = dr.dot(rel, att("ydir"))
-                if self.tile_add_first:
-                    u, v = u + 10000.0, v + 10000.0
+                if self.tile_add_first:         # (size.z: 10000, over |p| unprojected)
+                    u, v = u + size.z, v + 10000.0
                 odd = (_odd(dr.floor(u / size.x)) + _odd(dr.floor(v / size.y))) == 1
                 back = tiled & ~odd
                 bg = [mi.Color3f(att(k)) for k in BACKGROUND_FIELDS]

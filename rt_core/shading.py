@@ -124,8 +124,12 @@ def _build_material_tables(ks: KernelScene, rules: Rules):
     mats = [o.material for o in objs] + bg
     col = lambda name: T.Array3(*([getattr(m, name)[i] for m in mats] for i in range(3)))
     size = [_tile_size(o, rules) if o.kind == "tplane" else (1.0, 1.0) for o in objs]
+    # the offset added first (a variant) is OFF to |p|·u, so OFF/|p| to u: w'/w of it
+    off = [TILE_OFF * s[0] / o.size[0] if o.kind == "tplane" else TILE_OFF
+           for s, o in zip(size, objs)]
     tables = {"ambient": col("ambient"), "diffuse": col("diffuse"), "specular": col("specular"),
-              "tile_w": T.Float([s[0] for s in size]), "tile_h": T.Float([s[1] for s in size])}
+              "tile_w": T.Float([s[0] for s in size]), "tile_h": T.Float([s[1] for s in size]),
+              "tile_off": T.Float(off)}
     tex = [getattr(o, "texture", None) for o in objs]
     if any(t is not None for t in tex):
         tables.update(_texture_tables(T, tex))
@@ -221,8 +225,11 @@ def material(ks: KernelScene, tables: dict, oid, hit, u, v, rules: Rules = Rules
         w = dr.gather(T.Float, tables["tile_w"], idx, hit)
         h = dr.gather(T.Float, tables["tile_h"], idx, hit)
         if rules.tile_add_first:            # a variant: floor((OFF + u)/w)
+            # (u here is along the projected axis: with xdir left unprojected too, the
+            # course adds OFF to |p|·u, which is OFF/|p| added to u, the table's tile_off)
+            off_u = dr.gather(T.Float, tables["tile_off"], idx, hit)
             off = dr.opaque(T.Float, TILE_OFF)
-            odd = (_odd_floor((u + off) / w) + _odd_floor((v + off) / h)) == 1
+            odd = (_odd_floor((u + off_u) / w) + _odd_floor((v + off) / h)) == 1
         else:
             odd = (_odd_floor(u / w) + _odd_floor(v / h)) == 1
         # (the count as data: scenes of other sizes share the kernel)

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from rt_core.imageio import read_image
 from tools.harness.check import details, CLASSES, check_image, check_run
 
 REPO = Path(__file__).resolve().parents[1]
@@ -278,6 +279,29 @@ def test04e_two_deviations_together_are_both_found(ctracer, tmp_path):
                    "0 1 0\n0 -2 0\n\nsphere\n1 0.5 0.5\n6 3 3\n0 0 0\n0 0 -5\n1.5\n")
     r = check_image(sym, _render(ctracer / "course_quant_round", sym, 65, tmp_path))
     assert r.status == "fail" and not any("mirrored" in h for h in r.hints), r.hints
+
+
+def test04f_the_two_tile_variants_together(ctracer, tmp_path):
+    """The tile offset added first AND the direction left unprojected: the course adds OFF
+    to |p|·u; rt_core and Mitsuba's course integrator, which scale the tile width by 1/|p|
+    instead of u, added OFF to u (706 pixels wrong, neither variant found).  Both against
+    the C tracer built with the two switches (a third reader's reproducer)."""
+    from rt_core.parser import parse_scene
+    from rt_core.rules import Rules
+    from tools.harness.shaded import mitsuba_course_image, quantize32
+    binary = tmp_path / "taf_np"
+    subprocess.run(["cc", "-std=c99", "-O2", "-DTILE_ADD_FIRST", "-DTILE_NOPROJECT", "-o",
+                    str(binary), str(CT / "course.c"), "-lm"], check=True)
+    scene = CT / "scenes" / "tiles_tilted.txt"
+    img = _render(binary, scene, 65, tmp_path)
+    r = check_image(scene, img)
+    assert r.status == "pass", r.counts
+    assert "tile_add_first=True" in r.rules and "tile_project=False" in r.rules
+    theirs = read_image(img)
+    rules = Rules(tile_add_first=True, tile_project=False)
+    mi = quantize32(mitsuba_course_image(parse_scene(scene), 65, theirs.shape[0], rules=rules))
+    far = np.abs(mi.astype(int) - theirs.astype(int)).max(-1) > 1
+    assert far.sum() <= 10, far.sum()        # (tile borders hit exactly: a few)
 
 
 # --- rt_core's own images under each variant --------------------------------------------------
