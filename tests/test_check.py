@@ -127,9 +127,15 @@ VARIANTS = [
     ("course_tile_noproject", CT / "scenes" / "tiles_tilted.txt", "tile_project", False),
     ("course_tile_add_first", REPO / "scenes" / "shade_tiles.txt", "tile_add_first", True),
 ]
+# a viewpoint at z = -1.1 before spheres at z = 4: the clip (z > 0, literally) cuts them all;
+# check took clip_spheres for one that could not matter there (it was 1174 pixels wrong)
+A09 = COURSE / "numeric" / "nw__a09.txt"
+if A09.is_file():
+    VARIANTS.append(("course_clip_spheres", A09, "clip_spheres", True))
 
 
-@pytest.mark.parametrize("build,scene,rule,value", VARIANTS, ids=[v[0] for v in VARIANTS])
+@pytest.mark.parametrize("build,scene,rule,value", VARIANTS,
+                         ids=[f"{v[0]}-{Path(v[1]).stem}" for v in VARIANTS])
 def test03_each_deviation_is_named(ctracer, build, scene, rule, value, tmp_path):
     img = _render(ctracer / build, scene, 65, tmp_path)
     r = check_image(scene, img)

@@ -417,7 +417,6 @@ def infer(r: Renderer, theirs: np.ndarray, start_rules, start_max_dist: float, f
 def _can_matter(r: Renderer, name: str) -> bool:
     """Whether a rule's variants can change this scene's image at all, decided on the host
     (so that no render is spent on a rule the scene cannot tell apart)."""
-    import math
     sc = r.scene
     V = sc.viewpoint
     if name == "ties":
@@ -439,9 +438,10 @@ def _can_matter(r: Renderer, name: str) -> bool:
                     return True
         return False
     if name == "clip_spheres":
-        # a sphere reaching in front of the window (z > 0 if the viewpoint is)
-        side = math.copysign(1.0, V[2]) if V[2] else 1.0
-        return any(o.kind == "sphere" and side * o.center[2] + o.radius >= 0
+        # a sphere reaching z >= 0, where the clip cuts (shapes.clip_ok: z > 0 literally,
+        # as the C programs do, whichever side the viewpoint is on: a viewpoint at
+        # z = -1.1 looking at spheres at z = 4 sees every one of them clipped)
+        return any(o.kind == "sphere" and o.center[2] + o.radius >= 0
                    or o.kind in ("cylinder", "cone", "ellipsoid")   # (not bounded here)
                    for o in sc.objects)
     return True
