@@ -341,11 +341,12 @@ def course_material(o, oid: int, rules: Rules, window=(1.0, 1.0)) -> dict:
                   "size": [float(o.size[0]), float(o.size[1]), 0.0]})
     if o.kind == "tplane":
         x, y, _ = frame(o)
+        tw, th = tile_size(o, rules)
         b.update({"xdir": list(x), "ydir": list(y),
                   # (z: the offset the variant adding it first adds to u, along the
                   # projected axis: 10000 to |p|·u is 10000/|p| to u)
-                  "tile_size": [*tile_size(o, rules), 10000.0 * tile_size(o, rules)[0]
-                                / float(o.size[0])], **_mat(o.background, "background_")})
+                  "tile_size": [tw, th, 10000.0 * tw / float(o.size[0])],
+                  **_mat(o.background, "background_")})
     if getattr(o, "texture", None) is not None:
         b.update(texture_spec(o, window))
     return b

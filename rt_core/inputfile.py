@@ -13,7 +13,8 @@ from .usererror import InputError
 
 MiB = 1 << 20
 LIMITS = {"scene": 64 * MiB, "image": 1024 * MiB, "texture": 1024 * MiB, "hit dump": 4096 * MiB,
-          "EXR": 64 * 1024 * MiB, "EXR or other image": 64 * 1024 * MiB}
+          "EXR": 64 * 1024 * MiB}
+LIMITS["EXR or other image"] = LIMITS["EXR"]       # (rtval exr: any format, EXR-sized)
 
 
 def _kind(mode: int) -> str:

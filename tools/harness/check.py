@@ -175,9 +175,28 @@ def _rows(value: str):
     return Rules(rows=value)
 
 
+def _apart(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per pixel, the most 8-bit levels any channel of a and b differ by."""
+    return np.abs(a.astype(np.int16) - b.astype(np.int16)).max(-1)
+
+
 def _differs(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Pixels whose colours differ by more than one level in some channel."""
-    return np.abs(a.astype(np.int16) - b.astype(np.int16)).max(-1) > 1
+    return _apart(a, b) > 1
+
+
+def _one_way(ours: np.ndarray, theirs: np.ndarray, one) -> tuple:
+    """(up, down): how many of the one-level pixels ``one`` (a mask or flat indices) are a
+    level brighter than rt_core's, and how many darker."""
+    d = (theirs.astype(np.int16) - ours.astype(np.int16)).reshape(-1, 3)[np.ravel(one)]
+    up = int((d.max(-1) == 1).sum())
+    return up, len(d) - up
+
+
+def _systematic(up: int, down: int, size: int) -> bool:
+    """One-level differences over SYSTEMATIC of the image, nine in ten one way."""
+    n = up + down
+    return n > SYSTEMATIC * size and max(up, down) >= 0.9 * n
 
 
 def _config(rules, max_dist, name, value):
@@ -196,9 +215,11 @@ def _shading(rules) -> tuple:
 class Boundary:
     """Which pixels are ``boundary``: a decision of one of their rays within the float64
     shading oracle's bound (mitsuba_ref/shade_oracle.py), under the given rules.  The
-    margins are properties of the rays and the scene, not of the rule variants (the edges'
-    or the clip's threshold is where it is for every variant), so they are computed once per
-    pixel and per camera (rows shifted or not), lazily."""
+    margins are properties of the rays and the scene, not of the hit rules' variants (the
+    edges' or the clip's threshold is where it is for every variant), so they are computed
+    once per pixel, camera (rows shifted or not) and cut-off, lazily; the intensity's
+    closeness to an 8-bit level ('quant') once per pixel, cut-off and the rules it depends
+    on (``_shading``)."""
 
     SAMPLE = 60              # above this many pixels, a sample decides the count
     THIN = 0.05              # boundary pixels lie on curves: a set of more than this
@@ -247,7 +268,6 @@ class Boundary:
         return (np.array([self.known[(rules.rows, md, p)] for p in pixels], bool),
                 np.array([self.quant[(key, md, p)] for p in pixels], bool))
 
-
     def sample(self, pixels, size: int | None = None) -> np.ndarray:
         """The first ``size`` (SAMPLE) of ``pixels`` in the fixed random order (all if
         fewer)."""
@@ -263,8 +283,7 @@ class Boundary:
         if len(px) > self.THIN * mask.size:
             return float(len(px))
         if len(px) > self.SAMPLE:
-            pick = px[np.argsort(self.rank[px])[:self.SAMPLE]]
-            return len(px) * (1.0 - self.of(pick, rules, md).mean())
+            return len(px) * (1.0 - self.of(self.sample(px), rules, md).mean())
         return float(len(px) - self.of(px, rules, md).sum())
 
 
@@ -306,7 +325,7 @@ def infer(r: Renderer, theirs: np.ndarray, start_rules, start_max_dist: float, f
         image that differs by more than one level in over THIN of the pixels is judged on
         those: its one-level pixels would cost the oracle's work and decide nothing.)"""
         if cfg not in masks:
-            lv = np.abs(r.image(*cfg).astype(np.int16) - theirs.astype(np.int16)).max(-1)
+            lv = _apart(r.image(*cfg), theirs)
             m = lv > 1
             one = np.flatnonzero(lv.ravel() == 1)
             if len(one) and m.sum() > bnd.THIN * lv.size:
@@ -331,6 +350,10 @@ def infer(r: Renderer, theirs: np.ndarray, start_rules, start_max_dist: float, f
         da, db = diff(a), diff(b)
         return bnd.unexcused(da & ~db, *a) - bnd.unexcused(db & ~da, *b)
 
+    def notes_value(name):
+        return DEFAULT_MAX_DIST if name == "max_dist" else \
+            next(v for n, v, _ in DIMENSIONS if n == name)[0]
+
     def consistent(name, cfg) -> bool:
         """Does the image follow rule ``name``'s value in config ``cfg``?  Where cfg's render
         differs from the render with the notes' value of that rule (the rest as in cfg), the
@@ -339,12 +362,9 @@ def infer(r: Renderer, theirs: np.ndarray, start_rules, start_max_dist: float, f
         keeps a deviation named).  An image wrong for another reason (upside down, t not a
         distance) matches a variant's render by chance at a few of them, which a pixel
         count alone would take for the variant."""
-        values = next(v for n, v, _ in DIMENSIONS if n == name)
-        base = _config(*cfg, name, DEFAULT_MAX_DIST if name == "max_dist" else values[0])
-        a, b = r.image(*cfg), r.image(*base)
+        a, b = r.image(*cfg), r.image(*_config(*cfg, name, notes_value(name)))
         changed = (a != b).any(-1)
-        la = np.abs(a.astype(np.int16) - theirs.astype(np.int16)).max(-1)
-        lb = np.abs(b.astype(np.int16) - theirs.astype(np.int16)).max(-1)
+        la, lb = _apart(a, theirs), _apart(b, theirs)
         agree = changed & ((la == 0) | ((la <= 1) & (lb > 1)))
         return agree.sum() >= CONSISTENT * changed.sum()
 
@@ -356,10 +376,6 @@ def infer(r: Renderer, theirs: np.ndarray, start_rules, start_max_dist: float, f
             return True
         n0, n1 = int(diff(cur).sum()), int(diff(v).sum())
         return n0 >= 0.05 * total and n1 <= 0.05 * n0
-
-    def notes_value(name):
-        return DEFAULT_MAX_DIST if name == "max_dist" else \
-            next(v for n, v, _ in DIMENSIONS if n == name)[0]
 
     if ("max_dist", MAX_DISTS) in dims:
         # the cut-off changes a pixel only where a path's length crosses it: if the
@@ -634,21 +650,16 @@ def _speckles(wrong: np.ndarray, ours: np.ndarray, theirs: np.ndarray) -> list:
 def _level_offset(ours: np.ndarray, theirs: np.ndarray, wrong: np.ndarray) -> list:
     """Wrong one-level differences in more than SYSTEMATIC of the image, nearly all one
     way."""
-    d = theirs.astype(np.int16) - ours.astype(np.int16)
-    one = (np.abs(d).max(-1) == 1) & wrong
-    if one.sum() <= SYSTEMATIC * one.size:
+    up, down = _one_way(ours, theirs, (_apart(ours, theirs) == 1) & wrong)
+    if not _systematic(up, down, wrong.size):
         return []
-    up = int((one & (d.max(-1) == 1)).sum())
-    down = int(one.sum()) - up
-    if up >= 0.9 * one.sum():
+    if up > down:
         return [f"{up} pixels are one level brighter than floor(255 I) and {down} darker: "
                 "the notes floor 255 I (rounding, floor(255 I + 0.5), makes about half the "
                 "lit pixels one level brighter)"]
-    if down >= 0.9 * one.sum():
-        return [f"{down} pixels are one level darker than floor(255 I) and {up} brighter: "
-                "a scale below 255, or an intensity made a little smaller (float instead "
-                "of double)?"]
-    return []
+    return [f"{down} pixels are one level darker than floor(255 I) and {up} brighter: "
+            "a scale below 255, or an intensity made a little smaller (float instead of "
+            "double)?"]
 
 
 def _describe(scene, k: int, n: int) -> str:
@@ -664,8 +675,7 @@ def _variant_colour(r: Renderer, ours: np.ndarray, theirs: np.ndarray) -> np.nda
     at their thresholds, ties, the clip, the edges)."""
     out = np.zeros(theirs.shape[:2], bool)
     for img in r.cache.values():
-        out |= (np.abs(img.astype(np.int16) - theirs.astype(np.int16)).max(-1) <= 1) & \
-            (img != ours).any(-1)
+        out |= (_apart(img, theirs) <= 1) & (img != ours).any(-1)
     return out
 
 
@@ -673,7 +683,7 @@ def classify(r: Renderer, theirs: np.ndarray, rules, md: float, notes, bnd: Boun
     """(classes (rows, columns) of CLASSES indices, {rule: pixels it explains}, pixels left
     wrong unasked (below))."""
     ours = r.image(rules, md)
-    diff = np.abs(ours.astype(np.int16) - theirs.astype(np.int16)).max(-1)
+    diff = _apart(ours, theirs)
     cls = np.where(diff == 0, 0, np.where(diff == 1, 1, 4)).astype(np.int8)
     flat = cls.ravel()
     variant = _variant_colour(r, ours, theirs).ravel()
@@ -693,10 +703,7 @@ def classify(r: Renderer, theirs: np.ndarray, rules, md: float, notes, bnd: Boun
         # is boundary only where the colour is another variant's (an exact tie taken the
         # other way, say): on a plane lying in z = 0 every pixel has a decision at its
         # threshold, which excused the rounding tracer's every pixel
-        d = (theirs.astype(np.int16) - ours.astype(np.int16)).reshape(-1, 3)[one]
-        up = int((d.max(-1) == 1).sum())
-        systematic = len(one) > SYSTEMATIC * flat.size and \
-            max(up, len(one) - up) >= 0.9 * len(one)
+        systematic = _systematic(*_one_way(ours, theirs, one), flat.size)
 
         def judge(pick):
             jump, quant = bnd.levels(pick, rules, md)
