@@ -329,14 +329,18 @@ def _remove_dirs(created: list) -> None:
 def _probe(directory: str, shown: str) -> None:
     """Can a file be created in ``directory`` (permissions, read-only or pseudo file
     systems such as /proc)?  A WriteError naming ``shown`` if not."""
-    try:
-        fd, probe = tempfile.mkstemp(prefix=".tmp-rtval-probe-", dir=directory)
-    except OSError as e:
-        reason = (e.strerror or str(e)).lower()
-        raise WriteError(shown, f"cannot create a file in {directory} ({reason})",
-                         _HINTS.get(e.errno, "write elsewhere")) from None
-    os.close(fd)
-    os.unlink(probe)
+    # (named like every temporary, and made under signals_held: one a kill leaves behind
+    # is found and removed by remove_stale like the others)
+    with signals_held():
+        try:
+            fd, probe = tempfile.mkstemp(prefix=f"{TMP_PREFIX}{_SPACE}-{os.getpid()}-",
+                                         dir=directory)
+        except OSError as e:
+            reason = (e.strerror or str(e)).lower()
+            raise WriteError(shown, f"cannot create a file in {directory} ({reason})",
+                             _HINTS.get(e.errno, "write elsewhere")) from None
+        os.close(fd)
+        os.unlink(probe)
 
 
 def _existing_parent(path: str, shown: str) -> str:

@@ -122,7 +122,8 @@ def test08_a_missing_directory_is_not_created(tmp_path, cmd):
 
 @pytest.mark.parametrize("cmd", [("validate", SPHERE, "--columns", 8, "--shaded-columns", 0),
                                  ("compare", SPHERE, "--columns", 8),
-                                 ("check", SPHERE, SPHERE.with_suffix(".ppm"))])
+                                 ("check", SPHERE, SPHERE.with_suffix(".ppm")),
+                                 ("stability", "--quick")])
 def test08b_junit_into_a_missing_directory_is_refused_first(tmp_path, cmd):
     """--junit names a file: its directory is not made (it was, for all three), and the
     refusal comes before any work."""
@@ -130,6 +131,18 @@ def test08b_junit_into_a_missing_directory_is_refused_first(tmp_path, cmd):
               else "--json", *([tmp_path / "v"] if cmd[0] == "validate" else []))
     assert r.returncode == 2 and "no directory" in r.stderr and "create it first" in r.stderr
     assert not (tmp_path / "no").exists() and not (tmp_path / "v").exists()
+
+
+@pytest.mark.parametrize("cmd", [("compare", SPHERE, "--columns", 8),
+                                 ("validate", SPHERE, "--columns", 8, "--shaded-columns", 0)])
+def test08c_report_where_nothing_can_be_written_is_refused_first(tmp_path, cmd):
+    """--report DIR in /proc: refused before the comparisons run (it failed after them,
+    with 'no such file or directory')."""
+    r = rtval(*cmd, "--report", "/proc/rtval-report", "-o" if cmd[0] == "validate" else
+              "--json", *([tmp_path / "v"] if cmd[0] == "validate" else []))
+    assert r.returncode == 2 and "cannot create a file in /proc" in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and "Mitsuba" not in r.stderr
+    assert not (tmp_path / "v").exists() and r.stdout == ""
 
 
 def test09_junit_for_validate_and_compare(tmp_path):

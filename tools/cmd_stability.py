@@ -59,7 +59,7 @@ def run(args) -> int:
     from rt_core.outputs import check_dir_target, check_file_target
     for f in (args.json if args.json not in (None, "-") else None, args.junit):
         if f:
-            check_file_target(f)
+            check_file_target(f, make_dirs=False)
     check_dir_target(args.output)
     mode = "quick" if args.quick else "full"
     seeds = tuple(range(args.seeds))

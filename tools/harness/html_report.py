@@ -514,6 +514,8 @@ def check_target(directory: str, keep: dict | None = None) -> None:
     if os.path.isdir(directory) and os.listdir(directory) and not _is_report(directory):
         raise WriteError(directory, "is a directory with other files in it, not an rtval "
                                     "report", "give --report a new or empty directory")
+    from rt_core.outputs import check_dir_target
+    check_dir_target(directory)         # (writable: refused before the run, not after it)
 
 
 def _remove_stale_dirs(parent: str) -> None:
