@@ -28,6 +28,7 @@ DEFAULT_MAX_DIST = 1000.0       # the notes' MAX_DIST, as ``rtval render``'s def
 from . import quadric
 from . import convert_planar
 from .geometry import corners, cross, dot, frame, normal, sub, unit
+from .oracle import OFF
 
 VARIANT = "llvm_ad_rgb"
 # the variant of each Dr.Jit backend (rtval bench --backend cuda; the rest of rtval uses LLVM)
@@ -344,8 +345,8 @@ def course_material(o, oid: int, rules: Rules, window=(1.0, 1.0)) -> dict:
         tw, th = tile_size(o, rules)
         b.update({"xdir": list(x), "ydir": list(y),
                   # (z: the offset the variant adding it first adds to u, along the
-                  # projected axis: 10000 to |p|·u is 10000/|p| to u)
-                  "tile_size": [tw, th, 10000.0 * tw / float(o.size[0])],
+                  # projected axis: OFF to |p|·u is OFF/|p| to u)
+                  "tile_size": [tw, th, OFF * tw / float(o.size[0])],
                   **_mat(o.background, "background_")})
     if getattr(o, "texture", None) is not None:
         b.update(texture_spec(o, window))

@@ -39,6 +39,8 @@ from __future__ import annotations
 
 import math
 
+from .oracle import OFF       # the notes' tile-parity offset
+
 MATERIAL_FIELDS = ("ambient", "diffuse", "specular")
 # the channels of the integrator's AOV mode, rtval render's names and order (rt_core's
 # GEOMETRY_CHANNELS, written out here: the reference does not import the tracer's renderer)
@@ -449,8 +451,8 @@ def _classes(mi):
                 size = att("tile_size")
                 u = dr.dot(rel, att("xdir"))
                 v = dr.dot(rel, att("ydir"))
-                if self.tile_add_first:         # (size.z: 10000, over |p| unprojected)
-                    u, v = u + size.z, v + 10000.0
+                if self.tile_add_first:         # (size.z: OFF, over |p| unprojected)
+                    u, v = u + size.z, v + OFF
                 odd = (_odd(dr.floor(u / size.x)) + _odd(dr.floor(v / size.y))) == 1
                 back = tiled & ~odd
                 bg = [mi.Color3f(att(k)) for k in BACKGROUND_FIELDS]

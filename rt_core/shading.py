@@ -413,9 +413,8 @@ def _tail(T, segment, image, pixel, o, d, skip, dist, weight, live, bounce: int,
     ``out``'s bounces, capped and left_active as the wavefront loop would."""
     U = T.UInt32
     n = dr.width(d)
-    real = live
     # each lane's pixel value so far, to which its bounces add their terms in turn
-    acc = dr.gather(T.Array3, image, pixel, real)
+    acc = dr.gather(T.Array3, image, pixel, live)
     cap = dr.opaque(U, max_bounces)
 
     def body(o, d, skip, dist, weight, live, acc, b, last, capped):
@@ -433,7 +432,7 @@ def _tail(T, segment, image, pixel, o, d, skip, dist, weight, live, bounce: int,
                           labels=("o", "d", "skip", "dist", "weight", "live", "acc", "b",
                                   "last", "capped"))
     acc, last, capped = state[6], state[8], state[9]
-    dr.scatter(image, acc, pixel, real)
+    dr.scatter(image, acc, pixel, live)       # (the entry mask: the loop's is its own)
     dr.eval(image, last, capped)
     out.bounces = int(np.max(last.numpy()))
     log.mark("tail", "reflection", bounce, count)

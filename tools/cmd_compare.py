@@ -29,7 +29,7 @@ def add_parser(sub) -> None:
     add_max_dist(p, "--shaded: reflections stop at this path length (default 1000)")
     add_texture_dir(p)
     p.add_argument("--evidence", metavar="DIR",
-                   help="where evidence EXRs go on failure (default out/compare)")
+                   help=f"where evidence EXRs go on failure (default {EVIDENCE_DIR})")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
     p.add_argument("--report", metavar="DIR",
                    help="also write an HTML report into DIR (new, empty or an earlier "

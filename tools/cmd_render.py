@@ -298,8 +298,8 @@ def explain_lines(scene, log, res, max_dist: float) -> list[str]:
         n = len(scene.lights)
         reflects = any_specular(scene) and max_dist > 0
         lines.append("shading: one kernel per bounce (hit, shadow rays, shading)"
-                     + (", the reflection rays to their ends in one ('tail')" if reflects
-                        else "") + "; "
+                     + (", the reflection rays to their ends in one ('tail')"
+                        if any(p.name == "tail" for p in log.passes) else "") + "; "
                      + (f"up to {_n(n, 'shadow ray')} per hit (one per light it faces)" if n else
                         "no lights: no shadow rays") + "; "
                      + (f"{_n(res.bounces, 'reflection bounce')} (max-dist {max_dist:g}; "
