@@ -67,6 +67,9 @@ def test03_course_ppm_bytes_and_channels_of_each_format(tmp_path):
     ("text.ppm", b"P6 garbage\n", "cannot read it as an image ("),
     ("maxval0.ppm", b"P6 4 3 0\n" + bytes(36), "maxval is 0; expected 1 to 65535"),
     ("over.ppm", b"P3\n# c\n2 1\n255\n1 2 3\n300 0 0\n", "ppm:6: sample 300 above the maxval 255"),
+    # on the maxval's own line, after a comment naming a larger number
+    ("over1.ppm", b"P3 2 1 255 256 2 3 # 999\n0 0 0\n", "ppm:1: sample 256 above the maxval"),
+    ("over2.ppm", b"P3 2 1 255\n# 999\n1 2 3 0 0\n0 7 400\n", "ppm:4: sample 400 above"),
     ("empty.png", b"", "the file is empty"),
 ])
 def test04_unreadable_images_are_one_line(tmp_path, name, data, why, capfd):
