@@ -77,10 +77,15 @@ def row_view(out, v, A3):
 
 def _frame(axis):
     """Orthonormal rows (g0, g1, g2) with g2 = unit(axis), float64."""
-    n = math.sqrt(sum(c * c for c in axis))
-    # (where |axis|² overflows or underflows, scene.unit's scaled form: a centerline is a
-    # direction whatever its length)
-    g2 = tuple(c / n for c in axis) if 0.0 < n < math.inf else unit(axis, "centerline")
+    # (beyond 2^±200, where |axis|² overflows or loses bits to underflow (1e-160 0 0 gave
+    # a g2 of length 1.0000056), scene.unit's scaled form: a centerline is a direction
+    # whatever its length; the reference scales the same range, mitsuba_ref/quadric.fields)
+    big = max(abs(c) for c in axis)
+    if 2.0 ** -200 < big < 2.0 ** 200:
+        n = math.sqrt(sum(c * c for c in axis))
+        g2 = tuple(c / n for c in axis)
+    else:
+        g2 = unit(axis, "centerline")
     helper = (1.0, 0.0, 0.0) if abs(g2[0]) < 0.6 else (0.0, 1.0, 0.0)
     c = (helper[1] * g2[2] - helper[2] * g2[1], helper[2] * g2[0] - helper[0] * g2[2],
          helper[0] * g2[1] - helper[1] * g2[0])

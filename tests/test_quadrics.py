@@ -289,7 +289,8 @@ def test10_rays_at_the_rims_and_outlines_are_decided_exactly(text, rules):
     assert ks.decided > 0.05 * len(d) and ex.hit.any() and (~ex.hit).any()
 
 
-@pytest.mark.parametrize("axis", ["1e308 0.3 1", "1e-320 0 0", "-1e-310 1e-311 0"])
+@pytest.mark.parametrize("axis", ["1e308 0.3 1", "1e-320 0 0", "-1e-310 1e-311 0",
+                                  "1e-160 0 0", "0 1e-160 1e-161"])
 def test_extreme_centerlines_are_directions(axis):
     """A centerline is a direction whatever its length: one whose |axis|² overflows or
     underflows float64 (found by test_fuzz's long run: a ZeroDivisionError in rt_core's
@@ -301,3 +302,8 @@ def test_extreme_centerlines_are_directions(axis):
     for precision in ("f32", "f64"):
         cmp = compare(scene, 24, None, precision, "rays")
         assert cmp.ok, cmp.summary()
+    # the frame rt_core builds is orthonormal (1e-160: |axis|² underflowed to a subnormal
+    # and g2 came out 1.0000056 long)
+    from rt_core.shapes_quadric import _frame
+    g = np.array(_frame(tuple(float(c) for c in axis.split())))
+    np.testing.assert_allclose(g @ g.T, np.eye(3), atol=4e-16)
