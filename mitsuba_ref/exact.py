@@ -544,7 +544,9 @@ def _representable(xs: XScene, obj: XObject, u: float) -> bool:
     if obj.radius is not None:
         nums.append(obj.radius)
     nums += [c for _, v in obj.fields for c in v]
-    return all(Fraction(float(dtype(float(c)))) == c for c in nums)
+    with np.errstate(over="ignore"):                # (beyond float32's range: not exact)
+        rounded = [float(dtype(float(c))) for c in nums]
+    return all(math.isfinite(f) and Fraction(f) == c for f, c in zip(rounded, nums))
 
 
 def _tq_less(a, b) -> bool:

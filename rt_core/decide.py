@@ -108,8 +108,9 @@ class _Exact:
         if obj.kind == "sphere":
             self.Q = tuple(exact(c) - v for c, v in zip(obj.center, V))
             self.cc = _dot(self.Q, self.Q) - exact(obj.radius) ** 2
-            self.fQ, self.fcc = tuple(float(c) for c in self.Q), float(self.cc)
+            self.fQ, self.fcc = tuple(map(_float, self.Q)), _float(self.cc)
             self.nQ = math.sqrt(sum(c * c for c in self.fQ))
+            self.screened = all(map(math.isfinite, (*self.fQ, self.fcc, self.nQ)))
             return
         if obj.kind in ("triangle", "disk"):
             decide_planar.init(self, obj, V)            # rt_core/decide_planar.py
@@ -128,17 +129,25 @@ class _Exact:
             w, h = (exact(c) for c in obj.size)
             self.w2 = w * w * PP
             self.h2 = h * h * NN * PP
-        # float copies for a quick screen (``surely_missed``)
-        f = lambda v: tuple(float(c) for c in v)
+        # float copies for a quick screen (``surely_missed``).  Its tests are homogeneous in
+        # N, in p and in y, so each is scaled by a power of two to about 1 (exactly): p is
+        # of degree 3 in N, and w²|p|² overflowed a float from |N| ~ 1e51 on.  An object
+        # with a copy still not finite is not screened.
         norm = lambda v: math.sqrt(sum(c * c for c in v))
-        self.fQ = f(self.Q)
+        self.fQ = tuple(map(_float, self.Q))
         self.nQ = norm(self.fQ)
-        self.fN, self.fNQ = f(self.N), float(self.NQ)
+        self.fN, k = _scaled(self.N)
+        self.fNQ = _float(self.NQ / Fraction(2) ** k)
         self.nN = norm(self.fN)
+        copies = [*self.fQ, self.nQ, *self.fN, self.fNQ, self.nN]
         if obj.kind == "fplane":
-            self.fp, self.fy = f(self.p), f(self.y)
+            self.fp, kp = _scaled(self.p)
+            self.fy, ky = _scaled(self.y)
             self.np, self.ny = norm(self.fp), norm(self.fy)
-            self.fw2, self.fh2 = float(self.w2), float(self.h2)
+            self.fw2 = _float(self.w2 / Fraction(4) ** kp)
+            self.fh2 = _float(self.h2 / Fraction(4) ** ky)
+            copies += [*self.fp, *self.fy, self.np, self.ny, self.fw2, self.fh2]
+        self.screened = all(map(math.isfinite, copies))
 
 
 def _plane(o: _Exact, E, EE, Vz, rules: Rules, tmin2):
@@ -215,6 +224,24 @@ def _quadric(o: _Exact, E, Vz, rules: Rules):
     return None
 
 
+def _float(x: Fraction) -> float:
+    """x rounded to a float, ±inf beyond the range (float() raises there)."""
+    try:
+        return float(x)
+    except OverflowError:
+        return math.copysign(math.inf, x)
+
+
+def _scaled(v) -> tuple:
+    """(floats of v·2⁻ᵏ, k): the exact vector ``v`` scaled by a power of two so that its
+    largest component is about 1, then rounded."""
+    m = max(abs(Fraction(c)) for c in v)
+    if m == 0:
+        return tuple(0.0 for _ in v), 0
+    k = m.numerator.bit_length() - m.denominator.bit_length()
+    return tuple(_float(Fraction(c) / Fraction(2) ** k) for c in v), k
+
+
 SCREEN = 1e-6      # relative: float64 arithmetic errs by ~1e-15 here, so this never misjudges
 SCREEN_PAIRS = 1 << 18      # (ray, object) pairs screened at once (the screen's memory)
 
@@ -229,7 +256,9 @@ class _Screen:
                                               np.float64)
         self.sphere = np.array([o.kind == "sphere" for o in objs], bool)
         self.fplane = np.array([o.kind == "fplane" for o in objs], bool)
-        self.quadric = np.array([o.kind in QUADRICS for o in objs], bool)
+        # quadrics have no float screen; an object whose copies are not finite neither
+        self.quadric = np.array([o.kind in QUADRICS or not getattr(o, "screened", True)
+                                 for o in objs], bool)
         self.fQ = np.array([o.fQ for o in objs], np.float64).reshape(n, 3)
         self.nQ, self.fcc = col("nQ"), col("fcc")
         self.fN = np.array([getattr(o, "fN", z3) for o in objs], np.float64).reshape(n, 3)

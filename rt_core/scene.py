@@ -296,4 +296,6 @@ def make_plane(material: Material, normal: Vec3, point: Vec3, line: int = 0) -> 
 def make_sphere(material: Material, center: Vec3, radius: float, line: int = 0) -> Sphere:
     if not radius > 0:
         raise GeometryError(f"radius {radius:g} must be positive")
-    return Sphere(material, tuple(center), float(radius), line)
+    # (a scene Num stays one: the exact decisions take the radius as written)
+    return Sphere(material, tuple(center), radius if isinstance(radius, Num) else float(radius),
+                  line)
