@@ -424,19 +424,32 @@ def test08_margins_rounding_cannot_decide(rules, layout, monkeypatch):
     assert 0 < ks.decided < len(d)
 
 
-def test09_more_flagged_rays_than_slots(monkeypatch, tmp_path):
-    """The kernel lists the first FLAG_SLOTS flagged rays itself; beyond that a compress
-    pass lists them all: the same answers either way."""
+@pytest.mark.parametrize("path_", ["blocks", "many blocks", "slots", "compress"])
+def test09_flagged_rays_listed_every_way(path_, monkeypatch, tmp_path):
+    """The flagged rays are listed from the blocks that hold one (tracer._flagged), or, with
+    more than FLAG_BLOCKS such blocks, by one pass of atomic slots, or beyond FLAG_SLOTS
+    by a compress: the same rays either way, so the same answers, the exact ones."""
     from rt_core import tracer
     path = tmp_path / "stress.txt"
     path.write_text(_stress(False))
     W, H = 33, 25
     listed, _ = _render(path, W, H, Rules())
-    monkeypatch.setattr(tracer, "FLAG_SLOTS", 8)
-    compressed, _ = _render(path, W, H, Rules())
-    assert (listed == compressed).all() and (listed >= -1).all()
+    seen = []
+    flagged = tracer._flagged
+    monkeypatch.setattr(tracer, "_flagged", lambda T, oid, per: seen.append(per) or
+                        flagged(T, oid, per))
+    if path_ != "blocks":
+        monkeypatch.setattr(tracer, "FLAG_SHIFT", 3)            # 104 blocks of 8 rays
+    if path_ != "blocks":
+        monkeypatch.setattr(tracer, "FLAG_BLOCKS", 1000 if path_ == "many blocks" else 0)
+    if path_ == "compress":
+        monkeypatch.setattr(tracer, "FLAG_SLOTS", 8)
+    other, _ = _render(path, W, H, Rules())
+    per = seen[-1]
+    assert per.sum() > 8 and np.count_nonzero(per) > (0 if path_ == "blocks" else 8)
+    assert (listed == other).all() and (listed >= -1).all()
     ex = _exact(path, W, H, range(W * H), Rules())
-    assert (compressed == ex.id).all()
+    assert (other == ex.id).all()
 
 
 @pytest.mark.parametrize("layout", ["unrolled", "looped"])
