@@ -343,9 +343,10 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
             image = image + dr.select(hit, add, 0)
         else:
             # each pixel appears at most once per wavefront: a plain read-modify-write (not
-            # dr.scatter_add, which drops NaN: a NaN must reach the image, to be counted)
-            dr.scatter(image, dr.gather(T.Array3, image, pixel, hit) + add, pixel, hit)
-        outputs = [image, ex]
+            # dr.scatter_add, which drops NaN: a NaN must reach the image, to be counted),
+            # the sums evaluated with the bounce and scattered after it (_scatter_sums)
+            summed = dr.gather(T.Array3, image, pixel, hit) + add
+        outputs = [image, ex] if pixel is None else [summed, hit, pixel, ex]
         if reflect:
             go, R, w_next = seg.go, seg.R, seg.w_next
             # the pixel of each lane, evaluated: the next wavefront gathers it (at bounce 0
@@ -357,6 +358,8 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
             outputs += [t, oid, hit, normal, H, total, rec]
         # one kernel for the bounce: nothing in between goes through memory
         dr.eval(*outputs)
+        if pixel is not None:
+            image = _scatter_sums(image, summed, pixel, hit)
         log.mark("bounce", group, bounce, rays)
         if rec is not None:
             shadows = _numpy(rec, rays)
@@ -432,13 +435,25 @@ def _tail(T, segment, image, pixel, o, d, skip, dist, weight, live, bounce: int,
                           labels=("o", "d", "skip", "dist", "weight", "live", "acc", "b",
                                   "last", "capped"))
     acc, last, capped = state[6], state[8], state[9]
-    dr.scatter(image, acc, pixel, live)       # (the entry mask: the loop's is its own)
-    dr.eval(image, last, capped)
+    del state           # (the loop's other outputs hold its entry state, which reads the image)
+    dr.eval(acc, last, capped, pixel, live)
+    # (the entry mask: the loop's is its own)
+    image = _scatter_sums(image, acc, pixel, live)
     out.bounces = int(np.max(last.numpy()))
     log.mark("tail", "reflection", bounce, count)
     left = int(np.count_nonzero(capped.numpy()))
     if left:
         out.capped, out.left_active = True, left
+    return image
+
+
+def _scatter_sums(image, summed, pixel, mask):
+    """``image`` with ``summed`` (evaluated: each pixel's value so far plus its terms) written
+    to its pixels, by a kernel of its own.  The kernel that computed the sums read the image;
+    a scatter into an array that its own kernel also gathers from makes Dr.Jit copy the whole
+    array first (three channels of every pixel, for a few thousand hits)."""
+    dr.scatter(image, summed, pixel, mask)
+    dr.eval(image)
     return image
 
 
@@ -494,9 +509,10 @@ def _one_bounce(T, d, image, segment, out: ShadeResult, log, trace) -> ShadeResu
         s1 = segment(A3(g[6], g[7], g[8]), A3(g[3], g[4], g[5]), None, g[9],
                      A3(g[10], g[11], g[12]), None, 1, None, found=(g[1], I(oid), live))
         # the wavefront's read-modify-write (each pixel at most once)
-        dr.scatter(image, dr.gather(A3, image, pixel, live) + s1.add, pixel, live)
+        summed = dr.gather(A3, image, pixel, live) + s1.add
         dr.scatter_reduce(dr.ReduceOp.Add, counts, U(1), U(2), s1.go)
-        dr.eval(image, counts)
+        dr.eval(summed, pixel, counts)
+        image = _scatter_sums(image, summed, pixel, live)
         left = int(counts.numpy()[2])
         if left:
             out.capped, out.left_active = True, left
