@@ -222,7 +222,9 @@ def read_image(path: str) -> np.ndarray:
         with native_output_captured(fds=(2,)):
             px = inp.read_image(0, 0, 0, spec.nchannels, "uint8")
         if px is None:
-            raise ImageError(f"{path}: cannot read the pixels, truncated or corrupt "
+            said = _pnm_diagnosis(path, spec) if inp.format_name() == "pnm" else None
+            raise ImageError(f"{path}: {said}" if said else
+                             f"{path}: cannot read the pixels, truncated or corrupt "
                              f"({_reason(_error_of(inp), path)})")
     finally:
         inp.close()
@@ -230,6 +232,61 @@ def read_image(path: str) -> np.ndarray:
     if spec.nchannels < 3:
         return np.repeat(px[..., :1], 3, -1)
     return np.ascontiguousarray(px[..., :3])
+
+
+def _pnm_header(data: bytes):
+    """(magic, width, height, maxval, offset of the first sample) of a PNM file's bytes, or
+    None: four tokens, '#' comments to the line's end, then one whitespace byte."""
+    toks, i, n = [], 0, len(data)
+    while len(toks) < 4 and i < n:
+        c = data[i:i + 1]
+        if c == b"#":
+            while i < n and data[i:i + 1] not in (b"\n", b"\r"):
+                i += 1
+        elif c.isspace():
+            i += 1
+        else:
+            j = i
+            while j < n and not data[j:j + 1].isspace() and data[j:j + 1] != b"#":
+                j += 1
+            toks.append(data[i:j])
+            i = j
+    if len(toks) < 4 or not all(t.isdigit() for t in toks[1:]):
+        return None
+    return toks[0].decode("latin-1"), int(toks[1]), int(toks[2]), int(toks[3]), i + 1
+
+
+def _pnm_diagnosis(path: str, spec) -> str | None:
+    """What is wrong with a PNM whose pixels OpenImageIO could not read, in the course
+    programs' words, where the header and the size tell: a maxval above 255 over one-byte
+    samples, a P3/P2 header over binary samples, or too few bytes for the header's size."""
+    try:
+        with open(path, "rb") as f:
+            data = f.read()
+    except OSError:
+        return None
+    head = _pnm_header(data)
+    if head is None:
+        return None
+    magic, w, h, maxval, start = head
+    ch = {"P3": 3, "P6": 3, "P2": 1, "P5": 1}.get(magic)
+    if ch is None:
+        return None
+    body = data[start:]
+    if magic in ("P3", "P2"):
+        if any(b > 126 or (b < 32 and b not in b"\t\n\r\x0b\x0c") for b in body[:4096]):
+            return (f"a {magic} (ASCII) header over binary samples: write "
+                    f"{'P6' if magic == 'P3' else 'P5'} for bytes, or the samples as numbers")
+        return None
+    one = w * h * ch
+    if maxval > 255 and one <= len(body) < 2 * one:
+        return (f"maxval {maxval} means two bytes a sample, but the file holds {len(body)} "
+                f"bytes for {w}x{h} pixels, one a sample: write maxval 255")
+    need = one * (2 if maxval > 255 else 1)
+    if len(body) < need:
+        return (f"the header says {w}x{h} pixels, {need} bytes of samples; the file holds "
+                f"{len(body)}")
+    return None
 
 
 def _ascii_samples_in_range(path: str) -> None:

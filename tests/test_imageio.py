@@ -61,7 +61,14 @@ def test03_course_ppm_bytes_and_channels_of_each_format(tmp_path):
 
 
 @pytest.mark.parametrize("name, data, why", [
-    ("short.ppm", b"P6 40 30 255\n" + b"\0" * 100, "truncated or corrupt"),
+    ("short.ppm", b"P6 40 30 255\n" + b"\0" * 100,
+     "the header says 40x30 pixels, 3600 bytes of samples; the file holds 100"),
+    # a course program's header mistakes, in its words (a student's review found them
+    # reported as 'Premature end of file' and 'no reason given')
+    ("max256.ppm", b"P6\n4 3\n256\n" + bytes(36), "maxval 256 means two bytes a sample, "
+     "but the file holds 36 bytes for 4x3 pixels, one a sample: write maxval 255"),
+    ("p3bin.ppm", b"P3\n4 3\n255\n" + bytes(range(200, 236)),
+     "a P3 (ASCII) header over binary samples: write P6 for bytes"),
     ("short.png", None, "truncated or corrupt"),
     ("header.png", 500, "cannot read it as an image ("),      # cut in its text chunk
     ("text.ppm", b"P6 garbage\n", "cannot read it as an image ("),

@@ -45,4 +45,8 @@ build course_quant_round     -DQUANT_ROUND
 build course_rows_flipped    -DROWS_FLIPPED
 build course_dir_not_unit    -DDIR_NOT_UNIT
 build course_self_shadow     -DSELF_SHADOW
-echo "built 19 binaries in $out"
+build course_tile_swap       -DTILE_SWAP
+build course_amb_after       -DAMB_AFTER
+build course_off_by_one      -DOFF_BY_ONE
+build course_hdr_256         -DHDR_256
+echo "built 23 binaries in $out"

@@ -48,6 +48,12 @@
  *                     length the shading divides by) is not a distance (a bug)
  *   -DSELF_SHADOW     shadow rays do not skip the object they start on: speckles of
  *                     shadow where rounding puts that object at a tiny t > 0 (a bug)
+ *   -DTILE_SWAP       a tiled plane's foreground and background swapped (a bug)
+ *   -DAMB_AFTER       the ambient added after dividing by the path length (a bug: it is
+ *                     not divided, so it saturates)
+ *   -DOFF_BY_ONE      the pixel mapping divides by W and H instead of W - 1 and H - 1 (a bug)
+ *   -DHDR_256         the PPM header says maxval 256 over one-byte samples (a bug: a
+ *                     maxval above 255 means two bytes a sample)
  * One more variant from the notes, beyond the list above:
  *   -DTILE_ADD_FIRST  tile parity floor((OFF + u)/w) instead of floor(OFF + u/w): OFF is
  *                     added before dividing, which shifts the pattern unless w divides OFF
@@ -900,7 +906,11 @@ static int trace(const double base0[3], const double dir0[3], double out[3], dou
             double relx = floor(TILE_OFF + h.newhit[0] / o->size[0]);
             double rely = floor(TILE_OFF + h.newhit[1] / o->size[1]);
 #endif
+#ifdef TILE_SWAP
+            if (fmod(relx + rely, 2.0) != 0.0)  /* the bug: the colours swapped */
+#else
             if (fmod(relx + rely, 2.0) == 0.0)
+#endif
                 m = &o->bg;                 /* even: background; odd: foreground */
         }
         if (o->kind == K_SPHERE) {
@@ -910,7 +920,11 @@ static int trace(const double base0[3], const double dir0[3], double out[3], dou
         } else {
             memcpy(N, o->normal, sizeof N);
         }
+#ifdef AMB_AFTER
+        memset(I, 0, sizeof I);             /* the bug: ambient added after dividing */
+#else
         memcpy(I, m->amb, sizeof I);
+#endif
         for (li = 0; li < g_nlight; li++) {
             const light_t *L = &g_light[li];
             double D[3], U[3], d, c;
@@ -947,6 +961,10 @@ static int trace(const double base0[3], const double dir0[3], double out[3], dou
             I[c3] /= h.t;
 #else
             I[c3] /= total_dist;
+#endif
+#ifdef AMB_AFTER
+        for (c3 = 0; c3 < 3; c3++)
+            I[c3] += m->amb[c3];
 #endif
         if (n == g_caplv) {
             g_caplv = g_caplv ? 2 * g_caplv : 64;
@@ -1066,11 +1084,19 @@ int main(int argc, char **argv)
 #else
         long y = H - 1 - r;                  /* course row, 0 = bottom */
 #endif
+#ifdef OFF_BY_ONE
+        double wy = (double)y / (double)H * g_window[1] - g_window[1] / 2.0;   /* the bug */
+#else
         double wy = (double)y / (double)(H - 1) * g_window[1] - g_window[1] / 2.0;
+#endif
         for (x = 0; x < W; x++) {
             double world[3], dir[3], tmp[3], I[3], t;
             int id;
+#ifdef OFF_BY_ONE
+            world[0] = (double)x / (double)W * g_window[0] - g_window[0] / 2.0;
+#else
             world[0] = (double)x / (double)(W - 1) * g_window[0] - g_window[0] / 2.0;
+#endif
             world[1] = wy;
             world[2] = 0.0;
             diff3(tmp, world, g_view);
@@ -1095,7 +1121,11 @@ int main(int argc, char **argv)
         fprintf(stderr, "course: cannot write %s\n", hits_path);
         exit(1);
     }
+#ifdef HDR_256
+    printf("P6\n%ld %ld\n256\n", W, H);      /* the bug: 256 means two-byte samples */
+#else
     printf("P6\n%ld %ld\n255\n", W, H);
+#endif
     if (fwrite(img, 3, (size_t)npix, stdout) != (size_t)npix || fflush(stdout) != 0) {
         fprintf(stderr, "course: cannot write the image\n");
         exit(1);

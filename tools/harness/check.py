@@ -151,7 +151,8 @@ class Renderer:
         self.cameras = {r: make_camera(scene, columns, rows, rules=_rows(r))
                         for r in ("course", "shifted")}
         self.cam = self.cameras["course"]
-        self.cache = {}
+        self.cache = {}             # (rules, max_dist) -> 8-bit image
+        self.geometry = {}          # rules -> (ids, depth)
 
     def image(self, rules, max_dist: float) -> np.ndarray:
         key = (rules, max_dist)
@@ -164,10 +165,13 @@ class Renderer:
         return self.cache[key]
 
     def ids(self, rules):
-        from rt_core.render import trace_geometry, to_images
-        cam = self.cameras[rules.rows]
-        g = to_images(trace_geometry(self.scene, cam, self.T, rules), cam)
-        return g["object.id"].astype(np.int64), g["depth.Z"]
+        """(object ids, depth) of the primary hits under ``rules`` (cached)."""
+        if rules not in self.geometry:
+            from rt_core.render import trace_geometry, to_images
+            cam = self.cameras[rules.rows]
+            g = to_images(trace_geometry(self.scene, cam, self.T, rules), cam)
+            self.geometry[rules] = g["object.id"].astype(np.int64), g["depth.Z"]
+        return self.geometry[rules]
 
 
 def _rows(value: str):
@@ -294,6 +298,11 @@ CONSISTENT = 0.5
 # systematic (a tracer that rounds, say): a decision near its threshold excuses them only
 # where the colour is another variant's (``classify``)
 SYSTEMATIC = 0.05
+# and on every object where its render differs, the share of pixels the image must have the
+# variant's colour at (within a level)
+OBJECT_SHARE = 0.9
+# the level-offset hint needs one-level pixels to be this share of the wrong ones at least
+LEVEL_SHARE = 0.75
 # one-level pixels the inference asks the oracle about per candidate (evidence, not the
 # verdict: classify asks a sample of Boundary.SAMPLE, then all of them if need be)
 LEVEL_SAMPLE = 12
@@ -362,11 +371,22 @@ def infer(r: Renderer, theirs: np.ndarray, start_rules, start_max_dist: float, f
         keeps a deviation named).  An image wrong for another reason (upside down, t not a
         distance) matches a variant's render by chance at a few of them, which a pixel
         count alone would take for the variant."""
-        a, b = r.image(*cfg), r.image(*_config(*cfg, name, notes_value(name)))
+        alt = _config(*cfg, name, notes_value(name))
+        a, b = r.image(*cfg), r.image(*alt)
         changed = (a != b).any(-1)
         la, lb = _apart(a, theirs), _apart(b, theirs)
         agree = changed & ((la == 0) | ((la <= 1) & (lb > 1)))
-        return agree.sum() >= CONSISTENT * changed.sum()
+        if agree.sum() < CONSISTENT * changed.sum():
+            return False
+        # and on the objects it changes, the image has cfg's colours nearly everywhere
+        # (OBJECT_SHARE): a tracer that swaps a tiled plane's colours took the tile offset
+        # variant's colour at every pixel that variant changes (shifted by 2/3 of a tile),
+        # and one saturated white everywhere took a variant's where it saturates too, each
+        # wrong on the rest of the same objects
+        ids_a, ids_b = r.ids(cfg[0])[0], r.ids(alt[0])[0]
+        objs = np.setdiff1d(np.union1d(ids_a[changed], ids_b[changed]), [-1])
+        region = changed | np.isin(ids_a, objs)
+        return (la[region] <= 1).sum() >= OBJECT_SHARE * region.sum()
 
     def better(v, cur) -> bool:
         d = delta(v, cur)
@@ -649,9 +669,10 @@ def _speckles(wrong: np.ndarray, ours: np.ndarray, theirs: np.ndarray) -> list:
 
 def _level_offset(ours: np.ndarray, theirs: np.ndarray, wrong: np.ndarray) -> list:
     """Wrong one-level differences in more than SYSTEMATIC of the image, nearly all one
-    way."""
+    way, and most of the wrong pixels (LEVEL_SHARE): a tracer wrong by more (its pixels
+    mapped one off, say) has one-level pixels too, on gradients, which no rounding made."""
     up, down = _one_way(ours, theirs, (_apart(ours, theirs) == 1) & wrong)
-    if not _systematic(up, down, wrong.size):
+    if not _systematic(up, down, wrong.size) or up + down < LEVEL_SHARE * wrong.sum():
         return []
     if up > down:
         return [f"{up} pixels are one level brighter than floor(255 I) and {down} darker: "
@@ -988,6 +1009,12 @@ def _check_runs(pool, work, template, scenes, columns, rows, timeout, kw):
             jobs.append((s, None, SceneCheck(str(s), None, "error", sc)))
             continue
         h = rows if rows is not None else sc.default_rows(columns)
+        if h < 2:                               # (the tracer would refuse it, or divide by 0)
+            jobs.append((s, None, SceneCheck(
+                str(s), None, "error", f"{s}: {columns} columns give this window {h} "
+                "rows; the course's corner sampling needs 2 at least: use more --columns "
+                "or give --rows")))
+            continue
         sub = os.path.join(work, str(k))
         os.mkdir(sub)
         jobs.append((s, (sc, h), pool.submit(run_tracer, template, s, columns, h, sub,
@@ -1005,12 +1032,16 @@ def _check_runs(pool, work, template, scenes, columns, rows, timeout, kw):
         try:
             theirs = read_image(img)
         except ImageError as exc:
-            yield SceneCheck(str(s), "(--run)", "error", str(exc))
+            # (named as what it is: the file is a temporary, gone after the run)
+            yield SceneCheck(str(s), "(--run)", "error",
+                             str(exc).replace(img, "the tracer's image {out}", 1))
             continue
         if hits is not None:
             try:
                 hits = read_hits(hits, columns, h)
-            except (OSError, ValueError, InputError) as exc:
+            except (ValueError, InputError) as exc:
+                hits = ValueError(str(exc).replace(hits, "the tracer's hit dump {hits}", 1))
+            except OSError as exc:
                 hits = exc
         yield (str(s), img, sc, theirs, columns, h, hits, kw)
 
@@ -1063,7 +1094,7 @@ def details(r: SceneCheck, kinds=("rules", "deviation", "hint", "wrong", "hit du
         unf = [f.rule for f in r.findings if f.unfollowed]
         out.append("rules: " + (", ".join(det) if det else "none determined") +
                    (f"; undetermined: {', '.join(und)}" if und else "") +
-                   (f"; followed by no value: {', '.join(unf)}" if unf else ""))
+                   (f"; matched only by chance, not named: {', '.join(unf)}" if unf else ""))
     if "deviation" in kinds:
         out += [f"deviation: {d}" for d in r.deviations]
     if "hint" in kinds:
@@ -1073,8 +1104,8 @@ def details(r: SceneCheck, kinds=("rules", "deviation", "hint", "wrong", "hit du
         out.append(f"wrong: {w['pixels']} pixels, the largest group {w['largest_group']} in "
                    f"rows {w['rows'][0]}-{w['rows'][1]}, columns {w['columns'][0]}-"
                    f"{w['columns'][1]}; " + "; ".join(w.get("objects", []))
-                   + (f" ({r.unasked} of them not asked about: a sample of their kind had "
-                      "pixels nothing excuses)" if r.unasked else ""))
+                   + (f" ({r.unasked} of them judged from a sample of their kind, in which "
+                      "some pixels were wrong)" if r.unasked else ""))
     if r.hits and "hit dump" in kinds:
         h = r.hits
         out.append(f"hit dump: {h['pixels']} pixels listed"
