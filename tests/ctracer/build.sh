@@ -49,4 +49,6 @@ build course_tile_swap       -DTILE_SWAP
 build course_amb_after       -DAMB_AFTER
 build course_off_by_one      -DOFF_BY_ONE
 build course_hdr_256         -DHDR_256
-echo "built 23 binaries in $out"
+build course_emis_swap       -DEMIS_SWAP
+build course_clamp_after     -DCLAMP_AFTER
+echo "built 25 binaries in $out"

@@ -52,6 +52,9 @@
  *   -DAMB_AFTER       the ambient added after dividing by the path length (a bug: it is
  *                     not divided, so it saturates)
  *   -DOFF_BY_ONE      the pixel mapping divides by W and H instead of W - 1 and H - 1 (a bug)
+ *   -DEMIS_SWAP       a light's red and blue emissivity read in the other order (a bug)
+ *   -DCLAMP_AFTER     the pixel is (unsigned char)(int)(255 I): no clamp, so intensities
+ *                     above 1 wrap around (a bug)
  *   -DHDR_256         the PPM header says maxval 256 over one-byte samples (a bug: a
  *                     maxval above 255 means two bytes a sample)
  * One more variant from the notes, beyond the list above:
@@ -570,6 +573,9 @@ static void read_object(int form)
         light_t L;
         memset(&L, 0, sizeof L);
         group(what, "emissivity", 3, "r g b", L.emis);
+#ifdef EMIS_SWAP
+        { double tt = L.emis[0]; L.emis[0] = L.emis[2]; L.emis[2] = tt; }   /* the bug */
+#endif
         group(what, "center", 3, "x y z", L.center);
         if (kw == 5) {
             double aim[3], D[3], theta;
@@ -1003,6 +1009,10 @@ static unsigned char quant(double I)
 {
     if (!(I > 0.0))
         return 0;                       /* also NaN */
+#ifdef CLAMP_AFTER
+    if (I < 1e9)                        /* the bug: no clamp, the byte wraps around */
+        return (unsigned char)(long)(255.0 * I);
+#endif
     if (I > 1.0)
         I = 1.0;
 #ifdef QUANT_ROUND

@@ -153,6 +153,7 @@ class Renderer:
         self.cam = self.cameras["course"]
         self.cache = {}             # (rules, max_dist) -> 8-bit image
         self.geometry = {}          # rules -> (ids, depth)
+        self.unclamped = {}         # (rules, max_dist) -> the intensities, not clamped
 
     def image(self, rules, max_dist: float) -> np.ndarray:
         key = (rules, max_dist)
@@ -162,6 +163,7 @@ class Renderer:
                                    geometry=False, shade=True, max_dist=max_dist)
             rgb = np.stack([imgs[c] for c in ("R", "G", "B")], -1)
             self.cache[key] = np.floor(255.0 * np.clip(rgb, 0.0, 1.0)).astype(np.uint8)
+            self.unclamped[key] = rgb
         return self.cache[key]
 
     def ids(self, rules):
@@ -575,7 +577,7 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
         objs = [(int(k), int(n)) for k, n in zip(*np.unique(on, return_counts=True))]
         objs.sort(key=lambda kn: -kn[1])
         res.worst["objects"] = [_describe(scene, k, n) for k, n in objs[:3]]
-        res.hints = hints(ids, wrong, ours, img) + res.hints
+        res.hints = hints(ids, wrong, ours, img, r.unclamped[(final_rules, md)]) + res.hints
     res.seconds = round(time.perf_counter() - t0, 3)
     return res
 
@@ -608,14 +610,17 @@ def provenance(scene, img: np.ndarray) -> dict:
             "versions": versions()}
 
 
-def hints(ids: np.ndarray, wrong: np.ndarray, ours=None, theirs=None) -> list:
+def hints(ids: np.ndarray, wrong: np.ndarray, ours=None, theirs=None, intensity=None) -> list:
     """Plain-words guesses about what the wrong pixels look like (not part of the verdict):
     outlines only; the image as rt_core's upside down or mirrored; a one-level offset all
-    one way."""
+    one way; shadow specks; two colour channels swapped; intensities above 1 wrapped around
+    (``intensity``: rt_core's, not clamped)."""
     out = []
     if ours is not None:
         out += _orientation(ours, theirs) + _level_offset(ours, theirs, wrong) + \
-            _speckles(wrong, ours, theirs)
+            _speckles(wrong, ours, theirs) + _channels(ours, theirs)
+        if intensity is not None:
+            out += _wrapped(intensity, theirs, wrong)
     edge = np.zeros_like(wrong)
     edge[:, 1:] |= ids[:, 1:] != ids[:, :-1]
     edge[:, :-1] |= ids[:, 1:] != ids[:, :-1]
@@ -646,6 +651,39 @@ def _orientation(ours: np.ndarray, theirs: np.ndarray) -> list:
             return [f"your image is rt_core's {what} ({n} pixels differ that way, "
                     f"{straight} as it is)"]
     return []
+
+
+def _channels(ours: np.ndarray, theirs: np.ndarray) -> list:
+    """The image matches rt_core's with two colour channels exchanged far better than as it
+    is (the light's or the material's red and blue read in the other order, say)."""
+    straight = int(_differs(ours, theirs).sum())
+    names = "red", "green", "blue"
+    for a, b in ((0, 2), (0, 1), (1, 2)):
+        perm = [0, 1, 2]
+        perm[a], perm[b] = b, a
+        n = int(_differs(ours[..., perm], theirs).sum())
+        if straight and n <= 0.05 * ours[..., 0].size and n <= 0.2 * straight:
+            return [f"your image is rt_core's with {names[a]} and {names[b]} exchanged ({n} "
+                    f"pixels differ that way, {straight} as it is): a colour read or written "
+                    "in the wrong order (the scene's triples are r g b)?"]
+    return []
+
+
+def _wrapped(intensity: np.ndarray, theirs: np.ndarray, wrong: np.ndarray) -> list:
+    """Wrong pixels where the image holds floor(255 I) modulo 256: intensities above 1
+    converted to a byte without the clamp, so they wrap around to dark."""
+    n = int(wrong.sum())
+    if n < 20:
+        return []
+    with np.errstate(invalid="ignore", over="ignore"):
+        wrapped = np.mod(np.floor(255.0 * np.maximum(intensity, 0.0)), 256.0)
+    over = (intensity > 1).any(-1) & wrong
+    same = over & (wrapped == theirs).all(-1)
+    if same.sum() < 0.8 * n:
+        return []
+    return [f"{int(same.sum())} wrong pixels hold floor(255 I) modulo 256 where I is above 1: "
+            "the intensity converted to a byte without clamping it to [0, 1] first (the "
+            "notes clamp, then floor)"]
 
 
 def _speckles(wrong: np.ndarray, ours: np.ndarray, theirs: np.ndarray) -> list:
