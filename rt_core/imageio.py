@@ -284,8 +284,8 @@ def _pnm_diagnosis(path: str, spec) -> str | None:
                 f"bytes for {w}x{h} pixels, one a sample: write maxval 255")
     need = one * (2 if maxval > 255 else 1)
     if len(body) < need:
-        return (f"the header says {w}x{h} pixels, {need} bytes of samples; the file holds "
-                f"{len(body)}")
+        return (f"truncated: the header says {w}x{h} pixels, {need} bytes of samples; the "
+                f"file holds {len(body)}")
     return None
 
 
