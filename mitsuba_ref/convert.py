@@ -508,6 +508,19 @@ def _check_float32(scene: Scene, d: dict) -> None:
             raise InputError(f"{scene.path}: {where}{key} needs the number {big:.3g}, beyond "
                              "the float32 range of Mitsuba's llvm_ad_rgb variant; this scene "
                              "can be rendered by rt_core in f64 but not converted")
+    # Mitsuba's sphere test forms |o − c|² − r² in float32 (llvm_ad_rgb), o the ray's
+    # origin: from the viewpoint, beyond the range it is inf, and every ray misses (a sphere
+    # 3e20 away: no hit, where rt_core f64 sees the plane in front of it)
+    vp = scene.viewpoint
+    for o in scene.objects:
+        if o.kind != "sphere":
+            continue
+        reach = math.dist(o.center, vp) + o.radius
+        if not reach * reach <= F32_MAX / 16:
+            raise InputError(f"{scene.path}: sphere (line {o.line}): its test from the "
+                             f"viewpoint squares {reach:.3g}, beyond the float32 range of "
+                             "Mitsuba's llvm_ad_rgb variant (every ray would miss it); this "
+                             "scene can be rendered by rt_core in f64 but not converted")
 
 
 # --- XML ---------------------------------------------------------------------------------------
