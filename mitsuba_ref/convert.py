@@ -14,6 +14,7 @@ the wheel has no double variants).
 """
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass
 from typing import Any as Scene         # a parsed course scene (duck-typed)
@@ -166,6 +167,46 @@ def mitsuba_subset(scene: Scene, keep=lambda kind: True):
     note = ("left out of this Mitsuba comparison (checked against rtval's oracles only): "
             + ", ".join(f"line {o.line} {o.kind}" for o in gone))
     return dataclasses.replace(scene, objects=kept), note
+
+
+PROVENANCE = "rtval.provenance"
+
+
+def xml_provenance(scene: Scene, setup, sampling: str, mode: str, rules, max_dist) -> dict:
+    """What a converted scene came from, as rtval render records it (rt_core/render.py
+    ``provenance``): the course scene, its sha256, the camera, the rules, the stand-ins."""
+    import hashlib
+    import os
+    from rt_core.render import extras_text, versions
+    from rt_core.textures import provenance_text
+    out = {"rtval.source_scene": os.path.abspath(scene.path) if scene.path != "<memory>"
+           else scene.path,
+           "rtval.scene_sha256": scene.sha256 or hashlib.sha256(repr(scene).encode()).hexdigest(),
+           "rtval.dialect": scene.dialect, "rtval.sampling": sampling,
+           "rtval.resolution": f"{setup.columns}x{setup.rows}", "rtval.converted": mode,
+           "rtval.versions": " ".join(f"{k}={v}" for k, v in versions().items())}
+    if mode != "sensor":
+        out["rtval.rules"] = (rules or Rules()).describe()
+    if mode == "shading":
+        out["rtval.max_dist"] = f"{max_dist:g}"
+    for key, text in (("rtval.stand_ins", "; ".join(scene.stand_ins())),
+                      ("rtval.extras", extras_text(scene)),
+                      ("rtval.textures", provenance_text(scene) if mode == "shading" else "")):
+        if text:
+            out[key] = text
+    return out
+
+
+def read_provenance(xml_text: str) -> dict:
+    """The provenance comment ``scene_xml`` wrote ({} if there is none)."""
+    start = xml_text.find("<!-- " + PROVENANCE + " ")
+    if start < 0:
+        return {}
+    end = xml_text.find(" -->", start)
+    try:
+        return json.loads(xml_text[start + len(PROVENANCE) + 6:end])
+    except ValueError:
+        return {}
 
 
 def oracle_only(scene: Scene) -> list:
@@ -605,8 +646,14 @@ def scene_xml(scene: Scene, columns: int, rows: int | None = None, sampling: str
     if files is not None:
         files.update(plys)
     s = sensor_setup(scene, columns, rows, sampling)
+    mode = "aovs" if aovs else "shading" if shading else "sensor"
+    prov = xml_provenance(scene, s, sampling, mode, rules, max_dist)
     lines = ['<?xml version="1.0" encoding="utf-8"?>',
              f"<!-- rtval convert: {scene.path} ({columns}x{s.rows}, {sampling} sampling) -->",
+             # (machine-readable, for rtval render --mitsuba's outputs; '--' may not stand
+             # in a comment, so its second '-' is a JSON escape)
+             "<!-- " + PROVENANCE + " " +
+             json.dumps(prov, sort_keys=True).replace("--", "-\\u002d") + " -->",
              f"<!-- infinite and tiled planes: rectangles of half-size {plane_extent(scene):.6g}"
              " (64 x scene scale) around the viewpoint's foot point -->"]
     if aovs:
@@ -618,9 +665,9 @@ def scene_xml(scene: Scene, columns: int, rows: int | None = None, sampling: str
                      " 'course_material' (plugins of rtval's mitsuba_ref: render with"
                      " rtval render --mitsuba, or register them with"
                      " mitsuba_ref.convert.mitsuba()) -->")
-    if s.note:
+    if s.note and mode == "sensor":     # (the course integrator samples the course's grid)
         lines.append(f"<!-- WARNING: {s.note} -->")
-    lines += [f"<!-- {note} -->" for note in oracle_only(scene)]
+    lines += [f"<!-- {note} -->" for note in oracle_only(scene) + scene.stand_ins()]
     lines.append('<scene version="3.0.0">')
     for k, v in d.items():
         if k != "type":

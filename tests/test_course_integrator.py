@@ -209,6 +209,49 @@ def test07_render_mitsuba_refuses_what_it_cannot_do(tmp_path):
     assert r.returncode == 64 and "--max-dist goes with --shaded" in r.stderr
 
 
+def test07b_porting_outputs_say_what_they_came_from(tmp_path):
+    """A porting user's review: convert's XML and render --mitsuba's outputs did not record
+    the course scene (its sha256, the rules, the stand-ins), convert counted objects it left
+    out as shapes, a non-square grid's WARNING stood in --shading XML (whose integrator
+    samples the course's grid), and options that do not apply were taken silently."""
+    from rt_core.camera import make_camera
+    from rt_core.imageio import read_channels
+    from rt_core.render import provenance
+    from rt_core.rules import Rules
+    path = ROOT / "scenes" / "torus.txt"            # a torus: left out of the Mitsuba scene
+    xml = tmp_path / "t.xml"
+    r = _rtval("convert", path, "--columns", 16, "--shading", "-o", xml)
+    assert r.returncode == 0, r.stderr
+    sc = parse_scene(path)
+    n = len(sc.objects) - sum(o.kind == "torus" for o in sc.objects)
+    assert f"t.xml: {n} shapes" in r.stderr and "WARNING" not in xml.read_text()
+    exr = tmp_path / "t.exr"
+    r = _rtval("render", "--mitsuba", xml, "-o", exr)
+    assert r.returncode == 0, r.stderr
+    head = read_channels(str(exr)).header
+    ours = provenance(sc, make_camera(sc, 16), "f64", "llvm", Rules())
+    for key in ("rtval.scene_sha256", "rtval.dialect", "rtval.sampling", "rtval.resolution",
+                "rtval.rules"):
+        assert head[key] == ours[key], key
+    assert head["rtval.source_scene"] == str(path) and head["rtval.max_dist"] == "1000"
+    assert head["rtval.scene"] == str(xml) and "commit=" in head["rtval.versions"]
+    # options that do not apply: usage errors, nothing written
+    for args, why in ((("convert", path, "--columns", 16, "-o", tmp_path / "x.png"),
+                       "name it .xml"),
+                      (("convert", path, "--columns", 16, "--shading", "--aovs", "-o",
+                        tmp_path / "y.xml"), "not allowed with"),
+                      (("render", "--mitsuba", xml, "--precision", "f64", "-o",
+                        tmp_path / "z.exr"), "--precision and --backend do not apply"),
+                      (("compare", "--shaded", path, "--columns", 16, "--precision", "f32"),
+                       "--precision does not apply with --shaded")):
+        r = _rtval(*args)
+        assert r.returncode == 64 and why in r.stderr, (args, r.stderr)
+    assert not {"x.png", "y.xml", "z.exr"} & {p.name for p in tmp_path.iterdir()}
+    # compare --shaded says what it left out, as compare does
+    r = _rtval("compare", "--shaded", path, "--columns", 16, "--evidence", tmp_path)
+    assert "rtval compare: note: " in r.stderr and "torus" in r.stderr, r.stderr
+
+
 def test08_compare_shaded_cli(tmp_path):
     r = _rtval("compare", "--shaded", ROOT / "scenes" / "mixed.txt", "--columns", 24,
                "--evidence", tmp_path)

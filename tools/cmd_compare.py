@@ -4,7 +4,7 @@ from __future__ import annotations
 import json
 import sys
 
-from .options import add_image_options, add_max_dist, add_texture_dir
+from .options import add_image_options, add_max_dist, add_texture_dir, given
 
 
 EVIDENCE_DIR = "out/compare"
@@ -61,6 +61,9 @@ def run(args) -> int:
         check_target(args.report, {"--evidence": args.evidence})
     if args.junit:
         check_file_target(args.junit, make_dirs=False)
+    if args.shaded and given(args.precision):
+        args.usage_error("--precision does not apply with --shaded: the course image is "
+                         "rt_core's float64 one against Mitsuba's")
     scene = parse_scene(args.scene)
     if args.shaded:
         return _run_shaded(args, scene)
@@ -116,6 +119,8 @@ def _run_shaded(args, scene) -> int:
     cmp = compare_shaded(scene, args.columns, args.rows, args.sampling, args.rules or Rules(),
                          max_dist)
     row = cmp.summary()
+    if cmp.note and not args.json:          # (objects left out: said, as the geometry's is)
+        print(f"rtval compare: note: {cmp.note}", file=sys.stderr)
     if not cmp.ok:
         row["evidence"] = write_shaded_evidence(cmp, args.evidence, stem_of(scene.path))
     if args.report:

@@ -20,11 +20,12 @@ def add_parser(sub) -> None:
                    help="image height (default: int(world_h / world_w * columns))")
     p.add_argument("--sampling", choices=("corners", "centers"), default="corners",
                    help="course corner grid (default) or pixel centres")
-    p.add_argument("--shading", "--shade", action="store_true", dest="shading",
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--shading", "--shade", action="store_true", dest="shading",
                    help="the course image: each shape's course MAT as a 'course_material' BSDF, "
                         "the lights as point/spot emitters and the 'course' integrator with the "
                         "camera and rules (render it with rtval render --mitsuba)")
-    p.add_argument("--aovs", action="store_true",
+    mode.add_argument("--aovs", action="store_true",
                    help="the 'course' integrator in its AOV mode: rtval render --mitsuba -o "
                         "OUT.exr writes rtval's geometry channels (hit.mask, depth.Z, "
                         "object.id, normal, position, uv), so rtval exr diff compares them "
@@ -46,6 +47,8 @@ def run(args) -> int:
     from mitsuba_ref.convert import DEFAULT_MAX_DIST, oracle_only, scene_xml, sensor_setup
 
     from rt_core.outputs import check_file_target
+    if not args.output.lower().endswith(".xml"):
+        args.usage_error(f"-o {args.output}: convert writes Mitsuba XML; name it .xml")
     check_file_target(args.output, make_dirs=False)
     parent = os.path.dirname(os.path.abspath(args.output))
     scene = parse_scene(args.scene, code27=args.code27)
@@ -62,7 +65,8 @@ def run(args) -> int:
     xml = scene_xml(scene, args.columns, args.rows, args.sampling, args.shading,
                     rules=args.rules, max_dist=DEFAULT_MAX_DIST if args.max_dist is None else args.max_dist,
                     aovs=args.aovs, files=plys, stem=Path(args.output).name)
-    said += [f"rtval convert: note: {note}" for note in oracle_only(scene)]
+    left_out = oracle_only(scene)
+    said += [f"rtval convert: note: {note}" for note in left_out + scene.stand_ins()]
     with together():                        # the XML and its side files, or none of them
         for name, data in plys.items():
             if isinstance(data, str):
@@ -74,6 +78,6 @@ def run(args) -> int:
         atomic_write(args.output, lambda tmp: Path(tmp).write_text(xml))
     for line in said:
         print(line, file=sys.stderr)
-    print(f"{args.output}: {len(scene.objects)} shapes, {setup.columns}x{setup.rows}",
-          file=sys.stderr)
+    print(f"{args.output}: {len(scene.objects) - len(left_out)} shapes, "
+          f"{setup.columns}x{setup.rows}", file=sys.stderr)
     return 0

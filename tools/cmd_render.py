@@ -209,7 +209,6 @@ def run(args) -> int:
 def _run_mitsuba(args, outs) -> tuple[int, list]:
     """Mitsuba renders a converted XML scene with its integrator (the course image with
     'course'); the outputs are written as rtval render writes them."""
-    import json
     import numpy as np
     from rt_core.errors import InputError
     from rt_core.imageio import write_png, write_ppm
@@ -224,6 +223,10 @@ def _run_mitsuba(args, outs) -> tuple[int, list]:
             args.usage_error(f"--{flag.replace('_', '-')} does not apply with --mitsuba: the "
                              "XML scene holds the camera, the rules and max_dist (give them "
                              "to rtval convert)")
+    from .options import given
+    if given(args.precision) or args.backend != "llvm":
+        args.usage_error("--precision and --backend do not apply with --mitsuba: Mitsuba "
+                         "renders in float32 on its llvm_ad_rgb variant")
     for _, path in outs:
         check_file_target(path, make_dirs=False)
     check_input(args.scene, "scene")
@@ -246,9 +249,14 @@ def _run_mitsuba(args, outs) -> tuple[int, list]:
         raise InputError(f"{args.scene}: {e}") from None
     bad = int(np.count_nonzero(~np.isfinite(I)))
     said = []                       # the lines naming each file written
-    attrs = {"rtval.source": "mitsuba course integrator", "rtval.scene": args.scene,
+    # the course scene's provenance, as rtval convert recorded it in the XML
+    from mitsuba_ref.convert import read_provenance
+    with open(args.scene, encoding="utf-8", errors="replace") as f:
+        source = read_provenance(f.read())
+    attrs = {**source, "rtval.source": "mitsuba course integrator",
+             "rtval.scene": os.path.abspath(args.scene),
              "rtval.integrator": str(integ.to_string()),
-             "rtval.versions": json.dumps(versions())}
+             "rtval.versions": " ".join(f"{k}={v}" for k, v in versions().items())}
     if integ.aovs:          # rtval's geometry channels, names and conventions
         from mitsuba_ref.integrator import GEOMETRY
         if any(opt != "-o" for opt, _ in outs):

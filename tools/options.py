@@ -83,6 +83,15 @@ def rules_arg(text: str):
         raise argparse.ArgumentTypeError(str(e)) from None
 
 
+class Defaulted(str):
+    """An option's default value, told apart from the same value given (``given``)."""
+
+
+def given(value) -> bool:
+    """Was this option value given on the command line (not its Defaulted default)?"""
+    return not isinstance(value, Defaulted)
+
+
 def add_image_options(p: argparse.ArgumentParser, columns_required: bool = True) -> None:
     """--columns/--rows/--precision/--backend/--sampling/--rules."""
     p.add_argument("--columns", type=positive_int, required=columns_required,
@@ -90,7 +99,7 @@ def add_image_options(p: argparse.ArgumentParser, columns_required: bool = True)
                    help="image width in pixels" + ("" if columns_required else " (default 160)"))
     p.add_argument("--rows", type=positive_int, default=None,
                    help="image height (default: int(world_h / world_w * columns))")
-    p.add_argument("--precision", choices=("f32", "f64"), default="f32")
+    p.add_argument("--precision", choices=("f32", "f64"), default=Defaulted("f32"))
     p.add_argument("--backend", choices=("llvm", "cuda"), default="llvm")
     p.add_argument("--sampling", choices=("corners", "centers"), default="corners",
                    help="course corner grid (default) or pixel centres")
