@@ -381,6 +381,17 @@ def course_material(o, oid: int, rules: Rules, window=(1.0, 1.0)) -> dict:
         x, y, _ = frame(o)
         b.update({"xdir": list(x), "ydir": list(y),
                   "size": [float(o.size[0]), float(o.size[1]), 0.0]})
+    if o.kind == "triangle":
+        # uv = the barycentric weights of P2, P3 (H = P1 + u·e1 + v·e2): u = (H − P1)·xdir,
+        # v = (H − P1)·ydir with the dual pair xdir = (e2 × N)/|N|², ydir = (N × e1)/|N|²
+        P = convert_planar.points(o)
+        e1, e2 = sub(P[1], P[0]), sub(P[2], P[0])
+        N = cross(e1, e2)
+        nn = dot(N, N)
+        b.update({"xdir": [c / nn for c in cross(e2, N)], "ydir": [c / nn for c in cross(N, e1)]})
+    if o.kind == "disk":                    # uv = the hit's coordinates in the disk's frame
+        x, y, _ = convert_planar.disk_frame(o)
+        b.update({"xdir": list(x), "ydir": list(y)})
     if o.kind == "tplane":
         x, y, _ = frame(o)
         tw, th = tile_size(o, rules)

@@ -2,8 +2,8 @@
 written (mitsuba_ref/oracle_planar.py's own normal and frame):
 
 * disk -> Mitsuba's ``disk`` (the unit disk in z = 0, normal +z) with ``to_world`` columns
-  r·x̂, r·ŷ, n̂, centre: the same disk, normal and frame (Mitsuba's uv is polar, rtval's the
-  frame coordinates: compared by geometry, not uv);
+  r·x̂, r·ŷ, n̂, centre: the same disk, normal and frame (Mitsuba's own uv is polar; the
+  course integrator's AOVs write rtval's, the frame coordinates, from x̂ and ŷ);
 * triangle -> a one-triangle mesh P1 P2 P3 (Mitsuba's face normal is (P2 − P1) × (P3 − P1),
   the course's; texture coordinates (0, 0), (1, 0), (0, 1), so Mitsuba's uv is the
   barycentric uv rtval writes).  In the XML a PLY file beside it (``rtval convert`` writes

@@ -108,6 +108,8 @@ def _classes(mi):
             self.ones = {"clipped": float(kind not in ("sphere", "cylinder")),
                          "cylinder": float(kind == "cylinder"),
                          "tiled": float(kind == "tplane"), "finite": float(kind == "fplane"),
+                         # uv: the frame coordinates (a triangle's: its barycentric pair)
+                         "framed": float(kind in ("fplane", "tplane", "triangle", "disk")),
                          "radius": float(props.get("radius", 0.0)),
                          "course_id": float(props.get("course_id", -1))}
             self.m_flags = mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide
@@ -197,7 +199,8 @@ def _classes(mi):
             """The primary rays' channels in GEOMETRY's order and rtval's conventions:
             depth = distance from the viewpoint, a plane's normal as given or the sphere's or
             cylinder's outward one, the world position, a finite or tiled plane's lasthit as uv (a
-            finite plane's kept in [0, w] × [0, h]); zeros and id −1 on a miss."""
+            finite plane's kept in [0, w] × [0, h]), a triangle's barycentric pair, a disk's
+            frame coordinates; zeros and id −1 on a miss."""
             n = dr.width(d)
             o = mi.Point3f(o) + dr.zeros(mi.Vector3f, n)
             self.tab = self._tables(scene)
@@ -207,7 +210,7 @@ def _classes(mi):
             planar = one("clipped") > 0.5
             N = self._normal(att, p)
             rel = p - mi.Point3f(att("point"))
-            lasthit = planar & ((one("tiled") > 0.5) | (one("finite") > 0.5))
+            lasthit = planar & (one("framed") > 0.5)
             u = dr.select(lasthit, dr.dot(rel, att("xdir")), 0.0)
             v = dr.select(lasthit, dr.dot(rel, att("ydir")), 0.0)
             size = att("size")
