@@ -77,7 +77,9 @@ def _reason(text: str, path: str) -> str:
     for form in (f' "{path}"', f" ({path})", f" {path}", path):
         line = line.replace(form, "")
     line = line.replace(" :", ":").replace("  ", " ").strip(" .")
-    return line.split(". ")[0] or "no reason given"
+    line = line.split(". ")[0]
+    # ('could not find a format reader for "x.dat"', the name taken out)
+    return (line + " it" if line.endswith(" for") else line) or "no reason given"
 
 
 def _needs_bytes(path: str, error, spec, bytes_per_value: int) -> None:

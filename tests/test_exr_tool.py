@@ -606,7 +606,7 @@ def test22_ppm_and_png_are_compared_like_exrs(tmp_path, capsys):
     write_png(str(png), px)
     write_png(str(other), changed)
     code, r = run_json(capsys, "diff", ppm, png)
-    assert code == 0 and r["max_error"] == 0 and r["channels"] == ["B", "G", "R"]
+    assert code == 0 and r["max_error"] == 0 and r["channels"] == ["R", "G", "B"]   # (the file's order)
     assert r["psnr"] == "inf"
     code, r = run_json(capsys, "diff", ppm, other)
     assert code == 2 and r["failing_pixels"] == 1

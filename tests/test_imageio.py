@@ -78,6 +78,8 @@ def test03_course_ppm_bytes_and_channels_of_each_format(tmp_path):
     ("over1.ppm", b"P3 2 1 255 256 2 3 # 999\n0 0 0\n", "ppm:1: sample 256 above the maxval"),
     ("over2.ppm", b"P3 2 1 255\n# 999\n1 2 3 0 0\n0 7 400\n", "ppm:4: sample 400 above"),
     ("empty.png", b"", "the file is empty"),
+    # OpenImageIO's 'could not find a format reader for "x"' without the name read 'for)'
+    ("notimg.dat", b"hello\n", "could not find a format reader for it)"),
 ])
 def test04_unreadable_images_are_one_line(tmp_path, name, data, why, capfd):
     p = tmp_path / name

@@ -77,8 +77,11 @@ def load(path, deep_ok: bool = False) -> Image:
     data = read_channels(path, deep_ok, "EXR or other image", ExrError)
     if not data.types:
         raise ExrError(f"{path}: the file has no channels")
-    return Image(path, {k: data.channels[k] for k in sorted(data.channels)}, data.header,
-                 {k: data.types[k] for k in sorted(data.types)}, data)
+    # (an EXR's channels by name, as OpenEXR stores them; another image's in its own
+    # order, R, G, B)
+    order = sorted if data.format == "openexr" else list
+    return Image(path, {k: data.channels[k] for k in order(data.channels)}, data.header,
+                 {k: data.types[k] for k in order(data.types)}, data)
 
 
 def select_channels(img: Image, requested=None) -> list[str]:
