@@ -401,9 +401,9 @@ def _conditions(obj: XObject, V, d: np.ndarray, rules: Rules) -> dict:
     n = len(d)
     fl = lambda vals: [float(x) for x in vals]
     base = fl(V) + [d[:, 0], d[:, 1], d[:, 2]]
-    if obj.kind in quadric.KINDS:
-        return quadric.conditions(obj, V, d, _Dual, _inputs, _ddot)
-    with np.errstate(all="ignore"):
+    with np.errstate(all="ignore"):     # (as every kind's: extreme scales give inf or NaN)
+        if obj.kind in quadric.KINDS:
+            return quadric.conditions(obj, V, d, _Dual, _inputs, _ddot)
         if obj.kind == "sphere":
             x = _inputs(base + fl(obj.center) + [float(obj.radius)], n)
             Vv, dv, C, r = x[0:3], x[3:6], x[6:9], x[9]
@@ -662,6 +662,9 @@ def ideal_rays(window, viewpoint, columns: int, rows: int, pixels, sampling: str
     their denominator, and the unit directions rounded to float64."""
     E, L = _offsets(window, viewpoint, columns, rows, pixels, sampling)
     rays = [(e, L) for e in E]
-    d = np.array([[c / L for c in e] for e in E], np.float64).reshape(-1, 3)
+    # (each ray divided by its largest component, not by L: at a scene scale of 1e-155 the
+    # float directions' squared norm underflowed to 0 and d came out NaN)
+    d = np.array([[c / max(map(abs, e)) if any(e) else 0.0 for c in e] for e in E],
+                 np.float64).reshape(-1, 3)
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     return rays, d

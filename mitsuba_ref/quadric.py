@@ -205,7 +205,17 @@ def _sgn2(p, q, r, u, v) -> int:
 
 
 def _float(p, q, r) -> float:
-    return float(p) + float(q) * math.sqrt(float(r))
+    """p + q√r as a float; beyond a float's range term by term (a scene at 1e-155: 1/A near
+    1e310), in 60-digit decimal arithmetic."""
+    try:
+        return float(p) + float(q) * math.sqrt(float(r))
+    except OverflowError:
+        import decimal
+        with decimal.localcontext() as ctx:
+            ctx.prec = 60
+            dec = lambda x: (decimal.Decimal(Fraction(x).numerator) /
+                             decimal.Decimal(Fraction(x).denominator))
+            return float(dec(p) + dec(q) * dec(r).sqrt())
 
 
 class Prep:

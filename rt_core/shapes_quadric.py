@@ -25,7 +25,10 @@ each root's t, each root's y and h − y, A's sign, the roots' order, the clip's
 first-order bound computed per ray from the absolute values of the same terms (KQ units of
 roundoff per term: the inputs carry a few units each, the frame's rounding included, and the
 polynomials are of degree at most 4).  A ray is ``sure`` when every value is beyond its bound;
-otherwise it is unsure and rt_core/decide.py decides it exactly.
+otherwise it is unsure and rt_core/decide.py decides it exactly.  Relative bounds hold only
+away from underflow: the discriminant's bound has ``UNDERFLOW`` (2⁻⁹⁰⁰) added, so that a scene
+so small that its squares are subnormal (1e-155 and below) is decided exactly ray by ray, as
+the other kinds' are there.
 """
 from __future__ import annotations
 
@@ -41,6 +44,7 @@ from .scene import exact, unit
 from .shapes import KB, U64, ObjectConstants, clip_ok, opaque, opaque3, rounded
 
 KQ = 4 * KB * U64          # the bound per unit of |term| (128 units of float64 roundoff)
+UNDERFLOW = 2.0 ** -900    # a discriminant this near 0 is never certain (module docstring)
 
 
 @dataclass(frozen=True)
@@ -200,6 +204,10 @@ def quadric_t(d, o, obj, rules: Rules, vz: float, cert=False):
     if clip:
         bz = dr.abs(t) * rel * dr.abs(d.z) + k * (dr.abs(zo) + dr.abs(t * d.z))
         sure &= dr.abs(z) > bz
+    # (and never within UNDERFLOW of 0: the bounds are relative, and below ~2⁻¹⁰²² the
+    # products they bound lose their digits; a cylinder at 1e-155 had e·A and the squares
+    # subnormal, bd 0, and every ray certified a miss)
+    bd = bd + dr.opaque(F, UNDERFLOW)
     sure = (disc <= -bd) | ((disc > bd) & sure)
     lf = 1 - rel - k
     return t, hit & sure, hit | ~sure, lf
@@ -223,7 +231,10 @@ def quadric_normal(ks, d, t, idx, hit, o=None):
     w = dr.fma(d, t, -q) if o is None else dr.fma(d, t, o - q)
     lw = [dr.dot(g, w) for g in G]
     n = G[0] * lw[0] + G[1] * lw[1] + G[2] * (w2 * lw[2])
-    return dr.normalize(n)
+    # scaled by its largest component first: at a scene scale of 1e-155 its squared norm
+    # underflows to 0 (a NaN normal); the scaling is exact but for the division's rounding
+    m = dr.maximum(dr.maximum(dr.abs(n.x), dr.abs(n.y)), dr.abs(n.z))
+    return dr.normalize(n / dr.select(m > 0, m, 1))
 
 
 def is_quadric(kind) -> bool:
