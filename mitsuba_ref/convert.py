@@ -564,13 +564,15 @@ def _check_float32(scene: Scene, d: dict) -> None:
     # large that its float32 hit points are coarser than the window (a sphere 1e20 away put
     # them ~1e15 off, every plane pixel then 'explained' by the clip's bound)
     if any(not KINDS[o.kind].bounded for o in scene.objects):
+        # (over 1024 windows: rtval stability's far viewpoints, whose stand-ins reach a grain
+        # of a few windows, are compared, their bounds taking it into account)
         grain = plane_extent(scene) * 2.0 ** -24
-        if not grain <= min(scene.window) * 2.0 ** -10:
+        if not grain <= 1024 * min(scene.window):
             raise InputError(f"{scene.path}: the rectangles standing in for its infinite "
                              f"planes would span {plane_extent(scene):.3g} (64 x the scene's "
                              f"extent), too large for Mitsuba's float32 to place a hit within "
-                             f"1/1024 of the window; this scene can be rendered by rt_core in "
-                             "f64 but not converted")
+                             f"1024 windows; this scene can be rendered by rt_core in f64 but "
+                             "not converted")
     # Mitsuba's sphere test forms |o − c|² − r² in float32 (llvm_ad_rgb), o the ray's
     # origin: from the viewpoint, beyond the range it is inf, and every ray misses (a sphere
     # 3e20 away: no hit, where rt_core f64 sees the plane in front of it)

@@ -375,8 +375,8 @@ PANEL = "fplane\n0 0 0\n1 1 1\n0 0 0\n0 0 1\n-1 -1 -3\n1 0 0\n2 2\n"
     ("sphere\n0 0 0\n1 1 1\n0 0 0\n0 0 -3e20\n2e20\n" + PANEL, "squares 5e+20"),
     # one far object makes the infinite plane's stand-in too large for float32 hit points:
     # compare --shaded passed such a scene, every plane pixel 'explained' by the clip's bound
-    ("fplane\n0 0 0\n1 1 1\n0 0 0\n0 0 1\n0 0 -1e9\n1 0 0\n2 2\n" + PLANE,
-     "standing in for its infinite planes would span 6.4e+10")])
+    ("fplane\n0 0 0\n1 1 1\n0 0 0\n0 0 1\n0 0 -1e12\n1 0 0\n2 2\n" + PLANE,
+     "standing in for its infinite planes would span 6.4e+13")])
 def test41b_beyond_mitsubas_float32_is_refused(objs, why, tmp_path):
     scene = tmp_path / "big.txt"
     scene.write_text("8 6\n0 0 5\npointlight\n1 1 1\n2 3 4\n" + objs)
