@@ -22,10 +22,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .inputfile import check_input
+from .inputfile import LIMITS, check_input
 from .native import native_output_captured
 from .outputs import atomic_write
 from .usererror import InputError
+
+EXR_MAGIC = b"\x76\x2f\x31\x01"       # the first four bytes of every OpenEXR file
 
 
 class ImageError(ValueError):
@@ -103,6 +105,10 @@ def open_input(path, what: str = "image", error=ImageError):
         raise error(f"{path}: no such file")
     try:
         size = check_input(path, what)
+        if what == "EXR or other image" and size > LIMITS["image"]:
+            with open(path, "rb") as f:         # an EXR's limit only for an EXR
+                if f.read(4) != EXR_MAGIC:
+                    check_input(path, "image")
     except InputError as exc:
         raise error(str(exc)) from None
     except OSError as exc:

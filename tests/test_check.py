@@ -603,3 +603,21 @@ def test14_a_bad_hit_dump_is_bad_input(ctracer, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"{hits}:2:" in err[0]
     assert main(["check", str(scene), str(img), "--hits", str(tmp_path / "none")]) == 2
+    capsys.readouterr()
+    # an object number beyond any integer type (a traceback before)
+    hits.write_text("0 0 0 1.5\n5 0 99999999999999999999 0\n")
+    assert main(["check", str(scene), str(img), "--hits", str(hits)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{hits}:2: object 99999999999999999999" in err[0], err
+    # a t of NaN on a hit: --json stays strict JSON ("nan", not a bare NaN token)
+    img = _render(ctracer / "course", scene, 40, tmp_path, hits=True)
+    lines = img.with_suffix(".hits").read_text().splitlines()
+    k = next(i for i, ln in enumerate(lines) if ln.split()[2] != "-1")
+    lines[k] = " ".join(lines[k].split()[:3] + ["nan"])
+    hits.write_text("\n".join(lines) + "\n")
+    main(["check", str(scene), str(img), "--hits", str(hits), "--json"])
+    out = capsys.readouterr().out
+
+    def refuse(token):
+        raise ValueError(token)
+    json.loads(out, parse_constant=refuse)

@@ -48,7 +48,15 @@ def test02_did_you_mean(args, said):
      "--timeout: must be > 0"),
     (("render", SPHERE, "--columns", 8, "--ppm", "x.ppm", "--texture-dir", "no/such/dir"),
      "--texture-dir: no directory 'no/such/dir'"),
-], ids=["timeout-0", "texture-dir"])
+    # (a robustness review: each was a traceback, or a run that grew without bound)
+    (("check", SPHERE, "--run", "x {scene} {out}", "--columns", 8, "--timeout", 2200000),
+     "--timeout: at most 1e+06 seconds"),
+    (("bench", "--threads", 99999), "--threads: at most 1024"),
+    (("bench", "--objects", 99999999), "--objects: at most 65536"),
+    (("bench", "--shaded", "--lights", 99999999), "--lights: at most 64"),
+    (("validate", SPHERE, "--workers", 200), "--workers: at most 64 local worker processes"),
+], ids=["timeout-0", "texture-dir", "timeout-huge", "threads", "objects", "lights",
+        "workers"])
 def test02b_invalid_option_values(args, said):
     r = rtval(*args)
     err = r.stderr.strip()

@@ -27,11 +27,32 @@ class Terminated(BaseException):
         self.signum = signum
 
 
+# the signal that arrived (a library may wrap the exception it raised: see _interrupted)
+_SIGNALLED: list = []
+
+
 def _terminate(signum, frame):
     from rt_core.outputs import held
     if held(signum):                # a temporary being created: raised again right after
         return
+    _SIGNALLED.append(signum)
     raise Terminated(signum)
+
+
+def _interrupted(e: BaseException):
+    """The Terminated or KeyboardInterrupt behind ``e``: Dr.Jit and Mitsuba re-raise an
+    exception from Python code they run (a custom op, an if_stmt's branch, a plugin's
+    constructor) as a RuntimeError, chained or by its message only."""
+    seen = e
+    while seen is not None:
+        if isinstance(seen, (Terminated, KeyboardInterrupt)):
+            return seen
+        seen = seen.__cause__ or seen.__context__
+    if _SIGNALLED:
+        return Terminated(_SIGNALLED[-1])
+    if "KeyboardInterrupt" in str(e):
+        return KeyboardInterrupt()
+    return None
 
 
 class Parser(argparse.ArgumentParser):
@@ -136,6 +157,16 @@ def main(argv=None) -> int:
         return getattr(e, "exit_code", 2)
     except KeyboardInterrupt:
         cleanup()
+        print("rtval: interrupted", file=sys.stderr)
+        return 130
+    except Exception as e:              # a signal that a library wrapped, or a bug of ours
+        why = _interrupted(e)
+        if why is None:
+            raise
+        cleanup()
+        if isinstance(why, Terminated):
+            print(f"rtval: terminated by {signal.Signals(why.signum).name}", file=sys.stderr)
+            return 128 + why.signum
         print("rtval: interrupted", file=sys.stderr)
         return 130
 

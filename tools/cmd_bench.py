@@ -6,7 +6,7 @@ import os
 import sys
 import tempfile
 
-from .options import positive_int
+from .options import at_most, positive_int
 
 # tools.harness.bench's DEFAULT_OBJECTS and SCENES (not imported here: importing rt_core loads
 # Dr.Jit, which must see DRJIT_CACHE_DIR first; tests/test_report.py checks they agree)
@@ -15,6 +15,10 @@ SCENES = ("fplanes", "spheres", "mixed")
 # tools.harness.bench_shaded's SHADED_OBJECTS, DEFAULT_LIGHTS and TRACERS (same reason)
 SHADED_OBJECTS = (1, 16, 256, 4096)
 DEFAULT_LIGHTS = 4
+# the largest object count and light count a bench takes (16 and 16 times the largest it
+# reports on; beyond, its tables grow without a memory guard)
+MAX_OBJECTS = 1 << 16
+MAX_LIGHTS = 64
 SHADED_TRACERS = ("rt_core-f32", "rt_core-f64", "mitsuba")
 
 
@@ -26,7 +30,8 @@ def add_parser(sub) -> None:
                                    "one process: Mrays/s, first call (compilation), scene "
                                    "preparation, peak memory, and the ratio rt_core/Mitsuba. "
                                    "Compare ratios, not absolute times, on a shared machine.")
-    p.add_argument("--objects", type=positive_int, nargs="+", default=None,
+    p.add_argument("--objects", type=at_most(MAX_OBJECTS, "the scenes' tables grow with it"),
+                   nargs="+", default=None,
                    metavar="N", help=f"object counts (default: {' '.join(map(str, DEFAULT_OBJECTS))}; "
                                      f"--shaded: {' '.join(map(str, SHADED_OBJECTS))})")
     p.add_argument("--scenes", nargs="+", choices=SCENES, default=list(SCENES),
@@ -36,7 +41,8 @@ def add_parser(sub) -> None:
     p.add_argument("--reps", type=positive_int, default=None,
                    help="timed calls per tracer, round-robin (default 9; --shaded 5); the "
                         "median counts")
-    p.add_argument("--threads", type=positive_int, default=None,
+    p.add_argument("--threads", type=at_most(1024, "each is a thread of Dr.Jit's pool"),
+                   default=None,
                    help="Dr.Jit worker threads (default: Dr.Jit's, one per core)")
     p.add_argument("--brute", action="store_true",
                    help="also time rt_core f32 without screen-space bins (a loop over every "
@@ -49,7 +55,8 @@ def add_parser(sub) -> None:
                         "per light per hit, one reflection bounce with its shadows) against "
                         "Mitsuba casting the same rays (ray_intersect_preliminary, ray_test) on "
                         "the scenes with reflective objects and --lights lights")
-    p.add_argument("--lights", type=positive_int, default=DEFAULT_LIGHTS,
+    p.add_argument("--lights", type=at_most(MAX_LIGHTS, "each is a shadow ray a pixel"),
+                   default=DEFAULT_LIGHTS,
                    help=f"--shaded: point lights (default {DEFAULT_LIGHTS})")
     p.add_argument("--tracers", nargs="+", choices=SHADED_TRACERS,
                    default=list(SHADED_TRACERS),

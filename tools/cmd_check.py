@@ -2,10 +2,9 @@
 explained (tools/harness/check.py)."""
 from __future__ import annotations
 
-import json
 import sys
 
-from .options import (add_max_dist, add_parallel, add_rules, add_texture_dir, positive_float,
+from .options import (add_max_dist, add_parallel, add_rules, add_texture_dir, timeout_seconds,
                       positive_int)
 
 
@@ -34,7 +33,7 @@ def add_parser(sub) -> None:
     add_texture_dir(p)
     p.add_argument("--hits", metavar="FILE",
                    help="a hit dump of the image: 'column row object t' per pixel")
-    p.add_argument("--timeout", type=positive_float, default=60.0, metavar="S",
+    p.add_argument("--timeout", type=timeout_seconds, default=60.0, metavar="S",
                    help="with --run: seconds before a run is killed (default 60)")
     p.add_argument("--report", metavar="DIR",
                    help="write an HTML report into DIR (new, empty or an earlier report): "
@@ -82,9 +81,9 @@ def run(args) -> int:
                              "run a tracer on several scenes use --run")
         results = [check_image(args.inputs[0], args.inputs[1], columns=args.columns,
                                rows=args.rows, hits_path=args.hits, **kw)]
-    if args.json:
-        json.dump([r.summary() for r in results], sys.stdout, indent=1)
-        print()
+    if args.json:                       # (strict JSON: a t of NaN in a hit dump as "nan")
+        from rt_core.outputs import json_text
+        sys.stdout.write(json_text([r.summary() for r in results]))
     else:
         print(text_report(results))
     if args.junit:

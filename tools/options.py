@@ -48,6 +48,41 @@ def positive_float(text: str) -> float:
     return v
 
 
+MAX_TIMEOUT = 1e6     # seconds (11 days): above, Python's waits overflow (a traceback)
+
+
+def timeout_seconds(text: str) -> float:
+    """A timeout: a number > 0 and at most MAX_TIMEOUT seconds."""
+    v = positive_float(text)
+    if v > MAX_TIMEOUT:
+        raise argparse.ArgumentTypeError(f"at most {MAX_TIMEOUT:g} seconds, got {text}")
+    return v
+
+
+def at_most(limit: int, why: str):
+    """An argparse type: a whole number > 0 and at most ``limit`` (``why``: what the limit
+    keeps from happening, said when it is exceeded)."""
+    def parse(text: str) -> int:
+        v = positive_int(text)
+        if v > limit:
+            raise argparse.ArgumentTypeError(f"at most {limit}, got {v} ({why})")
+        return v
+    return parse
+
+
+def worker_count(text: str) -> int:
+    """--workers: 0 and up, at most MAX_WORKERS (each is a process of its own)."""
+    v = count(text)
+    if v > MAX_WORKERS:
+        raise argparse.ArgumentTypeError(f"at most {MAX_WORKERS} local worker processes, got "
+                                         f"{v}; for more, start a Dask cluster and give "
+                                         "--scheduler")
+    return v
+
+
+MAX_WORKERS = 64
+
+
 def existing_dir(text: str) -> str:
     """A directory that exists (a typo in it would otherwise go unnoticed)."""
     import os
@@ -149,7 +184,7 @@ def add_parallel(p: argparse.ArgumentParser, what: str) -> None:
     (tools/harness/parallel.py; ``parallel.plan_of(args)`` reads them)."""
     g = p.add_argument_group("where the work runs (Dask)")
     x = g.add_mutually_exclusive_group()
-    x.add_argument("--workers", type=count, default=None, metavar="N",
+    x.add_argument("--workers", type=worker_count, default=None, metavar="N",
                    help=f"run the {what} on a local Dask cluster of N worker processes "
                         "(default: one per core when the run would take 30 s or more in "
                         "this process); 0 or 1: in this process")

@@ -860,6 +860,9 @@ def read_hits(path: str, W: int, H: int):
                                  f"number t, found {line.strip()[:40]!r}") from None
             if not (0 <= x < W and 0 <= y < H):
                 raise ValueError(f"{path}:{no}: pixel ({x}, {y}) is outside the {W}x{H} image")
+            if not -1 <= k < 2 ** 31:
+                raise ValueError(f"{path}:{no}: object {k} is no object number (expected -1 "
+                                 "for a miss, or 0 and up)")
             ids[y, x], ts[y, x] = k, t
     return ids, ts
 
