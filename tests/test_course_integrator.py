@@ -252,6 +252,26 @@ def test07b_porting_outputs_say_what_they_came_from(tmp_path):
     assert "rtval compare: note: " in r.stderr and "torus" in r.stderr, r.stderr
 
 
+@pytest.mark.parametrize("rows, said", [("0", "image is 16x0; the course's corner sampling"),
+                                        ("99999", "needs ~")])
+def test07c_render_mitsuba_guards_the_xmls_image(tmp_path, rows, said):
+    """A hand-edited XML: an image too small for the course's samples, or too large for
+    memory (99999 x 99999 took numpy to 74.5 GiB, a traceback), refused before tracing."""
+    xml = tmp_path / "s.xml"
+    assert _rtval("convert", ROOT / "scenes" / "sphere.txt", "--columns", 16, "--shading",
+                  "-o", xml).returncode == 0
+    text = xml.read_text()
+    assert '<integer name="rows" value="12"/>' in text
+    text = text.replace('<integer name="rows" value="12"/>', f'<integer name="rows" value="{rows}"/>')
+    if rows == "99999":
+        text = text.replace('<integer name="columns" value="16"/>',
+                            '<integer name="columns" value="99999"/>')
+    xml.write_text(text)
+    r = _rtval("render", "--mitsuba", xml, "--png", tmp_path / "m.png")
+    assert r.returncode == 2 and said in r.stderr and len(r.stderr.splitlines()) == 1, r.stderr
+    assert not (tmp_path / "m.png").exists()
+
+
 def test08_compare_shaded_cli(tmp_path):
     r = _rtval("compare", "--shaded", ROOT / "scenes" / "mixed.txt", "--columns", 24,
                "--evidence", tmp_path)

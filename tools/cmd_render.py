@@ -243,6 +243,15 @@ def _run_mitsuba(args, outs) -> tuple[int, list]:
                          "course scene with rtval convert --shading")
     if args.explain or args.shade:
         args.usage_error("--explain and --shade do not apply with --mitsuba")
+    # the XML's image: too small for the course's samples, or too large for memory, refused
+    # before Mitsuba traces (a hand-edited 99999 x 99999 took numpy to 74.5 GiB)
+    W, H = integ.columns, integ.rows
+    if W < 2 or H < 2:
+        raise InputError(f"{args.scene}: the course integrator's image is {W}x{H}; the "
+                         "course's corner sampling needs 2 columns and 2 rows at least")
+    from rt_core.memory import compare_bytes, guard
+    guard(lambda px: compare_bytes(px, "f32"), f"{args.scene}: render --mitsuba", W, H,
+          "(convert the scene again with fewer --columns)")
     try:
         I = np.asarray(integ.render(ms, 0), np.float32)
     except ValueError as e:         # the integrator's own refusals: one line
