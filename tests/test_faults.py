@@ -599,6 +599,32 @@ def test17_devices_fifos_directories_and_huge_files_are_refused(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["big.ppm", "big.txt", "fifo"]
 
 
+def test04f_report_outputs_all_or_none(full_dir, tmp_path):
+    """A robustness review: check's JUnit stayed when its --report hit a full disk,
+    validate's report.md/json when its --junit did, stability's plot when its --json did.
+    Each command's files are now written together: all of them, or none."""
+    from rt_core.imageio import write_ppm
+    from tools.harness.check import Renderer
+    from rt_core.rules import Rules
+    from rt_core.parser import parse_scene
+    img = tmp_path / "ours.ppm"
+    write_ppm(str(img), Renderer(parse_scene(SEED), 16, 12).image(Rules(), 1000.0))
+    cases = [(("check", SEED, img, "--junit", tmp_path / "j.xml", "--report",
+               full_dir / "r"), "full"),
+             (("validate", SEED, "--columns", 16, "--shaded-columns", 0, "-o", tmp_path / "v",
+               "--junit", "/dev/full"), "/dev/full"),
+             (("stability", "--quick", "-o", tmp_path / "st", "--json", "/dev/full"),
+              "/dev/full")]
+    for args, where in cases:
+        r = rtval(*args, timeout=300)
+        err = r.stderr.strip().splitlines()
+        # (validate's progress lines come first)
+        assert r.returncode == 2 and "Traceback" not in r.stderr, (args, r.stderr)
+        assert "cannot write: no space left on device" in err[-1], (args, err)
+    assert sorted(os.listdir(tmp_path)) == ["ours.ppm"]
+    assert sorted(os.listdir(full_dir)) == ["fill"]
+
+
 def test04e_mitsuba_render_outputs_all_or_none(full_dir, tmp_path):
     """rtval render --mitsuba (a convert --shading scene): -o fine, --ppm on a full disk: the
     EXR is not left behind."""

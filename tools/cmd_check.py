@@ -86,17 +86,21 @@ def run(args) -> int:
         sys.stdout.write(json_text([r.summary() for r in results]))
     else:
         print(text_report(results))
-    if args.junit:
-        text = junit_xml(results)
+    from rt_core.outputs import together
+    page = None
+    with together():                    # the JUnit and the report: both or neither
+        if args.junit:
+            text = junit_xml(results)
 
-        def write(tmp):
-            with open(tmp, "w", encoding="utf-8") as f:
-                f.write(text)
-        atomic_write(args.junit, write)
-    if args.report:
-        from tools.harness.html_report import check_report
-        page = check_report(args.report, results, run=args.run, rows=args.rows, hits=args.hits,
-                            timeout=args.timeout, **kw)
+            def write(tmp):
+                with open(tmp, "w", encoding="utf-8") as f:
+                    f.write(text)
+            atomic_write(args.junit, write)
+        if args.report:
+            from tools.harness.html_report import check_report
+            page = check_report(args.report, results, run=args.run, rows=args.rows,
+                                hits=args.hits, timeout=args.timeout, **kw)
+    if page:
         print(f"report: {page}", file=sys.stderr)
     single = len(results) == 1 and not args.run
     if single and results[0].status in ("error", "refused"):

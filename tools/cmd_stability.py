@@ -94,18 +94,23 @@ def run(args) -> int:
     meta = dict(mode=mode, seeds=list(seeds), backend="llvm", precisions="f32 f64",
                 reference="mitsuba llvm_ad_rgb", **versions(), ran=plan.describe())
     plot = os.path.join(args.output, "stability.png")
-    S.write_plot(results, plot, {f"rtval.{k}": v for k, v in meta.items()})
-    print(f"plot: {plot}", file=sys.stderr)
+    from rt_core.outputs import together
+    said = []
+    with together():                    # the plot, the JSON and the JUnit: all or none
+        S.write_plot(results, plot, {f"rtval.{k}": v for k, v in meta.items()})
+        said.append(f"plot: {plot}")
+        if args.json and not to_json:
+            S.write_json(results, args.json, meta)
+            said.append(f"json: {args.json}")
+        if args.junit:
+            from tools.harness.junit import stability_cases, write_junit
+            write_junit(args.junit, "rtval stability", stability_cases(results))
+            said.append(f"junit: {args.junit}")
+    for line in said:                   # each file named once all are in place
+        print(line, file=sys.stderr)
     if to_json:
         from rt_core.outputs import json_text
         print(json_text(S.report_data(results, meta)), end="")
-    elif args.json:
-        S.write_json(results, args.json, meta)
-        print(f"json: {args.json}", file=sys.stderr)
-    if args.junit:
-        from tools.harness.junit import stability_cases, write_junit
-        write_junit(args.junit, "rtval stability", stability_cases(results))
-        print(f"junit: {args.junit}", file=sys.stderr)
     bad = [fam for fam, f in summ.items() if not f["ok"]]
     if bad:
         print(f"rtval stability: bar not met in: {', '.join(bad)}", file=sys.stderr)

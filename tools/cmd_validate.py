@@ -101,15 +101,19 @@ def run(args) -> int:
     done()
     meta = dict(columns=args.columns, backend="llvm", reference="mitsuba llvm_ad_rgb",
                 **versions(), ran=plan.describe())
-    md, js = write_report(results, skipped, args.output, meta)
-    if args.junit:
-        from tools.harness.junit import write_junit
-        from tools.harness.validate import comparison_cases, skip_case
-        write_junit(args.junit, "rtval validate", comparison_cases(results, "rtval.validate")
-                    + [skip_case(s) for s in skipped])
-    if args.report:
-        from tools.harness.html_report import comparisons_report
-        page = comparisons_report(args.report, "rtval validate", results, skipped, meta=meta)
+    from rt_core.outputs import together
+    page = None
+    with together():                    # the reports and the JUnit: all or none
+        md, js = write_report(results, skipped, args.output, meta)
+        if args.junit:
+            from tools.harness.junit import write_junit
+            from tools.harness.validate import comparison_cases, skip_case
+            write_junit(args.junit, "rtval validate", comparison_cases(results, "rtval.validate")
+                        + [skip_case(s) for s in skipped])
+        if args.report:
+            from tools.harness.html_report import comparisons_report
+            page = comparisons_report(args.report, "rtval validate", results, skipped, meta=meta)
+    if page:
         print(f"report: {page}", file=sys.stderr)
     bad = [r for r in results if not r["ok"]]
     from tools.harness.timing import split_line, time_split
