@@ -122,9 +122,15 @@ def scene_constants(scene: Scene) -> list:
 
 def _overflow(scene: Scene, obj) -> SceneError:
     """The error for an object too far from the viewpoint for float64, at whichever of the
-    two has the larger coordinate (the one at fault)."""
+    two has the larger coordinate (the one at fault), or at a radius larger than both."""
     name = "center" if hasattr(obj, "center") else "point"
     pos = obj.center if hasattr(obj, "center") else obj.point
+    r = getattr(obj, "radius", None)
+    if isinstance(r, (int, float)) and abs(r) > max(map(abs, (*pos, *scene.viewpoint))):
+        # a radius larger than every coordinate: its square is what overflows
+        line, col = locate(obj, "radius")
+        return SceneError(f"{obj.kind}: its radius {r:g} squared overflows float64; numbers "
+                          "this large are out of range", scene.path, line, col)
     i = max(range(3), key=lambda k: max(abs(pos[k]), abs(scene.viewpoint[k])))
     if abs(scene.viewpoint[i]) >= abs(pos[i]):
         line, col = scene.at_viewpoint(i)

@@ -55,8 +55,10 @@ def test02_did_you_mean(args, said):
     (("bench", "--objects", 99999999), "--objects: at most 65536"),
     (("bench", "--shaded", "--lights", 99999999), "--lights: at most 64"),
     (("validate", SPHERE, "--workers", 200), "--workers: at most 64 local worker processes"),
+    # an empty value was taken as not given: no report, exit 0
+    (("check", SPHERE, SPHERE, "--report", ""), "argument --report: an empty value"),
 ], ids=["timeout-0", "texture-dir", "timeout-huge", "threads", "objects", "lights",
-        "workers"])
+        "workers", "empty"])
 def test02b_invalid_option_values(args, said):
     r = rtval(*args)
     err = r.stderr.strip()

@@ -197,6 +197,11 @@ def test11_float64_overflow_is_one_line(tmp_path):
     scene.write_text(SPHERE_AT.format(z="-1", r="1").replace("0 0 3", "0 0 1e300"))
     r = rtval("render", scene, "--columns", 16, "--precision", "f64", "-o", tmp_path / "a.exr")
     assert r.returncode == 2 and "huge.txt:2:5: header: the viewpoint" in r.stderr
+    # a radius whose square overflows is the radius's fault (it blamed the viewpoint, 9
+    # units from the centre: a robustness review)
+    scene.write_text(SPHERE_AT.format(z="-1", r="1e200"))
+    r = rtval("render", scene, "--columns", 16, "--precision", "f64", "-o", tmp_path / "a.exr")
+    assert r.returncode == 2 and "huge.txt:8:1: sphere: its radius 1e+200" in r.stderr, r.stderr
 
 
 def test12_values_beyond_float32_in_an_f64_render_are_counted(tmp_path):
@@ -221,6 +226,10 @@ def test13_nan_in_shading_reaches_the_image_and_is_counted(tmp_path):
     assert r.returncode == 1 and "NON-FINITE" in r.stderr and "Warning" not in r.stderr
     ch, hdr = read_exr(tmp_path / "n.exr")
     assert np.isnan(ch["R"]).any() and int(hdr["rtval.nonfinite"]) > 0
+    # the PNG records the same count (it had none: a robustness review)
+    from rt_core.imageio import read_channels
+    assert read_channels(str(tmp_path / "n.png")).header["rtval.nonfinite"] == \
+        hdr["rtval.nonfinite"]
 
 
 def test14_output_paths(tmp_path):

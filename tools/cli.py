@@ -48,7 +48,7 @@ def _interrupted(e: BaseException):
         if isinstance(seen, (Terminated, KeyboardInterrupt)):
             return seen
         seen = seen.__cause__ or seen.__context__
-    if _SIGNALLED:
+    if _SIGNALLED and isinstance(e, RuntimeError):     # (the wrappers' type)
         return Terminated(_SIGNALLED[-1])
     if "KeyboardInterrupt" in str(e):
         return KeyboardInterrupt()
@@ -81,7 +81,13 @@ class Parser(argparse.ArgumentParser):
             if name.startswith("--") and name not in known and not any(
                     k.startswith(name) for k in known):
                 self.error(f"unrecognized option {name}")
-        return super().parse_known_args(args, namespace)
+        ns, rest = super().parse_known_args(args, namespace)
+        # an option given an empty value ("--report ''", a shell variable unset) is a
+        # mistake: it was taken as "not given" and the output silently not written
+        for a in self._actions:
+            if a.option_strings and getattr(ns, a.dest, None) == "":
+                self.error(f"argument {'/'.join(a.option_strings)}: an empty value")
+        return ns, rest
 
 
 def _suggestion(parser, message: str) -> str:
@@ -135,6 +141,7 @@ def main(argv=None) -> int:
         args.before_import(args)
     from rt_core.errors import USER_ERRORS
     from rt_core.outputs import cleanup
+    _SIGNALLED.clear()                  # (this run's signals only: tests call main again)
     for sig in (signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, _terminate)
     try:

@@ -168,8 +168,8 @@ def run(args) -> int:
                     write_images(path, images, attrs, args.compression)
                 elif opt == "--ppm":
                     write_ppm(path, pixels)
-                else:
-                    write_png(path, pixels, attrs)
+                else:       # (its count of non-finite intensities, as the EXR's)
+                    write_png(path, pixels, {**attrs, "rtval.nonfinite": str(bad)})
             except WriteError:
                 raise                       # one line naming the target already
             except OSError as e:
@@ -287,7 +287,7 @@ def _run_mitsuba(args, outs) -> tuple[int, list]:
         elif opt == "--ppm":
             write_ppm(path, pixels)
         else:
-            write_png(path, pixels, attrs)
+            write_png(path, pixels, {**attrs, "rtval.nonfinite": str(bad)})
         said.append(f"{path}: {I.shape[1]}x{I.shape[0]} shaded by Mitsuba's course "
                     f"integrator, {_n(integ.stats.get('bounces', 0), 'reflection bounce')}"
                     + (f", {bad} NON-FINITE values" if bad else ""))
