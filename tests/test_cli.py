@@ -46,6 +46,9 @@ def test02_did_you_mean(args, said):
 @pytest.mark.parametrize("args, said", [
     (("check", SPHERE, "--run", "x {scene} {out}", "--columns", 8, "--timeout", 0),
      "--timeout: must be > 0"),
+    # (a negative number read 'must be >= 0', which 0 is not)
+    (("check", SPHERE, "--run", "x {scene} {out}", "--columns", 8, "--timeout", -1),
+     "--timeout: must be > 0, got -1"),
     (("render", SPHERE, "--columns", 8, "--ppm", "x.ppm", "--texture-dir", "no/such/dir"),
      "--texture-dir: no directory 'no/such/dir'"),
     # (a robustness review: each was a traceback, or a run that grew without bound)
@@ -57,7 +60,7 @@ def test02_did_you_mean(args, said):
     (("validate", SPHERE, "--workers", 200), "--workers: at most 64 local worker processes"),
     # an empty value was taken as not given: no report, exit 0
     (("check", SPHERE, SPHERE, "--report", ""), "argument --report: an empty value"),
-], ids=["timeout-0", "texture-dir", "timeout-huge", "threads", "objects", "lights",
+], ids=["timeout-0", "timeout-negative", "texture-dir", "timeout-huge", "threads", "objects", "lights",
         "workers", "empty"])
 def test02b_invalid_option_values(args, said):
     r = rtval(*args)

@@ -450,9 +450,9 @@ def command_bench(columns=COMMAND_COLUMNS, repeats: int = 3, scene: str | None =
     import tempfile
     repo = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     scene = scene or os.path.join(repo, "scenes", "mixed.txt")
-    if not os.path.isfile(scene):
-        from rt_core.usererror import InputError
-        raise InputError(f"{scene}: no such scene file; give one with --scene")
+    # (the scene file's own checks: missing, a FIFO or a device, too large, each named)
+    from rt_core.inputfile import check_input
+    check_input(scene, "scene")
     runs: dict = {}
     with tempfile.TemporaryDirectory(prefix="rtval-bench-") as d:
         for rep in range(-1, repeats):          # run -1: warm-up (kernels compiled, cached)
