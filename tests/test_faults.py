@@ -449,13 +449,18 @@ def test15b_sigterm_during_validate_leaves_no_temporary(tmp_path, where):
                           "--evidence", "all", *where],
                          cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     t0 = time.monotonic()
-    while not (out / "exr").exists():                      # it has begun writing
+    # it has written one evidence file (the seed scene's four comparisons come first)
+    while not any(f.suffix == ".exr" and not f.name.startswith(".") for f in
+                  (out / "exr").glob("*")) if (out / "exr").exists() else True:
         assert p.poll() is None and time.monotonic() - t0 < 120
         time.sleep(0.01)
     p.send_signal(signal.SIGTERM)
     _, err = p.communicate(timeout=120)
     assert p.returncode == 128 + signal.SIGTERM and "Traceback" not in err, err
     assert not [f for _, _, fs in os.walk(tmp_path) for f in fs if f.startswith(TMP_PREFIX)]
+    # nor the evidence the run had finished, nor the directories it made (a robustness
+    # review found dozens of EXRs in v/exr)
+    assert not out.exists(), [str(p) for p in out.rglob("*")]
     # with --workers 2, the local Dask cluster's scratch directory went too
     import glob
     import tempfile

@@ -1,6 +1,7 @@
 """Validation runs: every scene × precision × mode compared, with a report on disk."""
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from dataclasses import dataclass
@@ -183,11 +184,32 @@ def validate(scenes, columns: int, precisions, modes, outdir: str, progress=None
     from what is written as JSON).
 
     Evidence of an earlier run in ``outdir/failures`` and ``outdir/exr`` is removed first,
-    so what is there belongs to this run."""
-    from tools.harness.parallel import SERIAL, run_cases
+    so what is there belongs to this run; a run stopped (a signal, Ctrl-C, an error)
+    removes what it wrote there, and the directories it made."""
+    made = [d for d in (outdir, os.path.join(outdir, "failures"), os.path.join(outdir, "exr"))
+            if not os.path.exists(d)]
     for sub in ("failures", "exr"):
         for old in [*Path(outdir, sub).glob("*.exr"), *Path(outdir, sub).glob("*.png")]:
             old.unlink()
+    try:
+        return _validate(scenes, columns, precisions, modes, outdir, progress, evidence,
+                         shaded_columns, pictures, plan)
+    except BaseException:
+        # (the workers are stopped by now: run_cases closes its cluster on the way out)
+        for sub in ("failures", "exr"):
+            for ev in [*Path(outdir, sub).glob("*.exr"), *Path(outdir, sub).glob("*.png")]:
+                with contextlib.suppress(OSError):
+                    ev.unlink()
+        for d in reversed(made):
+            with contextlib.suppress(OSError):
+                os.rmdir(d)                     # (only if empty)
+        raise
+
+
+def _validate(scenes, columns, precisions, modes, outdir, progress, evidence, shaded_columns,
+              pictures, plan):
+    """``validate``'s comparisons, once the output directory is ready."""
+    from tools.harness.parallel import SERIAL, run_cases
     todo = jobs(scenes, columns, precisions, modes, evidence, shaded_columns, pictures)
 
     def each(i, outs):
