@@ -173,27 +173,18 @@ PROVENANCE = "rtval.provenance"
 
 
 def xml_provenance(scene: Scene, setup, sampling: str, mode: str, rules, max_dist) -> dict:
-    """What a converted scene came from, as rtval render records it (rt_core/render.py
-    ``provenance``): the course scene, its sha256, the camera, the rules, the stand-ins."""
-    import hashlib
-    import os
-    from rt_core.render import extras_text, versions
-    from rt_core.textures import provenance_text
-    out = {"rtval.source_scene": os.path.abspath(scene.path) if scene.path != "<memory>"
-           else scene.path,
-           "rtval.scene_sha256": scene.sha256 or hashlib.sha256(repr(scene).encode()).hexdigest(),
-           "rtval.dialect": scene.dialect, "rtval.sampling": sampling,
-           "rtval.resolution": f"{setup.columns}x{setup.rows}", "rtval.converted": mode,
-           "rtval.versions": " ".join(f"{k}={v}" for k, v in versions().items())}
+    """What a converted scene came from, as rtval render records it (rt_core/render.py's
+    ``scene_provenance``, the course scene named ``rtval.source_scene``), with the camera,
+    the rules and the mode."""
+    from rt_core.render import scene_provenance
+    out = scene_provenance(scene)
+    out["rtval.source_scene"] = out.pop("rtval.scene")
+    out.update({"rtval.sampling": sampling, "rtval.resolution": f"{setup.columns}x{setup.rows}",
+                "rtval.converted": mode})
     if mode != "sensor":
         out["rtval.rules"] = (rules or Rules()).describe()
     if mode == "shading":
         out["rtval.max_dist"] = f"{max_dist:g}"
-    for key, text in (("rtval.stand_ins", "; ".join(scene.stand_ins())),
-                      ("rtval.extras", extras_text(scene)),
-                      ("rtval.textures", provenance_text(scene) if mode == "shading" else "")):
-        if text:
-            out[key] = text
     return out
 
 

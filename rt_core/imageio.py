@@ -268,9 +268,10 @@ def _pnm_diagnosis(path: str, spec) -> str | None:
     """What is wrong with a PNM whose pixels OpenImageIO could not read, in the course
     programs' words, where the header and the size tell: a maxval above 255 over one-byte
     samples, a P3/P2 header over binary samples, or too few bytes for the header's size."""
-    try:
-        with open(path, "rb") as f:
-            data = f.read()
+    try:                                # (the header and the first samples: the size
+        with open(path, "rb") as f:     # tells the rest)
+            data = f.read(1 << 13)
+        size = os.path.getsize(path)
     except OSError:
         return None
     head = _pnm_header(data)
@@ -280,20 +281,20 @@ def _pnm_diagnosis(path: str, spec) -> str | None:
     ch = {"P3": 3, "P6": 3, "P2": 1, "P5": 1}.get(magic)
     if ch is None:
         return None
-    body = data[start:]
+    body = size - start                 # bytes of samples
     if magic in ("P3", "P2"):
-        if any(b > 126 or (b < 32 and b not in b"\t\n\r\x0b\x0c") for b in body[:4096]):
+        if any(b > 126 or (b < 32 and b not in b"\t\n\r\x0b\x0c") for b in data[start:]):
             return (f"a {magic} (ASCII) header over binary samples: write "
                     f"{'P6' if magic == 'P3' else 'P5'} for bytes, or the samples as numbers")
         return None
     one = w * h * ch
-    if maxval > 255 and one <= len(body) < 2 * one:
-        return (f"maxval {maxval} means two bytes a sample, but the file holds {len(body)} "
+    if maxval > 255 and one <= body < 2 * one:
+        return (f"maxval {maxval} means two bytes a sample, but the file holds {body} "
                 f"bytes for {w}x{h} pixels, one a sample: write maxval 255")
     need = one * (2 if maxval > 255 else 1)
-    if len(body) < need:
+    if body < need:
         return (f"truncated: the header says {w}x{h} pixels, {need} bytes of samples; the "
-                f"file holds {len(body)}")
+                f"file holds {body}")
     return None
 
 

@@ -129,16 +129,27 @@ def versions() -> dict:
 def provenance(scene: Scene, cam: Camera, precision: str, backend_name: str, rules: Rules,
                **extra) -> dict:
     """Header attributes recording what produced an output."""
-    attrs = {
-        "rtval.scene": os.path.abspath(scene.path) if scene.path != "<memory>" else scene.path,
-        "rtval.scene_sha256": scene.sha256 or hashlib.sha256(repr(scene).encode()).hexdigest(),
-        "rtval.dialect": scene.dialect,
+    attrs = scene_provenance(scene)
+    attrs.update({
         "rtval.precision": precision,
         "rtval.backend": backend_name,
         "rtval.sampling": cam.sampling,
         "rtval.resolution": f"{cam.columns}x{cam.rows}",
         "rtval.rules": rules.describe(),
         "rtval.miss": MISS_CONVENTION,
+    })
+    attrs.update({f"rtval.{k}": str(v) for k, v in extra.items()})
+    return attrs
+
+
+def scene_provenance(scene: Scene) -> dict:
+    """The part of an output's provenance that is the scene's: path, sha256, dialect, the
+    stand-ins, extra fields and textures, and the versions that read it (also rtval
+    convert's, mitsuba_ref/convert.py)."""
+    attrs = {
+        "rtval.scene": os.path.abspath(scene.path) if scene.path != "<memory>" else scene.path,
+        "rtval.scene_sha256": scene.sha256 or hashlib.sha256(repr(scene).encode()).hexdigest(),
+        "rtval.dialect": scene.dialect,
         "rtval.versions": " ".join(f"{k}={v}" for k, v in versions().items()),
     }
     stand_ins, extras = scene.stand_ins(), extras_text(scene)
@@ -150,7 +161,6 @@ def provenance(scene: Scene, cam: Camera, precision: str, backend_name: str, rul
     textures = provenance_text(scene)
     if textures:
         attrs["rtval.textures"] = textures
-    attrs.update({f"rtval.{k}": str(v) for k, v in extra.items()})
     return attrs
 
 

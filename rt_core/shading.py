@@ -346,7 +346,8 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
             # dr.scatter_add, which drops NaN: a NaN must reach the image, to be counted),
             # the sums evaluated with the bounce and scattered after it (_scatter_sums)
             summed = dr.gather(T.Array3, image, pixel, hit) + add
-        outputs = [image, ex] if pixel is None else [summed, hit, pixel, ex]
+        # (a bounce with pixels reflects: its pixels are among the outputs below)
+        outputs = [image, ex] if pixel is None else [summed, hit, ex]
         if reflect:
             go, R, w_next = seg.go, seg.R, seg.w_next
             # the pixel of each lane, evaluated: the next wavefront gathers it (at bounce 0

@@ -365,15 +365,13 @@ def _flagged(T, oid, per_block: np.ndarray) -> np.ndarray:
         # the lanes of the listed blocks, made in the kernel (its code is the same for any
         # blocks: their list has at least two entries, never a literal)
         U = T.UInt32
+        starts = blocks << FLAG_SHIFT
         lane = dr.arange(U, (len(blocks) + 1) * size)
-        first = dr.gather(U, U((np.r_[blocks, blocks[-1]] << FLAG_SHIFT).tolist()),
-                          lane >> FLAG_SHIFT)
+        first = dr.gather(U, U(np.r_[starts, starts[-1]].tolist()), lane >> FLAG_SHIFT)
         idx = first + (lane & (size - 1))
-        got = dr.gather(T.Int32, oid, idx, idx < n).numpy()
-        lanes = ((np.r_[blocks, blocks[-1]] << FLAG_SHIFT)[:, None] +
-                 np.arange(size)[None]).ravel()
-        pix = lanes[:len(blocks) * size][got[:len(blocks) * size] == -2]
-        return pix.astype(np.int64)
+        got = dr.gather(T.Int32, oid, idx, idx < n).numpy()[:len(blocks) * size]
+        lanes = (starts[:, None] + np.arange(size)[None]).ravel()
+        return lanes[got == -2].astype(np.int64)
     if nflag > FLAG_SLOTS:
         return dr.compress(oid == -2).numpy()
     flag = oid == -2

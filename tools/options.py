@@ -41,19 +41,12 @@ def nonneg_float(text: str) -> float:
 
 
 def positive_float(text: str) -> float:
-    """A finite number > 0 (one message for 0 and for a negative number)."""
-    try:
-        v = nonneg_float(text)
-    except argparse.ArgumentTypeError:
-        try:
-            bad = float(text) < 0
-        except ValueError:
-            bad = False
-        if not bad:
-            raise
-        raise argparse.ArgumentTypeError(f"must be > 0, got {text}") from None
-    if v == 0:
-        raise argparse.ArgumentTypeError("must be > 0, got 0")
+    """A finite number > 0."""
+    v = number(text)
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    if v == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be finite, got {text}")
     return v
 
 
