@@ -63,7 +63,7 @@ def make_camera(scene: Scene, columns: int, rows: int | None = None,
     least = 2 if sampling == "corners" else 1
     if columns < least or rows < least:
         raise InputError(f"image {columns}x{rows} is too small: {sampling} sampling needs at "
-                         f"least {least} columns and rows"
+                         f"least {('one column and one row', '2 columns and 2 rows')[least - 1]}"
                          + ("" if given_rows or rows >= least or columns < least else
                             f" (rows = int(h/w·columns) = {rows}; give --rows)"))
     ww, wh = scene.window

@@ -458,7 +458,8 @@ def test08c_run_too_small_and_bad_headers(ctracer, tmp_path, capsys):
     run = f"touch {marker}; {ctracer / 'course'} {{columns}} {{rows}} < {{scene}} > {{out}}"
     with pytest.raises(SystemExit) as e:
         main(["check", "--run", run, "--columns", "1", scene])
-    assert e.value.code == 64 and "2 columns and 2 rows at least" in capsys.readouterr().err
+    assert e.value.code == 64 and "--columns: 1 column: the course's corner sampling" in \
+        capsys.readouterr().err and not marker.exists()
     r, = check_run(run, [scene], 2, None)
     assert r.status == "error" and "give this window 1 rows" in r.reason, r.reason
     assert not marker.exists()

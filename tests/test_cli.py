@@ -60,8 +60,19 @@ def test02_did_you_mean(args, said):
     (("validate", SPHERE, "--workers", 200), "--workers: at most 64 local worker processes"),
     # an empty value was taken as not given: no report, exit 0
     (("check", SPHERE, SPHERE, "--report", ""), "argument --report: an empty value"),
+    # one column or row under corner sampling: a usage error in every command (it was exit 2
+    # in some, 64 in check --run)
+    (("render", SPHERE, "--columns", 1), "--columns: 1 column: the course's corner sampling"),
+    (("render", SPHERE, "--columns", 8, "--rows", 1), "--rows: 1 row: the course's corner"),
+    (("compare", SPHERE, "--columns", 1), "or --sampling centers"),
+    (("check", SPHERE, SPHERE, "--columns", 1), "--columns: 1 column"),
+    (("convert", SPHERE, "--columns", 1, "-o", "x.xml"), "--columns: 1 column"),
+    (("validate", SPHERE, "--columns", 1), "--columns: 1 column"),
+    (("report", SPHERE, "--columns", 8, 1), "--columns: 1 column"),
+    (("bench", "--command", "--command-columns", 1), "--command-columns: 1 column"),
 ], ids=["timeout-0", "timeout-negative", "texture-dir", "timeout-huge", "threads", "objects", "lights",
-        "workers", "empty"])
+        "workers", "empty", "render-1-column", "render-1-row", "compare", "check", "convert",
+        "validate", "report", "bench-command"])
 def test02b_invalid_option_values(args, said):
     r = rtval(*args)
     err = r.stderr.strip()

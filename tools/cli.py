@@ -87,6 +87,17 @@ class Parser(argparse.ArgumentParser):
         for a in self._actions:
             if a.option_strings and getattr(ns, a.dest, None) == "":
                 self.error(f"argument {'/'.join(a.option_strings)}: an empty value")
+        # one column or row: the course's corner sampling divides by columns - 1 and rows - 1
+        # (every command; a scene whose window gives fewer rows is the scene's error, exit 2)
+        if getattr(ns, "sampling", "corners") == "corners":
+            for name, what in (("columns", "columns"), ("rows", "rows"),
+                               ("command_columns", "columns")):
+                v = getattr(ns, name, None)
+                if v == 1 or (isinstance(v, list) and 1 in v):
+                    self.error(f"argument --{name.replace('_', '-')}: 1 {what[:-1]}: the "
+                               f"course's corner sampling divides by {what} - 1; give 2 or more"
+                               + (" (or --sampling centers)" if hasattr(ns, "sampling")
+                                  else ""))
         return ns, rest
 
 
