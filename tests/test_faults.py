@@ -467,6 +467,25 @@ def test15b_sigterm_during_validate_leaves_no_temporary(tmp_path, where):
     assert not glob.glob(os.path.join(tempfile.gettempdir(), f"rtval-dask-*-{p.pid}-*"))
 
 
+def test15d_a_stop_while_validate_reports_leaves_no_evidence(tmp_path, monkeypatch, capsys):
+    """A Ctrl-C while validate writes its reports (after every comparison, the evidence
+    finished) left the run's evidence EXRs behind, and no report to say what they were."""
+    from tools import cli
+    from tools.harness import validate as v
+    out = tmp_path / "v"
+    written = []
+
+    def stopped(results, skipped, outdir, meta):
+        written.extend(p for p in (out / "exr").glob("*.exr"))
+        raise KeyboardInterrupt
+    monkeypatch.setattr(v, "write_report", stopped)
+    code = cli.main(["validate", str(REPO / "scenes" / "sphere.txt"), "--columns", "24",
+                     "--mode", "rays", "--precision", "f32", "-o", str(out),
+                     "--evidence", "all"])
+    assert code == 130 and "interrupted" in capsys.readouterr().err
+    assert written and not out.exists(), [str(p) for p in out.rglob("*")]
+
+
 @pytest.mark.parametrize("wrapped, code", [("chained", 143), ("message", 130), ("bug", None)])
 def test15c_a_signal_a_library_wrapped_is_still_the_signal(wrapped, code, monkeypatch, capsys):
     """Dr.Jit and Mitsuba re-raise an exception from the Python code they run (a custom op,

@@ -94,25 +94,29 @@ def run(args) -> int:
         from rt_core.errors import InputError
         raise InputError(f"--shaded-columns {args.shaded_columns}: give 0 (off) or a width of "
                          "at least 2")
-    results = validate(scenes, args.columns, precisions, modes, args.output,
-                       progress=progress, evidence=args.evidence,
-                       shaded_columns=args.shaded_columns, pictures=bool(args.report),
-                       plan=plan)
-    done()
-    meta = dict(columns=args.columns, backend="llvm", reference="mitsuba llvm_ad_rgb",
-                **versions(), ran=plan.describe())
-    from rt_core.outputs import together
-    page = None
-    with together():                    # the reports and the JUnit: all or none
-        md, js = write_report(results, skipped, args.output, meta)
-        if args.junit:
-            from tools.harness.junit import write_junit
-            from tools.harness.validate import comparison_cases, skip_case
-            write_junit(args.junit, "rtval validate", comparison_cases(results, "rtval.validate")
-                        + [skip_case(s) for s in skipped])
-        if args.report:
-            from tools.harness.html_report import comparisons_report
-            page = comparisons_report(args.report, "rtval validate", results, skipped, meta=meta)
+    from tools.harness.validate import evidence_run
+    with evidence_run(args.output):     # a run stopped while it reports leaves no evidence
+        results = validate(scenes, args.columns, precisions, modes, args.output,
+                           progress=progress, evidence=args.evidence,
+                           shaded_columns=args.shaded_columns, pictures=bool(args.report),
+                           plan=plan)
+        done()
+        meta = dict(columns=args.columns, backend="llvm", reference="mitsuba llvm_ad_rgb",
+                    **versions(), ran=plan.describe())
+        from rt_core.outputs import together
+        page = None
+        with together():                # the reports and the JUnit: all or none
+            md, js = write_report(results, skipped, args.output, meta)
+            if args.junit:
+                from tools.harness.junit import write_junit
+                from tools.harness.validate import comparison_cases, skip_case
+                write_junit(args.junit, "rtval validate",
+                            comparison_cases(results, "rtval.validate")
+                            + [skip_case(s) for s in skipped])
+            if args.report:
+                from tools.harness.html_report import comparisons_report
+                page = comparisons_report(args.report, "rtval validate", results, skipped,
+                                          meta=meta)
     if page:
         print(f"report: {page}", file=sys.stderr)
     bad = [r for r in results if not r["ok"]]

@@ -186,14 +186,25 @@ def validate(scenes, columns: int, precisions, modes, outdir: str, progress=None
     Evidence of an earlier run in ``outdir/failures`` and ``outdir/exr`` is removed first,
     so what is there belongs to this run; a run stopped (a signal, Ctrl-C, an error)
     removes what it wrote there, and the directories it made."""
+    with evidence_run(outdir):
+        return _validate(scenes, columns, precisions, modes, outdir, progress, evidence,
+                         shaded_columns, pictures, plan)
+
+
+@contextlib.contextmanager
+def evidence_run(outdir: str):
+    """The evidence of one run under ``outdir``: what an earlier run left in ``failures/``
+    and ``exr/`` is removed first; if the block is stopped (a signal, Ctrl-C, an error) the
+    evidence it finished goes too, and the directories it made.  ``rtval validate`` holds
+    it over the run and the reports after it (a signal while they were written left the
+    run's evidence behind)."""
     made = [d for d in (outdir, os.path.join(outdir, "failures"), os.path.join(outdir, "exr"))
             if not os.path.exists(d)]
     for sub in ("failures", "exr"):
         for old in [*Path(outdir, sub).glob("*.exr"), *Path(outdir, sub).glob("*.png")]:
             old.unlink()
     try:
-        return _validate(scenes, columns, precisions, modes, outdir, progress, evidence,
-                         shaded_columns, pictures, plan)
+        yield
     except BaseException:
         # (the workers are stopped by now: run_cases closes its cluster on the way out)
         for sub in ("failures", "exr"):
