@@ -234,6 +234,10 @@ def read_image(path: str) -> np.ndarray:
             raise ImageError(f"{path}: {said}" if said else
                              f"{path}: cannot read the pixels, truncated or corrupt "
                              f"({_reason(_error_of(inp), path)})")
+        if inp.format_name() == "pnm" and spec.get_int_attribute("pnm:binary", 1):
+            said = _pnm_surplus(path)
+            if said:
+                raise ImageError(f"{path}: {said}")
     finally:
         inp.close()
     px = np.asarray(px, np.uint8).reshape(spec.height, spec.width, spec.nchannels)
@@ -295,6 +299,38 @@ def _pnm_diagnosis(path: str, spec) -> str | None:
     if body < need:
         return (f"truncated: the header says {w}x{h} pixels, {need} bytes of samples; the "
                 f"file holds {body}")
+    return None
+
+
+def _pnm_surplus(path: str) -> str | None:
+    """What is wrong with a binary PNM that holds more samples than its header says, which
+    OpenImageIO reads without a word: a header whose lines end in CR LF (written in text
+    mode: the samples start a byte late, every pixel off), or a row or more beyond the
+    header's size (a loop that writes one row too many).  A few bytes more (a final
+    newline) are fine."""
+    try:
+        with open(path, "rb") as f:
+            data = f.read(1 << 13)
+        size = os.path.getsize(path)
+    except OSError:
+        return None
+    head = _pnm_header(data)
+    if head is None:
+        return None
+    magic, w, h, maxval, start = head
+    ch = {"P6": 3, "P5": 1}.get(magic)
+    if ch is None:
+        return None
+    row = w * ch * (2 if maxval > 255 else 1)
+    need, body = row * h, size - start
+    if body > need and data[start - 1:start + 1] == b"\r\n":
+        return ("the header's lines end in CR LF (a file written in text mode?): after "
+                "maxval a PPM takes one byte, so its samples would start a byte late; write "
+                "the file in binary mode, lines ending in \\n")
+    if body - need >= row:
+        return (f"the header says {w}x{h} pixels, {need} bytes of samples; the file holds "
+                f"{body}, {(body - need) / row:.3g} row{'s' if body - need != row else ''} more: "
+                "write as many rows as the header says")
     return None
 
 

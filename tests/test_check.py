@@ -13,8 +13,10 @@ images under each rule variant.
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
+import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -22,7 +24,7 @@ import numpy as np
 import pytest
 
 from rt_core.imageio import read_image
-from tools.harness.check import details, CLASSES, check_image, check_run
+from tools.harness.check import details, CLASSES, check_image, check_run, junit_xml
 
 REPO = Path(__file__).resolve().parents[1]
 CT = REPO / "tests" / "ctracer"
@@ -445,6 +447,60 @@ def test08b_run_commands_with_braces_and_escaped_children(ctracer, tmp_path):
     r, = check_run("setsid sleep 20 # {scene} {out}", [scene], 40, None, timeout=1.0)
     assert r.status == "error" and "timed out" in r.reason
     assert time.monotonic() - t0 < 15             # not the escaped child's 20 s
+
+
+def test08d_a_run_ends_with_its_command(ctracer, tmp_path):
+    """A student's review: a background child holding stderr made a finished run time out
+    (and 60 s a scene by default), and stayed running after a passing one; stderr was kept
+    whole in memory (3 GB said: 9.3 GB of rtval); exit(-1) read 'crashed with signal 127';
+    colour escapes in the last line made the JUnit XML ill-formed."""
+    import time
+    from xml.dom import minidom
+    scene = str(REPO / "scenes" / "seed_fplane.txt")
+    course = f"{ctracer / 'course'} {{columns}} {{rows}} < {{scene}} > {{out}}"
+    pid = tmp_path / "child.pid"
+    t0 = time.monotonic()
+    r, = check_run(f"sleep 300 & echo $! > {pid}; " + course, [scene], 40, None, timeout=20)
+    assert r.status == "pass" and time.monotonic() - t0 < 15, r.reason
+    child = int(pid.read_text())
+    time.sleep(0.2)
+    assert not os.path.exists(f"/proc/{child}") or \
+        open(f"/proc/{child}/stat").read().split()[2] == "Z"      # killed with its group
+    said = (f"{sys.executable} -c \"import sys; [sys.stderr.write('x' * 1023 + chr(10)) for _ "
+            "in range(20000)]\"; ")
+    r, = check_run(said + course, [scene], 40, None)                # 20 MB said, then fine
+    assert r.status == "pass", r.reason
+    from tools.harness.check import _Tail
+    assert _Tail.KEEP <= 1 << 16
+    cases = {"exit 255": "exited with status 255: ", "exit 3": "exited with status 3: ",
+             "kill -SEGV $$": "crashed with SIGSEGV: ",
+             "sh -c 'kill -SEGV $$'": "crashed with SIGSEGV (exit status 139): ",
+             "printf '\\033[31merror\\033[0m: bad\\n' >&2; exit 1": "(error: bad)"}
+    for cmd, why in cases.items():
+        r, = check_run(cmd + " # {scene} {out}", [scene], 40, None)
+        assert r.status == "error" and why in r.reason and "\x1b" not in r.reason, \
+            (cmd, r.reason)
+        minidom.parseString(junit_xml([r]))
+
+
+def test08e_the_image_size_and_memory_before_the_run(ctracer, tmp_path, monkeypatch):
+    """The size mismatch named the temporary file, without a word on why; the memory a
+    check needs was found too much only after the tracer had run (and written 729 MB)."""
+    scene = str(REPO / "scenes" / "sphere.txt")            # a 4:3 window: 40 -> 30 rows
+    course = f"{ctracer / 'course'} {{columns}} {{rows}} < {{scene}} > {{out}}"
+    r, = check_run(f"{ctracer / 'course'} {{rows}} {{columns}} < {{scene}} > {{out}}", [scene],
+                   40, None)
+    assert r.reason.startswith("the tracer's image {out}: the image is 30x40, expected "
+                               "40x30") and "swapped" in r.reason, r.reason
+    r, = check_run(f"{ctracer / 'course'} {{columns}} 31 < {{scene}} > {{out}}", [scene], 40,
+                   None)
+    assert "the course's rows for 40 columns are int(h/w·columns) = 30" in r.reason, r.reason
+    from rt_core import memory
+    monkeypatch.setattr(memory, "available", lambda: (10 ** 6, "available memory"))
+    marker = tmp_path / "ran"
+    r, = check_run(f"touch {marker}; " + course, [scene], 400, None)
+    assert r.status == "error" and "check of 400x300 needs" in r.reason, r.reason
+    assert not marker.exists()
 
 
 def test08c_run_too_small_and_bad_headers(ctracer, tmp_path, capsys):

@@ -78,6 +78,11 @@ def test03_course_ppm_bytes_and_channels_of_each_format(tmp_path):
     ("over1.ppm", b"P3 2 1 255 256 2 3 # 999\n0 0 0\n", "ppm:1: sample 256 above the maxval"),
     ("over2.ppm", b"P3 2 1 255\n# 999\n1 2 3 0 0\n0 7 400\n", "ppm:4: sample 400 above"),
     ("empty.png", b"", "the file is empty"),
+    # more samples than the header says, which OpenImageIO read without a word (a student's
+    # review: an extra row passed, a text-mode file was wrong at every pixel with no hint)
+    ("crlf.ppm", b"P6\r\n4 3\r\n255\r\n" + bytes(36), "the header's lines end in CR LF"),
+    ("row.ppm", b"P6\n4 3\n255\n" + bytes(48), "the file holds 48, 1 row more"),
+    ("rows16.ppm", b"P6 4 3 65535\n" + bytes(72 + 48), "the file holds 120, 2 rows more"),
     # OpenImageIO's 'could not find a format reader for "x"' without the name read 'for)'
     ("notimg.dat", b"hello\n", "could not find a format reader for it)"),
 ])
@@ -97,6 +102,16 @@ def test04_unreadable_images_are_one_line(tmp_path, name, data, why, capfd):
     assert msg.startswith(f"{p}:") and why in msg and "\n" not in msg, msg
     # nothing printed besides (libpng's own "libpng error: ..." on descriptor 2)
     assert capfd.readouterr() == ("", "")
+
+
+def test04b_a_final_newline_or_a_cr_sample_is_fine(tmp_path):
+    """A byte or so beyond the samples (a final newline) is no error, nor a header whose
+    last byte is CR before a first sample of 10."""
+    for data in (b"P6\n4 3\n255\n" + bytes(36) + b"\n",
+                 b"P6\n4 3\n255\r" + bytes([10]) + bytes(35)):
+        p = tmp_path / "ok.ppm"
+        p.write_bytes(data)
+        assert read_image(str(p)).shape == (3, 4, 3)
 
 
 def test05_a_size_beyond_memory_is_refused_before_reading(tmp_path, monkeypatch):

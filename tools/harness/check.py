@@ -529,8 +529,12 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
     H, W = img.shape[:2]
     W, H = columns or W, rows or H
     if (H, W) != img.shape[:2]:
-        res.reason = (f"{image_path}: the image is {img.shape[1]}x{img.shape[0]}, expected "
-                      f"{W}x{H} (--columns/--rows)")
+        h, w = img.shape[:2]
+        why = ("; its width and height swapped?" if (w, h) == (H, W) else
+               f"; the course's rows for {W} columns are int(h/w·columns) = {H}"
+               if w == W and H == scene.default_rows(W) else "")
+        res.reason = (f"{image_path}: the image is {w}x{h}, expected {W}x{H} "
+                      f"(--columns/--rows){why}")
         return res
     if W < 2 or H < 2:
         res.reason = f"{image_path}: {W}x{H} is too small for the course's corner sampling"
@@ -961,38 +965,77 @@ def run_tracer(template: str, scene: str, columns: int, rows: int, workdir: str,
     except OSError as exc:
         return None, None, f"cannot run {cmd!r}: {exc.strerror or exc}"
     _RUNNING.add(p)
+    said = _Tail(p.stderr)              # what it says, read as it goes: the last lines only
+    timed_out = False
     try:
-        _, err = p.communicate(timeout=timeout)
+        p.wait(timeout=timeout)
     except subprocess.TimeoutExpired:
-        os.killpg(p.pid, signal.SIGKILL)
-        try:
-            p.communicate(timeout=2)
-        except subprocess.TimeoutExpired:
-            # a child that left the process group (setsid) still holds the stderr pipe:
-            # stop reading it rather than wait for that child's end
-            p.stderr.close()
-            p.wait()
-        return None, None, f"timed out after {timeout:g} s: {cmd}"
+        timed_out = True
     except BaseException:             # rtval itself interrupted or terminated: stop the run
         with contextlib.suppress(OSError):
             os.killpg(p.pid, signal.SIGKILL)
         raise
     finally:
+        # the run ends with its command: what it left running in its process group goes
+        # too (a background child holding stderr made a finished run time out)
+        with contextlib.suppress(OSError):
+            os.killpg(p.pid, signal.SIGKILL)
+        p.wait()
         _RUNNING.discard(p)
-    tail = err.decode("utf-8", "replace").strip().splitlines()[-1:] if err else []
-    said = f" ({tail[0][:200]})" if tail else ""
-    if p.returncode < 0 or p.returncode > 128:
-        sig = -p.returncode if p.returncode < 0 else p.returncode - 128
-        try:
-            name = signal.Signals(sig).name
-        except ValueError:
-            name = f"signal {sig}"
+        said.stop()
+    if timed_out:
+        return None, None, f"timed out after {timeout:g} s: {cmd}"
+    tail = said.last_line()
+    said = f" ({tail})" if tail else ""
+    rc = p.returncode
+    name = _signal_name(-rc if rc < 0 else rc - 128) if rc < 0 or 128 < rc <= 128 + 64 \
+        else None
+    if name and rc < 0:
         return None, None, f"crashed with {name}: {cmd}{said}"
-    if p.returncode != 0:
-        return None, None, f"exited with status {p.returncode}: {cmd}{said}"
+    if name:                            # (the shell's status for a command a signal killed)
+        return None, None, f"crashed with {name} (exit status {rc}): {cmd}{said}"
+    if rc != 0:
+        return None, None, f"exited with status {rc}: {cmd}{said}"
     if not os.path.exists(out):
         return None, None, f"wrote no image to {{out}}: {cmd}"
     return out, (hits if "{hits}" in template and os.path.exists(hits) else None), ""
+
+
+def _signal_name(sig: int) -> str | None:
+    try:
+        return signal.Signals(sig).name
+    except ValueError:
+        return None
+
+
+class _Tail:
+    """The last KEEP bytes a pipe carries, read in a thread until it closes (a tracer may
+    print gigabytes of debug lines), or until ``stop`` (a child that left the process group
+    may hold the pipe open: its reading is abandoned then)."""
+    KEEP = 1 << 14
+
+    def __init__(self, pipe):
+        import threading
+        self.buf = b""
+        self.thread = threading.Thread(target=self._read, args=(pipe,), daemon=True)
+        self.thread.start()
+
+    def _read(self, pipe):
+        with contextlib.suppress(OSError, ValueError):
+            with pipe:
+                while chunk := os.read(pipe.fileno(), 1 << 16):
+                    self.buf = (self.buf + chunk)[-self.KEEP:]
+
+    def stop(self):
+        self.thread.join(timeout=2)
+
+    def last_line(self) -> str:
+        """The last line said, without terminal escapes and control characters (they made
+        the JUnit XML ill-formed), at most 200 characters."""
+        text = re.sub(r"\x1b\[[0-9;?]*[ -/]*[@-~]", "", self.buf.decode("utf-8", "replace"))
+        text = "".join(c if c.isprintable() or c == "\n" else " " for c in text)
+        lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+        return lines[-1][:200] if lines else ""
 
 
 def seconds_per_check(columns: int) -> float:
@@ -1031,6 +1074,7 @@ def _check_runs(pool, work, template, scenes, columns, rows, timeout, kw):
     """check_run's jobs: the runs submitted to ``pool``, then, as each finishes, a job for
     ``_check_job`` (a finished SceneCheck when the scene or the run failed)."""
     from rt_core.imageio import ImageError, read_image
+    from rt_core.memory import check_bytes, guard
     from rt_core.parser import parse_scene
     from rt_core.scene import SceneError
     from rt_core.usererror import InputError
@@ -1055,6 +1099,11 @@ def _check_runs(pool, work, template, scenes, columns, rows, timeout, kw):
                 str(s), None, "error", f"{s}: {columns} columns give this window {h} "
                 "rows; the course's corner sampling needs 2 at least: use more --columns "
                 "or give --rows")))
+            continue
+        try:                                    # (before the tracer runs: the check's
+            guard(check_bytes, "check of", columns, h, "")      # memory is known now)
+        except InputError as exc:
+            jobs.append((s, None, SceneCheck(str(s), None, "error", f"{s}: {exc}")))
             continue
         sub = os.path.join(work, str(k))
         os.mkdir(sub)
@@ -1095,6 +1144,8 @@ def _check_job(job) -> SceneCheck:
     res = check_image(scene_path, image_path, columns=columns, rows=rows, hits_path=hits,
                       theirs=theirs, scene=scene, **kw)
     res.image = "(--run)"
+    # (named as what it is: the file is a temporary, gone after the run)
+    res.reason = res.reason.replace(image_path, "the tracer's image {out}")
     return res
 
 
