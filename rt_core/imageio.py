@@ -290,7 +290,7 @@ def _pnm_diagnosis(path: str, spec) -> str | None:
         if any(b > 126 or (b < 32 and b not in b"\t\n\r\x0b\x0c") for b in data[start:]):
             return (f"a {magic} (ASCII) header over binary samples: write "
                     f"{'P6' if magic == 'P3' else 'P5'} for bytes, or the samples as numbers")
-        return None
+        return _ascii_diagnosis(path, start - 1, w, h, w * h * ch)
     one = w * h * ch
     if maxval > 255 and one <= body < 2 * one:
         return (f"maxval {maxval} means two bytes a sample, but the file holds {body} "
@@ -300,6 +300,29 @@ def _pnm_diagnosis(path: str, spec) -> str | None:
         return (f"truncated: the header says {w}x{h} pixels, {need} bytes of samples; the "
                 f"file holds {body}")
     return None
+
+
+def _ascii_diagnosis(path: str, start: int, w: int, h: int, need: int) -> str | None:
+    """What is wrong with the samples of an ASCII PNM (from byte ``start``): the first one
+    that is not a whole number (12.0, 255,0,0, [255), named by line, or too few of them."""
+    import re
+    try:
+        with open(path, "rb") as f:
+            text = f.read().decode("latin-1")
+    except OSError:
+        return None
+    line0 = text.count("\n", 0, start) + 1
+    body = re.sub(r"#[^\n\r]*", "", text[start:])
+    count = 0
+    for m in re.finditer(r"\S+", body):
+        if not m.group().isdigit():
+            line = line0 + body.count("\n", 0, m.start())
+            return (f"line {line}: sample {count + 1} is {m.group()[:20]!r}; an ASCII PPM's "
+                    "samples are whole numbers apart by spaces")
+        count += 1
+        if count >= need:
+            return None
+    return f"truncated: the header says {w}x{h} pixels, {need} samples; the file holds {count}"
 
 
 def _pnm_surplus(path: str) -> str | None:

@@ -611,6 +611,16 @@ def test11_hit_dump(ctracer, tmp_path):
     from tools.harness.check import text_report
     said = next(ln for ln in text_report([r]).splitlines() if "hit dump:" in ln)
     assert f"{65 * 48} pixels listed; {r.hits['id_wrong']} with another object" in said, said
+    # a command that asks for a hit dump and gets none: said, not passed without a word
+    course = f"{ctracer / 'course'} {{columns}} {{rows}} < {{scene}} > {{out}}"
+    r, = check_run(course + " # {hits}", [str(scene)], 65, None)
+    assert r.status == "error" and "wrote no hit dump to {hits}" in r.reason, r.reason
+    # JUnit names: the file's name, its path where two share one
+    from tools.harness.check import SceneCheck
+    twins = [SceneCheck(f"{d}/sphere.txt", None, "pass") for d in ("a", "b")]
+    names = [c.get("name") for c in ET.fromstring(junit_xml(twins + [
+        SceneCheck("c/plane.txt", None, "pass")])).iter("testcase")]
+    assert names == ["a/sphere.txt", "b/sphere.txt", "plane.txt"], names
 
 
 def test12_bad_input_is_one_line_and_exit_2(tmp_path, capsys):

@@ -80,6 +80,12 @@ def test03_course_ppm_bytes_and_channels_of_each_format(tmp_path):
     ("empty.png", b"", "the file is empty"),
     # more samples than the header says, which OpenImageIO read without a word (a student's
     # review: an extra row passed, a text-mode file was wrong at every pixel with no hint)
+    # an ASCII PPM's samples that OpenImageIO could not read ('no reason given')
+    ("p3short.ppm", b"P3\n2 2\n255\n255 0 0 0 255 0\n0 0 255\n",
+     "truncated: the header says 2x2 pixels, 12 samples; the file holds 9"),
+    ("p3float.ppm", b"P3\n2 2\n255\n255 0 0\n# 1.5\n0 255 12.0\n0 0 255 1 1 1\n",
+     "line 6: sample 6 is '12.0'; an ASCII PPM's samples are whole numbers"),
+    ("p3comma.ppm", b"P3 2 1 255\n255,0,0 0,0,0\n", "line 2: sample 1 is '255,0,0'"),
     ("crlf.ppm", b"P6\r\n4 3\r\n255\r\n" + bytes(36), "the header's lines end in CR LF"),
     ("row.ppm", b"P6\n4 3\n255\n" + bytes(48), "the file holds 48, 1 row more"),
     ("rows16.ppm", b"P6 4 3 65535\n" + bytes(72 + 48), "the file holds 120, 2 rows more"),

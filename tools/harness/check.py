@@ -1126,7 +1126,10 @@ def _check_runs(pool, work, template, scenes, columns, rows, timeout, kw):
             yield SceneCheck(str(s), "(--run)", "error",
                              str(exc).replace(img, "the tracer's image {out}", 1))
             continue
-        if hits is not None:
+        if hits is None and "{hits}" in template:
+            hits = ValueError("the tracer wrote no hit dump to {hits} (the command asks "
+                              "for one)")
+        elif hits is not None:
             try:
                 hits = read_hits(hits, columns, h)
             except (ValueError, InputError) as exc:
@@ -1154,8 +1157,11 @@ def _check_job(job) -> SceneCheck:
 def junit_xml(results) -> str:
     from .junit import Case, junit_xml as xml
     cases = []
+    names = [Path(r.scene).name for r in results]
     for r in results:
-        c = Case(Path(r.scene).name, "rtval.check", r.seconds)
+        # the file's name, or its path where two scenes share one (a/x.txt, b/x.txt)
+        c = Case(Path(r.scene).name if names.count(Path(r.scene).name) == 1 else r.scene,
+                 "rtval.check", r.seconds)
         if r.status == "fail":
             c.failure = f"{r.counts.get('wrong', 0)} wrong pixels"
             c.body = "\n".join([f"rules: {r.rules}, max_dist={r.max_dist:g}"] +
