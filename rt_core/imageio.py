@@ -325,6 +325,16 @@ def _ascii_diagnosis(path: str, start: int, w: int, h: int, need: int) -> str | 
     return f"truncated: the header says {w}x{h} pixels, {need} samples; the file holds {count}"
 
 
+def pnm_maxval(path: str) -> int | None:
+    """A PNM file's maxval (None for other files, or an unreadable header)."""
+    try:
+        with open(path, "rb") as f:
+            head = _pnm_header(f.read(1 << 12))
+    except OSError:
+        return None
+    return head[3] if head and head[0] in ("P1", "P2", "P3", "P4", "P5", "P6") else None
+
+
 def _pnm_surplus(path: str) -> str | None:
     """What is wrong with a binary PNM that holds more samples than its header says, which
     OpenImageIO reads without a word: a header whose lines end in CR LF (written in text

@@ -503,6 +503,28 @@ def test08e_the_image_size_and_memory_before_the_run(ctracer, tmp_path, monkeypa
     assert not marker.exists()
 
 
+def test08f_a_16_bit_image_is_named_as_such(ctracer, tmp_path):
+    """A tracer writing maxval 65535 (floor(65535 I)) is read rounded to 8 bits: the hint
+    said 'rounding' only, sending the student after the wrong bug."""
+    scene = REPO / "scenes" / "mixed.txt"
+    img = _render(ctracer / "course", scene, 48, tmp_path)
+    data = img.read_bytes()
+    head = data[: len(data) - 48 * 36 * 3]
+    v = np.frombuffer(data[len(head):], np.uint8).astype(np.float64)
+    wide = np.floor(65535 * (v + 0.7) / 255).astype(">u2").tobytes()
+    p16 = tmp_path / "wide.ppm"
+    p16.write_bytes(head.replace(b"255", b"65535") + wide)
+    first = "the image's maxval is 65535, the course writes 255"
+    r = check_image(scene, p16)
+    assert r.status == "fail" and r.hints[0].startswith(first), r.hints
+    course = f"python3 -c \"import sys; open(sys.argv[1], 'wb').write(open('{p16}', 'rb')" \
+             ".read())\" {out} # {scene}"
+    r, = check_run(course, [str(scene)], 48, None)
+    assert r.status == "fail" and r.hints[0].startswith(first), r.hints
+    r = check_image(scene, img)                     # (maxval 255: no such hint)
+    assert r.status == "pass" and not any(first in h for h in r.hints)
+
+
 def test08c_run_too_small_and_bad_headers(ctracer, tmp_path, capsys):
     """Too few columns or rows for corner sampling: a usage error (exit 64), or a scene
     whose window gives fewer than 2 rows, an error line without running the tracer; a PPM

@@ -494,13 +494,13 @@ def _value(rules, md, name):
 def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
                 rows: int | None = None, rules=None, max_dist: float | None = None,
                 hits_path=None, theirs: np.ndarray | None = None,
-                scene=None, texture_dirs=()) -> SceneCheck:
+                scene=None, texture_dirs=(), maxval: int | None = None) -> SceneCheck:
     """Check one image of one scene.  ``rules``/``max_dist`` given: no inference of those.
     ``theirs``, ``scene``: the image and the parsed scene with its textures, already read
     (``check_run`` on a Dask worker, which need not see the files); ``texture_dirs``: where
     a textured scene's PPMs are looked for first (rt_core/textures.py); ``hits_path``: a hit dump's path, or what
     ``read_hits`` made of it (arrays, or the exception it raised)."""
-    from rt_core.imageio import ImageError, read_image
+    from rt_core.imageio import ImageError, pnm_maxval, read_image
     from rt_core.memory import check_bytes, guard
     from rt_core.parser import parse_scene
     from rt_core.usererror import InputError
@@ -526,6 +526,8 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
     except ImageError as exc:
         res.reason = str(exc)
         return res
+    if theirs is None:
+        maxval = pnm_maxval(image_path)
     H, W = img.shape[:2]
     W, H = columns or W, rows or H
     if (H, W) != img.shape[:2]:
@@ -582,6 +584,10 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
         objs.sort(key=lambda kn: -kn[1])
         res.worst["objects"] = [_describe(scene, k, n) for k, n in objs[:3]]
         res.hints = hints(ids, wrong, ours, img, r.unclamped[(final_rules, md)]) + res.hints
+        if maxval not in (None, 255):
+            res.hints.insert(0, f"the image's maxval is {maxval}, the course writes 255: "
+                             "its samples were scaled to 8 bits rounding to nearest, so a "
+                             "level either way may come from that; write maxval 255")
     res.seconds = round(time.perf_counter() - t0, 3)
     return res
 
@@ -1073,7 +1079,7 @@ def check_run(template: str, scenes, columns: int, rows: int | None, timeout: fl
 def _check_runs(pool, work, template, scenes, columns, rows, timeout, kw):
     """check_run's jobs: the runs submitted to ``pool``, then, as each finishes, a job for
     ``_check_job`` (a finished SceneCheck when the scene or the run failed)."""
-    from rt_core.imageio import ImageError, read_image
+    from rt_core.imageio import ImageError, pnm_maxval, read_image
     from rt_core.memory import check_bytes, guard
     from rt_core.parser import parse_scene
     from rt_core.scene import SceneError
@@ -1136,7 +1142,7 @@ def _check_runs(pool, work, template, scenes, columns, rows, timeout, kw):
                 hits = ValueError(str(exc).replace(hits, "the tracer's hit dump {hits}", 1))
             except OSError as exc:
                 hits = exc
-        yield (str(s), img, sc, theirs, columns, h, hits, kw)
+        yield (str(s), img, sc, theirs, columns, h, hits, {**kw, "maxval": pnm_maxval(img)})
 
 
 def _check_job(job) -> SceneCheck:
