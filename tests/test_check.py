@@ -605,6 +605,13 @@ def test09b_run_with_a_refused_scene_exits_2_unless_one_fails(ctracer, tmp_path,
                      *map(str, scenes)]) == code, (run, scenes)
         out = capsys.readouterr().out
         assert ("REFUSED" in out) == (bad in scenes)
+    # a missing scene and a directory: refused too, the other scenes still run (a missing
+    # one was a failed run, exit 1; a directory stopped the whole run)
+    for odd in (tmp_path / "no_such.txt", tmp_path):
+        assert main(["check", "--serial", "--run", notes, "--columns", "32", str(odd),
+                     str(good)]) == 2, odd
+        out = capsys.readouterr().out
+        assert f"REFUSED {odd}" in out and f"PASS {good}" in out, out
 
 
 def test10_json(ctracer, tmp_path, capsys):

@@ -1086,13 +1086,15 @@ def _check_runs(pool, work, template, scenes, columns, rows, timeout, kw):
     from rt_core.usererror import InputError
     jobs = []
     for k, s in enumerate(scenes):
+        # a scene rtval cannot read is refused, as a malformed one is (exit 2 when no
+        # scene fails): a missing one was a failed run (exit 1), a directory stopped them all
         try:
             sc = parse_scene(s)
-        except SceneError as exc:
+        except (SceneError, InputError) as exc:
             jobs.append((s, None, SceneCheck(str(s), None, "refused", str(exc))))
             continue
         except OSError as exc:
-            jobs.append((s, None, SceneCheck(str(s), None, "error",
+            jobs.append((s, None, SceneCheck(str(s), None, "refused",
                                              f"{s}: {(exc.strerror or str(exc)).lower()}")))
             continue
         sc = _textures_missing(sc, kw.get("texture_dirs", ()))
