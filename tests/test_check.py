@@ -425,7 +425,11 @@ def test08_run_reports_each_failure_per_scene(ctracer, tmp_path):
     assert [r.status for r in res] == ["pass", "pass"]
     cases = {"sleep 30": "timed out", "kill -SEGV $$": "crashed with SIGSEGV",
              "exit 3": "exited with status 3", "echo P6 garbage > {out}": "PPM",
-             "true": "wrote no image"}
+             "true": "wrote no image to {out}: true # ",
+             # said what it wrote instead, or how to write it
+             "touch {out}.ppm": "(it wrote seed_fplane.ppm.ppm beside it: write the path "
+                                "{out} stands for)",
+             ":": "(write the image to the path {out} stands for, e.g. '> {out}'"}
     for cmd, why in cases.items():
         r, = check_run(cmd + " # {scene} {out}", scenes[:1], 40, None, timeout=1.0)
         assert r.status == "error" and why in r.reason, (cmd, r.reason)

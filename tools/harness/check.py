@@ -1003,7 +1003,12 @@ def run_tracer(template: str, scene: str, columns: int, rows: int, workdir: str,
     if rc != 0:
         return None, None, f"exited with status {rc}: {cmd}{said}"
     if not os.path.exists(out):
-        return None, None, f"wrote no image to {{out}}: {cmd}"
+        # what it wrote instead, in the run's directory (a name of its own, {out} ignored)
+        other = sorted(f for f in os.listdir(workdir) if f != os.path.basename(hits))
+        return None, None, (f"wrote no image to {{out}}: {cmd}" + (
+            f" (it wrote {', '.join(other[:3])} beside it: write the path {{out}} stands for)"
+            if other else " (write the image to the path {out} stands for, e.g. "
+            "'> {out}' for a tracer that prints it)"))
     return out, (hits if "{hits}" in template and os.path.exists(hits) else None), ""
 
 
