@@ -87,6 +87,21 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
+def scratch_dir(kind: str) -> str:
+    """A new directory ``rtval-KIND-TAG-PID-*`` in the temporary directory, for a run's
+    scratch files (a local Dask cluster's, ``check --run``'s images); the ones killed runs
+    left (their PID gone, same host and PID namespace TAG) are removed first."""
+    import shutil
+    base = tempfile.gettempdir()
+    mine = f"rtval-{kind}-{_SPACE}-"
+    with contextlib.suppress(OSError):
+        for name in os.listdir(base):
+            pid = name[len(mine):].split("-", 1)[0] if name.startswith(mine) else ""
+            if pid.isdigit() and int(pid) != os.getpid() and not _pid_alive(int(pid)):
+                shutil.rmtree(os.path.join(base, name), ignore_errors=True)
+    return tempfile.mkdtemp(prefix=f"{mine}{os.getpid()}-")
+
+
 def remove_stale(directory: str) -> list[str]:
     """Remove the temporaries that killed rtval runs left in ``directory`` (their process is
     gone); say so on stderr.  Returns the names removed."""

@@ -487,6 +487,30 @@ def test08d_a_run_ends_with_its_command(ctracer, tmp_path):
         minidom.parseString(junit_xml([r]))
 
 
+def test08g_a_killed_runs_scratch_directory_goes(ctracer, tmp_path):
+    """A SIGKILL left /tmp/rtval-check-* behind: the next run removes one whose process is
+    gone (same host and PID namespace), not a running one's, and its own when it ends."""
+    import glob
+    import tempfile
+    from rt_core.outputs import _SPACE
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    base = Path(tempfile.gettempdir())
+    stale = base / f"rtval-check-{_SPACE}-{dead.pid}-test"
+    live = base / f"rtval-check-{_SPACE}-{os.getppid()}-test"
+    stale.mkdir()
+    (stale / "x.ppm").write_bytes(b"P6")
+    live.mkdir(exist_ok=True)
+    try:
+        course = f"{ctracer / 'course'} {{columns}} {{rows}} < {{scene}} > {{out}}"
+        r, = check_run(course, [str(REPO / "scenes" / "seed_fplane.txt")], 24, None)
+        assert r.status == "pass" and not stale.exists() and live.exists()
+        assert not glob.glob(str(base / f"rtval-check-*-{os.getpid()}-*"))
+    finally:
+        shutil.rmtree(stale, ignore_errors=True)
+        live.rmdir()
+
+
 def test08e_the_image_size_and_memory_before_the_run(ctracer, tmp_path, monkeypatch):
     """The size mismatch named the temporary file, without a word on why; the memory a
     check needs was found too much only after the tracer had run (and written 729 MB)."""

@@ -33,9 +33,9 @@ import dataclasses
 import os
 import re
 import shlex
+import shutil
 import signal
 import subprocess
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -1064,8 +1064,11 @@ def check_run(template: str, scenes, columns: int, rows: int | None, timeout: fl
     sent with its scene and image as data as soon as the tracer has written it."""
     from concurrent.futures import ThreadPoolExecutor
     from tools.harness.parallel import SERIAL, run_cases
+    from rt_core.outputs import scratch_dir
     scenes = list(scenes)
-    with tempfile.TemporaryDirectory(prefix="rtval-check-") as work:
+    work = scratch_dir("check")         # (one a SIGKILL left is removed by the next run)
+    with contextlib.ExitStack() as stack:
+        stack.callback(shutil.rmtree, work, ignore_errors=True)
         pool = ThreadPoolExecutor(max_workers=1)
         try:
             results = run_cases(_check_job, _check_runs(pool, work, template, scenes, columns,

@@ -29,7 +29,6 @@ import os
 import pickle
 import shutil
 import signal
-import tempfile
 import threading
 import traceback
 from collections import Counter
@@ -372,18 +371,10 @@ def _quiet(verbose: bool) -> None:
 
 
 def _scratch_dir() -> str:
-    """A new scratch directory for a local cluster, ``rtval-dask-TAG-PID-*`` in the temporary
-    directory; those that killed runs (their PID gone, same host and PID namespace TAG) left
-    are removed first."""
-    from rt_core.outputs import _SPACE, _pid_alive
-    base = tempfile.gettempdir()
-    mine = f"rtval-dask-{_SPACE}-"
-    with contextlib.suppress(OSError):
-        for name in os.listdir(base):
-            pid = name[len(mine):].split("-", 1)[0] if name.startswith(mine) else ""
-            if pid.isdigit() and int(pid) != os.getpid() and not _pid_alive(int(pid)):
-                shutil.rmtree(os.path.join(base, name), ignore_errors=True)
-    return tempfile.mkdtemp(prefix=f"{mine}{os.getpid()}-")
+    """A new scratch directory for a local cluster, ``rtval-dask-TAG-PID-*``
+    (rt_core.outputs.scratch_dir: what killed runs left is removed first)."""
+    from rt_core.outputs import scratch_dir
+    return scratch_dir("dask")
 
 
 def _local_cluster(plan: Plan, scratch: str):
