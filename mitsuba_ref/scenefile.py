@@ -15,6 +15,7 @@ derived here (no unit normal, no frame): each reference computes those by its ow
 """
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass, field
 from decimal import Decimal
@@ -48,7 +49,10 @@ LAYOUT = {
     "torus": (("ambient", 3), ("diffuse", 3), ("specular", 3), ("center", 3), ("axis", 3),
               ("major", 1), ("minor", 1)),
 }
-_NUM = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?\Z")
+# the notes' numbers (ASCII digits only) and separators (space, tab, \f, \v: the C library's
+# isspace, which str.split() is not: it splits on NBSP and U+2028 too)
+_NUM = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?\Z", re.ASCII)
+_TOKEN = re.compile(r"[^ \t\f\v]+")
 
 
 @dataclass(frozen=True)
@@ -94,13 +98,13 @@ class File:
 def _lines(text: str):
     """(line number, tokens) of every line, comments removed."""
     for no, raw in enumerate(re.split(r"\r\n|\r|\n", text.lstrip("\ufeff")), 1):
-        yield no, raw.split("#", 1)[0].split()
+        yield no, _TOKEN.findall(raw.split("#", 1)[0])
 
 
 def read_text(text: str, code27: str = "auto") -> File:
     lines = [(no, t) for no, t in _lines(text) if t]
     # the header's five numbers; then a keyword, or a number (a code) starting a line
-    got, k, after = 0, 0, None
+    got, k, after, worded = 0, 0, None, False
     while k < len(lines) and got < 5:
         ts = lines[k][1]
         lead = next((i for i, t in enumerate(ts) if not _NUM.match(t)), len(ts))
@@ -108,10 +112,14 @@ def read_text(text: str, code27: str = "auto") -> File:
             break
         got += lead
         after = ts[lead] if lead < len(ts) else None
+        worded |= after is not None
         k += 1
     if after is not None and after.lower() in KEYWORDS:
         return _keyword(lines)
-    if got >= 5 and k < len(lines) and _NUM.match(lines[k][1][0]):
+    # numeric: a code starts the next line, or the header alone with its words after the
+    # numbers ("8 6 window"), as rt_core's parser reads it
+    if got >= 5 and (k < len(lines) and _NUM.match(lines[k][1][0]) or
+                     k == len(lines) and worded):
         try:
             return _numeric(lines, code27)
         except ValueError as first:
@@ -134,6 +142,12 @@ def read(path, code27: str = "auto") -> File:
 def _exact(tok: str) -> Fraction:
     if not _NUM.match(tok):
         raise ValueError(f"expected a number, found {tok!r}")
+    # (as rt_core's parser: beyond float64 either way is refused, before its exact value,
+    # millions of digits for 1e-9999999, is made)
+    v = float(tok)
+    if not math.isfinite(v) or (v == 0.0 and any(c in "123456789"
+                                                 for c in re.split("[eE]", tok)[0])):
+        raise ValueError(f"number {tok!r} is beyond float64's range")
     return Fraction(Decimal(tok))
 
 

@@ -185,6 +185,11 @@ class _Ctx:
         """The value of a token known to be where a number must be."""
         if _NUMBER.match(tok.text):
             value = Num(tok.text)
+            if value == 0.0 and any(c in "123456789" for c in re.split("[eE]", tok.text)[0]):
+                # (kept exact, 1e-9999999 made every exact decision's numbers millions of
+                # digits long: a run of minutes that ignored SIGTERM)
+                raise self.error(f"{what}: number {_show(tok.text)} is below float64's "
+                                 "range (it rounds to 0): write 0 or a larger number", tok)
             if math.isfinite(value):
                 return value
             raise self.error(f"{what}: number {_show(tok.text)} is out of range (not finite)",

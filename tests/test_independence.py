@@ -152,3 +152,51 @@ def _rt_ids_of(path, W, H):
     sc = parse_scene(path)
     g = trace_geometry(sc, make_camera(sc, W, H), backend.types("f64"))
     return np.array(g["object.id"]).astype(int)
+
+
+COMMANDS = {
+    "compare": lambda s, o: ["compare", s, "--columns", "16"],
+    "compare --shaded": lambda s, o: ["compare", s, "--columns", "16", "--shaded"],
+    "validate": lambda s, o: ["validate", s, "--columns", "16", "-o", o],
+    "check": lambda s, o: ["check", s, o + ".ppm"],
+    "check --run": lambda s, o: ["check", "--run", "false {scene} {out}", "--columns", "16",
+                                 s],
+    "convert": lambda s, o: ["convert", s, "--columns", "16", "-o", o + ".xml"],
+}
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test07_a_parser_bug_does_not_pass_a_comparison(command, monkeypatch, tmp_path, capsys):
+    """The commands hand rt_core's parsed scene to the references (the converter, the shading
+    oracle): a parser that read every radius 1.5 times too large passed compare, compare
+    --shaded and validate (a review).  Each command now reads the file with the references'
+    own reader too (tools/harness/agree.py) and refuses it where the two differ."""
+    import rt_core.parser as P
+    from rt_core.scene import Num
+    from tools.cli import main
+    orig = P.make_sphere
+    monkeypatch.setattr(P, "make_sphere",
+                        lambda mat, c, r, line=0: orig(mat, c, Num(repr(float(r) * 1.5)), line))
+    (tmp_path / "x.ppm").write_bytes(b"P6 16 12 255\n" + bytes(16 * 12 * 3))
+    scene = str(REPO / "scenes" / "sphere.txt")
+    code = main(COMMANDS[command](scene, str(tmp_path / "x")))
+    out = capsys.readouterr()
+    assert code == 2 and "sphere.txt:11: rt_core's parser and the references' own reader " \
+        "read this file differently (object 1 (sphere, line 11): radius (3) against (2))" in \
+        out.out + out.err, out
+
+
+def test08_both_readers_agree_on_every_scene():
+    """Every bundled, test and course scene: the same numbers, kinds and forms to both."""
+    from rt_core.scene import SceneError
+    from tools.harness.agree import parse_agreed
+    paths = sorted([*REPO.glob("scenes/*.txt"), *REPO.glob("tests/ctracer/scenes/*.txt"),
+                    *(REPO.parent / "shared" / "course-scenes").glob("*/*.txt")])
+    agreed = 0
+    for p in paths:
+        try:
+            parse_agreed(p)
+            agreed += 1
+        except SceneError as e:
+            assert "read this file differently" not in str(e), e
+    assert agreed >= 25

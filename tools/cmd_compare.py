@@ -40,7 +40,7 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    from rt_core.parser import parse_scene
+    from tools.harness.agree import parse_agreed
     from rt_core.rules import Rules
     from tools.harness.compare import compare, write_evidence
     from tools.harness.html_report import comparison_pictures
@@ -64,7 +64,7 @@ def run(args) -> int:
     if args.shaded and given(args.precision):
         args.usage_error("--precision does not apply with --shaded: the course image is "
                          "rt_core's float64 one against Mitsuba's")
-    scene = parse_scene(args.scene)
+    scene = parse_agreed(args.scene)           # (tools/harness/agree.py)
     if args.shaded:
         return _run_shaded(args, scene)
     modes = ("rays", "camera") if args.mode == "both" else (args.mode,)

@@ -43,7 +43,7 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     from rt_core.exrio import atomic_write
     from rt_core.outputs import together
-    from rt_core.parser import parse_scene
+    from tools.harness.agree import parse_agreed
     from mitsuba_ref.convert import DEFAULT_MAX_DIST, oracle_only, scene_xml, sensor_setup
 
     from rt_core.outputs import check_file_target
@@ -51,7 +51,7 @@ def run(args) -> int:
         args.usage_error(f"-o {args.output}: convert writes Mitsuba XML; name it .xml")
     check_file_target(args.output, make_dirs=False)
     parent = os.path.dirname(os.path.abspath(args.output))
-    scene = parse_scene(args.scene, code27=args.code27)
+    scene = parse_agreed(args.scene, code27=args.code27)
     setup = sensor_setup(scene, args.columns, args.rows, args.sampling)
     course = args.shading or args.aovs
     # (said once the files are written: a failed write is then the one line on stderr)

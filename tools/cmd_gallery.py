@@ -65,7 +65,7 @@ def run(args) -> int:
     from rt_core.exrio import atomic_write
     from rt_core.imageio import write_png
     from rt_core.memory import guard, render_bytes
-    from rt_core.parser import parse_scene
+    from tools.harness.agree import parse_agreed
     from rt_core.render import provenance, render_image, versions
     from rt_core.rules import Rules
     from rt_core.shading import DEFAULT_MAX_DIST
@@ -85,7 +85,7 @@ def run(args) -> int:
         for name, path in scene_files(args.scenes):
             note = ""
             try:
-                scene = parse_scene(str(path))
+                scene = parse_agreed(str(path))
                 try:
                     scene = attach(scene, args.texture_dir)
                 except (SceneError, ImageError) as e:

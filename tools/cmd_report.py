@@ -35,13 +35,13 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     from dataclasses import replace
     from pathlib import Path
-    from rt_core.parser import parse_scene
+    from tools.harness.agree import parse_agreed
     from tools.harness.report import QUICK, Settings, run_report, write_report
     from tools.harness.validate import REPO
     from rt_core.outputs import check_dir_target
     check_dir_target(args.output)            # refused before the run, not after it
     paths = args.scenes or sorted((REPO / "scenes").glob("*.txt"))
-    scenes = [parse_scene(p) for p in paths]
+    scenes = [parse_agreed(p) for p in paths]
     s = QUICK if args.quick else Settings()
     s = replace(s, **{k: v for k, v in (("columns", tuple(args.columns or ()) or None),
                                         ("sample", args.sample), ("reps", args.reps))

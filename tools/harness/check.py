@@ -502,14 +502,14 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
     ``read_hits`` made of it (arrays, or the exception it raised)."""
     from rt_core.imageio import ImageError, pnm_maxval, read_image
     from rt_core.memory import check_bytes, guard
-    from rt_core.parser import parse_scene
+    from tools.harness.agree import parse_agreed
     from rt_core.usererror import InputError
     from rt_core.rules import Rules
     from rt_core.scene import SceneError
     t0 = time.perf_counter()
     res = SceneCheck(str(scene_path), str(image_path) if image_path else None, "error")
     try:
-        scene = scene if scene is not None else parse_scene(scene_path)
+        scene = scene if scene is not None else parse_agreed(scene_path)
     except SceneError as exc:
         res.status, res.reason = "refused", str(exc)
         return res
@@ -1089,7 +1089,7 @@ def _check_runs(pool, work, template, scenes, columns, rows, timeout, kw):
     ``_check_job`` (a finished SceneCheck when the scene or the run failed)."""
     from rt_core.imageio import ImageError, pnm_maxval, read_image
     from rt_core.memory import check_bytes, guard
-    from rt_core.parser import parse_scene
+    from tools.harness.agree import parse_agreed
     from rt_core.scene import SceneError
     from rt_core.usererror import InputError
     jobs = []
@@ -1097,7 +1097,7 @@ def _check_runs(pool, work, template, scenes, columns, rows, timeout, kw):
         # a scene rtval cannot read is refused, as a malformed one is (exit 2 when no
         # scene fails): a missing one was a failed run (exit 1), a directory stopped them all
         try:
-            sc = parse_scene(s)
+            sc = parse_agreed(s)
         except (SceneError, InputError) as exc:
             jobs.append((s, None, SceneCheck(str(s), None, "refused", str(exc))))
             continue

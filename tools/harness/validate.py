@@ -7,7 +7,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from rt_core.parser import parse_scene
+from tools.harness.agree import parse_agreed
 from rt_core.scene import Scene, SceneError
 from .compare import compare, write_evidence
 
@@ -78,7 +78,7 @@ def load_supported(paths, explicit: bool):
     scenes, skipped = [], []
     for p in paths:
         try:
-            scenes.append(parse_scene(p))
+            scenes.append(parse_agreed(p))
         except SceneError as e:
             if explicit or not is_course_scene(p):
                 raise
