@@ -255,3 +255,22 @@ def test14_in_env_finds_the_installed_llvm_whatever_ldconfig_prints_after_it(tmp
                        capture_output=True, text=True, timeout=60,
                        env={**os.environ, "PATH": f"{tmp_path}:{os.environ['PATH']}"})
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test20_code27_where_a_message_suggests_it(tmp_path):
+    """A scene whose code-27 line fits neither layout says 'force a layout with --code27';
+    check, compare, validate, report and gallery had no such option (exit 64).  Each takes
+    it now, and reads the scene with it, both readers alike."""
+    scene = tmp_path / "c27.txt"
+    scene.write_text("8 6\n0 0 3\n27\n1 1 1\n1 1 1\n0 0 0\n0 0 -5\n1 2\n0 0 1\n")
+    ppm = tmp_path / "c27.ppm"
+    r = rtval("render", scene, "--columns", 16, "--code27", "disk", "--ppm", ppm)
+    assert r.returncode == 0, r.stderr
+    r = rtval("check", scene, ppm)
+    assert r.returncode == 2 and "force a layout with --code27" in r.stderr, r.stderr
+    for args in (("check", scene, ppm), ("compare", scene, "--columns", 16),
+                 ("validate", scene, "--columns", 16, "-o", tmp_path / "v"),
+                 ("report", scene, "--columns", 16, "--quick", "-o", tmp_path / "r"),
+                 ("gallery", scene, "--columns", 16, "-o", tmp_path / "g")):
+        r = rtval(*args, "--code27", "disk")
+        assert r.returncode == 0, (args, r.stderr[-500:])

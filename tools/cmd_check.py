@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 
-from .options import (add_max_dist, add_parallel, add_rules, add_texture_dir, timeout_seconds,
+from .options import (add_code27, add_max_dist, add_parallel, add_rules, add_texture_dir, timeout_seconds,
                       positive_int)
 
 
@@ -31,6 +31,7 @@ def add_parser(sub) -> None:
                  "clip_spheres, reflect, rows, tile_add_first, tile_project)")
     add_max_dist(p, "fix the reflection cut-off instead of inferring it")
     add_texture_dir(p)
+    add_code27(p)
     p.add_argument("--hits", metavar="FILE",
                    help="a hit dump of the image: 'column row object t' per pixel")
     p.add_argument("--timeout", type=timeout_seconds, default=60.0, metavar="S",
@@ -47,7 +48,8 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     from rt_core.outputs import atomic_write, check_file_target
     from tools.harness.check import check_image, check_run, junit_xml, text_report
-    kw = {"rules": args.rules, "max_dist": args.max_dist, "texture_dirs": args.texture_dir}
+    kw = {"rules": args.rules, "max_dist": args.max_dist, "texture_dirs": args.texture_dir,
+          "code27": args.code27}
     if args.report:                     # refused before the runs, not after them
         from tools.harness.html_report import check_target
         check_target(args.report)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import json
 import sys
 
-from .options import add_image_options, add_max_dist, add_texture_dir, given
+from .options import add_code27, add_image_options, add_max_dist, add_texture_dir, given
 
 
 EVIDENCE_DIR = "out/compare"
@@ -28,6 +28,7 @@ def add_parser(sub) -> None:
                         "from the float64 shading oracle) or wrong; exit 1 on a wrong pixel")
     add_max_dist(p, "--shaded: reflections stop at this path length (default 1000)")
     add_texture_dir(p)
+    add_code27(p)
     p.add_argument("--evidence", metavar="DIR",
                    help=f"where evidence EXRs go on failure (default {EVIDENCE_DIR})")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
@@ -64,7 +65,7 @@ def run(args) -> int:
     if args.shaded and given(args.precision):
         args.usage_error("--precision does not apply with --shaded: the course image is "
                          "rt_core's float64 one against Mitsuba's")
-    scene = parse_agreed(args.scene)           # (tools/harness/agree.py)
+    scene = parse_agreed(args.scene, args.code27)     # (tools/harness/agree.py)
     if args.shaded:
         return _run_shaded(args, scene)
     modes = ("rays", "camera") if args.mode == "both" else (args.mode,)

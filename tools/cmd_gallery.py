@@ -10,7 +10,7 @@ import html
 import sys
 from pathlib import Path
 
-from .options import add_texture_dir, positive_int
+from .options import add_code27, add_texture_dir, positive_int
 
 REPO = Path(__file__).resolve().parents[1]
 SOURCES = (("scenes", REPO / "scenes"), ("course", REPO.parent / "shared" / "course-scenes"))
@@ -38,6 +38,7 @@ def add_parser(sub) -> None:
                    help="print what was written as JSON on stdout (each scene's PNG, size "
                         "and reflection bounces, the skipped files and why, provenance) "
                         "instead of the two paths")
+    add_code27(p)
     p.set_defaults(func=run)
 
 
@@ -85,7 +86,7 @@ def run(args) -> int:
         for name, path in scene_files(args.scenes):
             note = ""
             try:
-                scene = parse_agreed(str(path))
+                scene = parse_agreed(str(path), args.code27)
                 try:
                     scene = attach(scene, args.texture_dir)
                 except (SceneError, ImageError) as e:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 
 from .cmd_bench import fresh_kernel_cache
-from .options import positive_int
+from .options import add_code27, positive_int
 
 
 def add_parser(sub) -> None:
@@ -29,6 +29,7 @@ def add_parser(sub) -> None:
                    help="use Dr.Jit's on-disk kernel cache (default: an empty one, so that "
                         "first calls show compilation)")
     p.add_argument("-o", "--output", default="out/report", metavar="DIR")
+    add_code27(p)
     p.set_defaults(func=run, before_import=lambda args: fresh_kernel_cache(args.keep_cache))
 
 
@@ -41,7 +42,7 @@ def run(args) -> int:
     from rt_core.outputs import check_dir_target
     check_dir_target(args.output)            # refused before the run, not after it
     paths = args.scenes or sorted((REPO / "scenes").glob("*.txt"))
-    scenes = [parse_agreed(p) for p in paths]
+    scenes = [parse_agreed(p, args.code27) for p in paths]
     s = QUICK if args.quick else Settings()
     s = replace(s, **{k: v for k, v in (("columns", tuple(args.columns or ()) or None),
                                         ("sample", args.sample), ("reps", args.reps))

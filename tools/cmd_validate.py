@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import sys
 
-from .options import add_parallel, add_texture_dir, positive_int
+from .options import add_code27, add_parallel, add_texture_dir, positive_int
 
 
 def add_parser(sub) -> None:
@@ -30,6 +30,7 @@ def add_parser(sub) -> None:
                    help="print the results as JSON on stdout (what report.json holds) "
                         "instead of the table")
     add_texture_dir(p)
+    add_code27(p)
     p.add_argument("--shaded-columns", type=int, default=48, metavar="N",
                    help="also compare each scene's shaded course image with Mitsuba's 'course' "
                         "integrator at N columns (rtval compare --shaded; default 48; 0: off; "
@@ -73,7 +74,7 @@ def run(args) -> int:
     if args.junit:
         check_file_target(args.junit, make_dirs=False)
     paths = args.scenes or default_scene_paths()
-    scenes, skipped = load_supported(paths, explicit=bool(args.scenes))
+    scenes, skipped = load_supported(paths, explicit=bool(args.scenes), code27=args.code27)
     if args.shaded_columns > 0:         # the shaded comparisons need the textures
         from tools.harness.validate import attach_textures
         scenes, no_texture = attach_textures(scenes, args.texture_dir)

@@ -494,7 +494,8 @@ def _value(rules, md, name):
 def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
                 rows: int | None = None, rules=None, max_dist: float | None = None,
                 hits_path=None, theirs: np.ndarray | None = None,
-                scene=None, texture_dirs=(), maxval: int | None = None) -> SceneCheck:
+                scene=None, texture_dirs=(), maxval: int | None = None,
+                code27: str = "auto") -> SceneCheck:
     """Check one image of one scene.  ``rules``/``max_dist`` given: no inference of those.
     ``theirs``, ``scene``: the image and the parsed scene with its textures, already read
     (``check_run`` on a Dask worker, which need not see the files); ``texture_dirs``: where
@@ -509,7 +510,7 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
     t0 = time.perf_counter()
     res = SceneCheck(str(scene_path), str(image_path) if image_path else None, "error")
     try:
-        scene = scene if scene is not None else parse_agreed(scene_path)
+        scene = scene if scene is not None else parse_agreed(scene_path, code27)
     except SceneError as exc:
         res.status, res.reason = "refused", str(exc)
         return res
@@ -1097,7 +1098,7 @@ def _check_runs(pool, work, template, scenes, columns, rows, timeout, kw):
         # a scene rtval cannot read is refused, as a malformed one is (exit 2 when no
         # scene fails): a missing one was a failed run (exit 1), a directory stopped them all
         try:
-            sc = parse_agreed(s)
+            sc = parse_agreed(s, kw.get("code27", "auto"))
         except (SceneError, InputError) as exc:
             jobs.append((s, None, SceneCheck(str(s), None, "refused", str(exc))))
             continue

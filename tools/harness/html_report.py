@@ -265,7 +265,7 @@ def comparison_row(row: dict, rows_given: int | None = None) -> Row:
 
 def check_command(r, run: str | None = None, rows: int | None = None, rules=None,
                   max_dist=None, hits: str | None = None, timeout: float | None = None,
-                  texture_dirs=()) -> str:
+                  texture_dirs=(), code27: str = "auto") -> str:
     """The ``rtval check`` command that redoes one scene's check."""
     if run:
         words = ["rtval", "check", "--run", run, "--columns", r.columns or "N"]
@@ -284,6 +284,8 @@ def check_command(r, run: str | None = None, rows: int | None = None, rules=None
         words += ["--max-dist", repr(max_dist)]
     for d in texture_dirs:
         words += ["--texture-dir", d]
+    if code27 != "auto":
+        words += ["--code27", code27]
     return _q(*words)
 
 

@@ -70,7 +70,7 @@ def lacks_texture(scene) -> bool:
     return any(o.texture is None for _, o in textured(scene))
 
 
-def load_supported(paths, explicit: bool):
+def load_supported(paths, explicit: bool, code27: str = "auto"):
     """(scenes, skipped): in the default list, course files rtval cannot read (an object kind
     it does not implement: "unsupported"; an error in the file itself: "malformed") are
     skipped and listed; a bundled scene or a scene named explicitly must parse (its error is
@@ -78,7 +78,7 @@ def load_supported(paths, explicit: bool):
     scenes, skipped = [], []
     for p in paths:
         try:
-            scenes.append(parse_agreed(p))
+            scenes.append(parse_agreed(p, code27))
         except SceneError as e:
             if explicit or not is_course_scene(p):
                 raise
