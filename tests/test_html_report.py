@@ -223,8 +223,58 @@ def test03_cli_refuses_a_directory_of_other_files_before_running(tmp_path, capsy
     rep = tmp_path / "new"
     assert main(["validate", str(SPHERE), "--report", str(rep), "-o", str(rep / "v")]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and f"it holds the -o directory {rep / 'v'}" in err
+    assert err.count("\n") == 1 and f"it holds the -o {rep / 'v'}" in err
     assert not rep.exists()
+
+
+def test03b_a_report_loses_nothing_and_says_what_the_run_says(tmp_path, capsys):
+    """A review in a browser: re-running into an earlier report deleted the input image put
+    in it (and any note); a --junit inside the report's directory was refused or lost after
+    the whole run; refused scenes gave a green PASS page while the command exited 2;
+    evidence links broke on '#', '?' and '%' in names; an error row's reproduce line read
+    '--columns N'; a check report without pictures labelled the tracer's column 'ours'."""
+    from tools.cli import main
+    rep = tmp_path / "rep"
+    img = tmp_path / "a.ppm"
+    img.write_bytes(b"P6 32 24 255\n" + bytes(32 * 24 * 3))
+    assert main(["check", str(SPHERE), str(img), "--report", str(rep)]) == 1
+    capsys.readouterr()
+    shutil.copy(img, rep / "a.ppm")                 # the image put in the old report
+    assert main(["check", str(SPHERE), str(rep / "a.ppm"), "--report", str(rep)]) == 2
+    err = capsys.readouterr().err
+    assert f"it holds the image {rep / 'a.ppm'}, which the report would replace" in err, err
+    os.rename(rep / "a.ppm", rep / "notes.txt")     # a file of the user's in an old report
+    assert main(["check", str(SPHERE), str(img), "--report", str(rep)]) == 2
+    assert "earlier rtval report that also holds notes.txt" in capsys.readouterr().err
+    assert (rep / "notes.txt").exists()
+    os.remove(rep / "notes.txt")
+    for command in (["check", str(SPHERE), str(img)], ["compare", str(SPHERE), "--columns", "8"],
+                    ["validate", str(SPHERE), "--columns", "8", "-o", str(tmp_path / "v")]):
+        new = tmp_path / f"new-{command[0]}"
+        assert main(command + ["--report", str(new), "--junit", str(new / "j.xml")]) == 2
+        err = capsys.readouterr().err
+        assert f"it holds the --junit {new / 'j.xml'}" in err and not new.exists(), err
+    # refused scenes: the page fails as the run does (exit 2); error rows keep --columns
+    out = tmp_path / "refused"
+    assert main(["check", "--run", "false {scene} {out}", "--columns", "16",
+                 str(tmp_path / "none.txt"), str(SPHERE), "--report", str(out)]) == 1
+    html = (out / "index.html").read_text()
+    assert 'id="verdict">FAIL: 0 of 1 pass, 1 could not run; 1 refused<' in html, html[:2000]
+    assert "--columns 16" in html and "--columns N" not in html
+    assert "<th>theirs</th>" in html                # (no pictures: the column is the tracer's)
+    out = tmp_path / "only-refused"
+    assert main(["check", "--run", "false {scene} {out}", "--columns", "16",
+                 str(tmp_path / "none.txt"), "--report", str(out)]) == 2
+    assert 'id="verdict">FAIL: 0 of 0 pass; 1 refused<' in (out / "index.html").read_text()
+    # evidence links percent-encoded
+    odd = tmp_path / "a#1 %41?.txt"
+    shutil.copy(SPHERE, odd)
+    out = tmp_path / "hash"
+    assert main(["validate", str(odd), "--columns", "8", "--evidence", "all", "-o",
+                 str(tmp_path / "vh"), "--report", str(out)]) == 0
+    links = re.findall(r'href="([^"]+\.exr)"', (out / "index.html").read_text())
+    assert links and all((out / unquote(h)).resolve().is_file() for h in links), links
+    assert all("#" not in h and "?" not in h for h in links)
 
 
 # --- the commands ------------------------------------------------------------------------------

@@ -52,7 +52,9 @@ def run(args) -> int:
           "code27": args.code27}
     if args.report:                     # refused before the runs, not after them
         from tools.harness.html_report import check_target
-        check_target(args.report)
+        image = args.inputs[1] if args.run is None and len(args.inputs) == 2 else None
+        check_target(args.report, {"--junit": args.junit, "--hits": args.hits,
+                                   "image": image})
     if args.junit:
         check_file_target(args.junit, make_dirs=False)
     if args.run is not None:
@@ -98,7 +100,8 @@ def run(args) -> int:
         if args.report:
             from tools.harness.html_report import check_report
             page = check_report(args.report, results, run=args.run, rows=args.rows,
-                                hits=args.hits, timeout=args.timeout, **kw)
+                                hits=args.hits, timeout=args.timeout, columns=args.columns,
+                                **kw)
     if page:
         print(f"report: {page}", file=sys.stderr)
     single = len(results) == 1 and not args.run

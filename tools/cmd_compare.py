@@ -59,7 +59,7 @@ def run(args) -> int:
         check_dir_target(args.evidence)
     if args.report:
         from tools.harness.html_report import check_target
-        check_target(args.report, {"--evidence": args.evidence})
+        check_target(args.report, {"--evidence": args.evidence, "--junit": args.junit})
     if args.junit:
         check_file_target(args.junit, make_dirs=False)
     if args.shaded and given(args.precision):

@@ -69,7 +69,7 @@ def run(args) -> int:
     from rt_core.outputs import check_dir_target, check_file_target
     if args.report:                     # refused before the run, not after it
         from tools.harness.html_report import check_target
-        check_target(args.report, {"-o": args.output})
+        check_target(args.report, {"-o": args.output, "--junit": args.junit})
     check_dir_target(args.output)
     if args.junit:
         check_file_target(args.junit, make_dirs=False)

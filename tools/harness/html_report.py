@@ -27,6 +27,7 @@ import shlex
 import shutil
 import sys
 import tempfile
+import urllib.parse
 from dataclasses import dataclass, field
 from html import escape
 from pathlib import Path
@@ -265,10 +266,10 @@ def comparison_row(row: dict, rows_given: int | None = None) -> Row:
 
 def check_command(r, run: str | None = None, rows: int | None = None, rules=None,
                   max_dist=None, hits: str | None = None, timeout: float | None = None,
-                  texture_dirs=(), code27: str = "auto") -> str:
+                  texture_dirs=(), code27: str = "auto", columns: int | None = None) -> str:
     """The ``rtval check`` command that redoes one scene's check."""
     if run:
-        words = ["rtval", "check", "--run", run, "--columns", r.columns or "N"]
+        words = ["rtval", "check", "--run", run, "--columns", r.columns or columns or "N"]
         if rows:
             words += ["--rows", rows]
         if timeout is not None and timeout != 60.0:
@@ -334,7 +335,7 @@ dl.provenance dt{font-weight:bold} dl.provenance dd{margin:0}
 table{border-collapse:collapse} td,th{vertical-align:top;padding:6px;border-bottom:1px solid #ddd}
 tr.fail td.status{color:#fff;background:#c00000} tr.error td.status{color:#fff;background:#b06000}
 tr.pass td.status{color:#fff;background:#2a7a2a} td.status{font-weight:bold;text-align:center}
-td.info{max-width:38em} td.info ul{margin:.3em 0;padding-left:1.2em;font-size:.9em}
+td.info{max-width:38em;overflow-wrap:anywhere} td.info ul{margin:.3em 0;padding-left:1.2em;font-size:.9em}
 figure{margin:0} figcaption{font-size:.8em;color:#555}
 img.flip{image-rendering:pixelated;cursor:pointer;border:1px solid #999;background:#000}
 img.flip:focus{outline:2px solid #36c}
@@ -399,7 +400,8 @@ def _row_html(k: int, row: Row, directory: str, files: dict) -> str:
     for p in row.evidence:
         if os.path.isfile(p):
             rel = os.path.relpath(os.path.abspath(p), directory)
-            links.append(f'<a href="{escape(Path(rel).as_posix())}">{escape(Path(p).name)}</a>')
+            href = urllib.parse.quote(Path(rel).as_posix())     # ('#', '?', '%' in names)
+            links.append(f'<a href="{escape(href)}">{escape(Path(p).name)}</a>')
     if links:
         info.append(f'<div class="evidence">evidence: {" · ".join(links)}</div>')
     if row.command:
@@ -426,21 +428,23 @@ def _row_html(k: int, row: Row, directory: str, files: dict) -> str:
 
 
 def page(title: str, rows: list, skipped: list, directory: str, command: str | None = None,
-         meta: dict | None = None) -> tuple[str, dict]:
-    """(index.html's text, the PNG files it names: name -> bytes)."""
+         meta: dict | None = None, skipped_fail: bool = False) -> tuple[str, dict]:
+    """(index.html's text, the PNG files it names: name -> bytes).  ``skipped_fail``: a
+    skipped file fails the run (check's refused scenes: exit 2), so the verdict says FAIL."""
     rows = sorted(rows, key=lambda r: STATUS_ORDER.get(r.status, 1))
     files: dict = {}
     body = [_row_html(k, r, directory, files) for k, r in enumerate(rows)]
     bad = sum(r.status != "pass" for r in rows)
     fails = sum(r.status == "fail" for r in rows)
     errors = sum(r.status == "error" for r in rows)
-    verdict = ("PASS" if not bad else "FAIL") + f": {len(rows) - bad} of {len(rows)} pass"
+    bad_run = bad or (skipped_fail and len(skipped))
+    verdict = ("PASS" if not bad_run else "FAIL") + f": {len(rows) - bad} of {len(rows)} pass"
     if fails:
         verdict += f", {fails} fail"
     if errors:
         verdict += f", {errors} could not run"
     if skipped:
-        verdict += f"; {len(skipped)} skipped"
+        verdict += f"; {len(skipped)} {'refused' if skipped_fail else 'skipped'}"
     kinds = list(dict.fromkeys(r.pictures.kind for r in rows if r.pictures))
     prov = {"rtval": _versions().get("rtval", "unknown"),
             "commit": _versions().get("commit", "(not a git checkout)"),
@@ -465,7 +469,7 @@ def page(title: str, rows: list, skipped: list, directory: str, command: str | N
 <title>{escape(title)}: {escape(verdict)}</title>
 <style>{CSS}</style></head><body>
 <h1>{escape(title)}</h1>
-<p class="verdict {'pass' if not bad else 'fail'}" id="verdict">{escape(verdict)}</p>
+<p class="verdict {'pass' if not bad_run else 'fail'}" id="verdict">{escape(verdict)}</p>
 <p class="provenance">rtval {escape(prov["rtval"])}, commit {escape(prov["commit"])},
 {escape(prov["date"])}: <code>{escape(prov["command"])}</code></p>
 <details><summary>provenance</summary><dl class="provenance" id="provenance">{"".join(
@@ -477,7 +481,7 @@ places, the class image shows the difference (|reference − ours|, grey: any di
 least dark grey).</p></section>
 <p><label><input type="checkbox" id="failures-only"> show only what did not pass</label></p>
 <table id="results"><thead><tr><th></th><th>comparison</th><th>reference</th>
-<th>{'theirs' if kinds == ['check'] else 'ours'}</th><th>classes</th></tr></thead><tbody>
+<th>{'theirs' if kinds == ['check'] or title == 'rtval check' else 'ours'}</th><th>classes</th></tr></thead><tbody>
 {chr(10).join(body)}
 </tbody></table>
 {skips}
@@ -497,25 +501,46 @@ def _is_report(directory: str) -> bool:
         return False
 
 
+# what a report directory holds: its page and the pictures _row_html names
+_OWN = re.compile(r"index\.html\Z|\d{3}-.*\.(?:reference|ours|classes|difference)\.png\Z")
+
+
+def _foreign(directory: str) -> list:
+    """The entries of an earlier report that rtval did not write (an input image put there,
+    notes): replacing the report would delete them."""
+    return sorted(n for n in os.listdir(directory)
+                  if not _OWN.match(n) or not os.path.isfile(os.path.join(directory, n)))
+
+
 def check_target(directory: str, keep: dict | None = None) -> None:
     """Refuse up front (WriteError, one line) a ``--report DIR`` that would lose something:
-    DIR may be new, empty, or an earlier report (which is replaced), and must not be or hold
-    a directory the run writes (``keep``: option -> directory, e.g. {"-o": "out/validate"})."""
+    DIR may be new, empty, or an earlier report holding only what rtval wrote (which is
+    replaced), and must not be or hold a file or directory the run reads or writes
+    (``keep``: what -> path, e.g. {"-o": "out/validate", "--junit": "j.xml"}; None skipped)."""
     from rt_core.outputs import WriteError
     mine = os.path.realpath(directory)
     for opt, other in (keep or {}).items():
+        if not other:
+            continue
         theirs = os.path.realpath(other)
         if theirs == mine or theirs.startswith(mine.rstrip(os.sep) + os.sep):
-            raise WriteError(directory, f"it holds the {opt} directory {other}, which the "
-                                        "report would replace",
-                             f"give --report a directory of its own, e.g. "
-                             f"{os.path.join(other, 'report')}")
+            raise WriteError(directory, f"it holds the {opt} {other}, which the report "
+                                        "would replace",
+                             "give --report a directory of its own" + (
+                                 f", e.g. {os.path.join(other, 'report')}"
+                                 if os.path.isdir(other) else ", not the one that holds it"))
     if os.path.exists(directory) and not os.path.isdir(directory):
         raise WriteError(directory, "exists and is not a directory",
                          "give --report a directory name")
     if os.path.isdir(directory) and os.listdir(directory) and not _is_report(directory):
         raise WriteError(directory, "is a directory with other files in it, not an rtval "
                                     "report", "give --report a new or empty directory")
+    if os.path.isdir(directory) and _is_report(directory) and _foreign(directory):
+        names = _foreign(directory)
+        raise WriteError(directory, "is an earlier rtval report that also holds "
+                                    f"{', '.join(names[:3])}{', ...' if len(names) > 3 else ''}"
+                                    ", which replacing it would delete",
+                         "move them out, or give --report another directory")
     from rt_core.outputs import check_dir_target
     check_dir_target(directory)         # (writable: refused before the run, not after it)
 
@@ -545,7 +570,8 @@ def _write(path: str, data: bytes) -> None:
 
 
 def write_report(directory: str, title: str, rows: list, skipped: list = (),
-                 command: str | None = None, meta: dict | None = None) -> str:
+                 command: str | None = None, meta: dict | None = None,
+                 skipped_fail: bool = False) -> str:
     """Write the report into ``directory`` (new, empty or an earlier report); returns the
     path of its index.html.  On any failure nothing is left: no directory, no temporary."""
     from rt_core.outputs import _SPACE, TMP_PREFIX, WriteError, _reason, signals_held
@@ -562,7 +588,7 @@ def write_report(directory: str, title: str, rows: list, skipped: list = (),
         _remove_stale_dirs(parent)
         with signals_held():             # no handler between mkdtemp's mkdir and `stage =`
             stage = tempfile.mkdtemp(prefix=f"{TMP_PREFIX}{_SPACE}-{os.getpid()}-", dir=parent)
-        html, files = page(title, rows, skipped, final, command, meta)
+        html, files = page(title, rows, skipped, final, command, meta, skipped_fail)
         for name, data in files.items():
             _write(os.path.join(stage, name), data)
         _write(os.path.join(stage, "index.html"), html.encode("utf-8"))
@@ -617,4 +643,4 @@ def comparisons_report(directory: str, title: str, results, skipped=(), rows_giv
 def check_report(directory: str, results, **command) -> str:
     """The report of ``rtval check`` (``command``: check_command's options)."""
     rows, skipped = check_rows(results, **command)
-    return write_report(directory, "rtval check", rows, skipped)
+    return write_report(directory, "rtval check", rows, skipped, skipped_fail=True)
