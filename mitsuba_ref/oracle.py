@@ -400,6 +400,8 @@ def planar_hits(ob: _Obj, base, d, rules: Rules) -> Cand:
     return c
 
 
+# kinds whose invalid hit has a place to be taken at (trace's ``flip``)
+FLIPPABLE = ("plane", "fplane", "tplane", "sphere", "triangle", "disk")
 HITS = {"plane": plane_hits, "fplane": fplane_hits, "tplane": tplane_hits,
         "sphere": sphere_hits, "cylinder": quadric_hits, "cone": quadric_hits,
         "ellipsoid": quadric_hits, "triangle": planar_hits, "disk": planar_hits,
@@ -541,13 +543,19 @@ class Hit:
     graze: float = INF
     disc_margin: float = INF
     cands: list = field(default_factory=list, repr=False)
+    # (object index, margin) of each object whose verdict could change the answer: its
+    # cheapest flip (the winner's for a near tie) -- what ``trace(flip=...)`` may toggle
+    risks: list = field(default_factory=list, repr=False)
 
 
-def trace(scene, base, dir, rules: Rules = Rules(), skip=None) -> Hit:
+def trace(scene, base, dir, rules: Rules = Rules(), skip=None, flip=frozenset()) -> Hit:
     """Closest valid hit of the ray base + t·dir over ``scene.objects`` (except index ``skip``).
 
     ``base``/``dir`` are float triples (taken as inputs rounded once) or EF triples.  Ties in t
     go to the earlier object (rules.ties == 'first') or the later one ('last').
+    ``flip``: objects whose verdict is taken the other way (a decision within its bound taken
+    as another precision may take it: shade_oracle.other_sides); an invalid hit is taken at
+    the t its failed test computed (FLIPPABLE kinds, a t at all), else ValueError.
     """
     base, d = vec(base), vec(dir)
     obs = prepared(scene)
@@ -559,7 +567,12 @@ def trace(scene, base, dir, rules: Rules = Rules(), skip=None) -> Hit:
             continue
         c = HITS[ob.kind](ob, base, d, rules)
         cands.append(c)
-        if not c.ok:
+        ok = c.ok
+        if ob.idx in flip:
+            if not ok and (c.t is None or ob.kind not in FLIPPABLE):
+                raise ValueError(f"object {ob.idx}: no hit to take")
+            ok = not ok
+        if not ok:
             continue
         if win is None or c.t.v < cands[win].t.v or (
                 c.t.v == cands[win].t.v and rules.ties == "last"):
@@ -594,8 +607,10 @@ def _diagnose(hit: Hit, obs, cands, win, base, d, rules: Rules) -> None:
         if c is None or (c.ok and ob.idx != win):
             # a valid hit behind the winner: only a near-tie can matter (an identical surface
             # ties exactly in any precision, and the rule decides)
-            if c is not None and ob.key != obs[win].key:
-                hit.tie_gap = min(hit.tie_gap, _margin(c.t.v - tw.v, c.t.e + tw.e))
+            if c is not None and win is not None and ob.key != obs[win].key:
+                m = _margin(c.t.v - tw.v, c.t.e + tw.e)
+                hit.tie_gap = min(hit.tie_gap, m)
+                hit.risks.append((win, m))          # (the winner lost: the other wins)
             continue
         if ob.idx != win:
             if c.t is None:
@@ -605,8 +620,9 @@ def _diagnose(hit: Hit, obs, cands, win, base, d, rules: Rules) -> None:
                     continue
             elif tw is not None and abs(c.t.v) > tw.v + 1e-4 * (tw.v + tw.e + c.t.e):
                 continue                             # behind the winner: cannot matter
-        key, m = _at_risk(_tests(ob, c, base, d, rules), ob.idx == win)
+        key, m = _at_risk(_tests(ob, c, base, d, rules), c.ok)
         setattr(hit, key, min(getattr(hit, key), m))
+        hit.risks.append((ob.idx, m))
 
 
 # --- images ------------------------------------------------------------------------------------

@@ -47,7 +47,8 @@ K_VALUE = 8.0
 MARGINS = ("geo", "shadow", "tile", "maxdist", "texel")
 
 
-def _hit_margin(scene, h, base, d, skip, ties: bool = True, tmax: float = INF) -> float:
+def _hit_margin(scene, h, base, d, skip, ties: bool = True, tmax: float = INF,
+                near=None) -> float:
     """The smallest margin of the decisions behind a ray's verdict: oracle.trace's own (edge,
     clip, t_min, graze; tie for a closest hit), except the sphere discriminant.  For spheres the
     notes' b² − 4ac cancels badly far from the ray origin (its bound, and so its margin, grows
@@ -74,6 +75,8 @@ def _hit_margin(scene, h, base, d, skip, ties: bool = True, tmax: float = INF) -
         along = dot3(q, d)
         p = length3(diff3(q, scale3(along, d)))
         m = min(m, _margin(p.v - r.v, p.e + r.e))
+        if near is not None:
+            near.append((i, _margin(p.v - r.v, p.e + r.e)))
     return m
 
 
@@ -104,6 +107,28 @@ class _Pixel:
         self.bounces = 0
 
 
+class _Alt:
+    """The choice points of one pixel's path (``other_sides``): each decision within its
+    float64 bound (margin below K_DECISION·u) is named by a key (bounce, what, which) --
+    ('geo', object) the closest hit, ('shadow', light), ('spot', light) the cone, ('tile',
+    axis), ('texel', axis), ('maxdist', 0) -- recorded in ``seen``; those in ``flips`` are
+    taken the other way."""
+    LIMIT = K_DECISION * U["f64"]
+
+    def __init__(self, flips=frozenset()):
+        self.flips, self.seen = flips, []
+
+    def near(self, m: float) -> bool:
+        return m < self.LIMIT
+
+    def choose(self, key, m: float, outcome: bool) -> bool:
+        """``outcome``, or its negation where this decision is near and flipped."""
+        if m < self.LIMIT:
+            self.seen.append(key)
+            return outcome != (key in self.flips)
+        return outcome
+
+
 def primary_ray(scene, x: int, y: int, W: int, H: int, sampling: str = "corners"):
     """(base, dir) as EF triples for column x, row y (y = 0 the bottom row): the notes' camera."""
     ww, wh = EF(scene.window[0]), EF(scene.window[1])
@@ -117,7 +142,8 @@ def primary_ray(scene, x: int, y: int, W: int, H: int, sampling: str = "corners"
     return base, unit3(diff3((wx, wy, EF(0.0, 0.0)), base))
 
 
-def ray_trace(scene, base, d, total_dist, skip, rules: Rules, max_dist: float, px: _Pixel):
+def ray_trace(scene, base, d, total_dist, skip, rules: Rules, max_dist: float, px: _Pixel,
+              alt: _Alt | None = None):
     """The notes' trace(): intensity (3 EF) of the ray base + t·d, path length so far
     ``total_dist`` (EF), ignoring object ``skip``; margins go into ``px``.
 
@@ -126,9 +152,23 @@ def ray_trace(scene, base, d, total_dist, skip, rules: Rules, max_dist: float, p
     the last bounce back: the same operations in the same order, without Python's recursion
     limit (a corridor of mirrors reaches thousands of bounces before a long MAX_DIST)."""
     stack = []                          # (local intensity, specular) of the bounces so far
+    b = 0                               # the bounce (alt's keys)
     while True:
         h = trace(scene, base, d, rules, skip)
-        px.geo = min(px.geo, _hit_margin(scene, h, base, d, skip))
+        near = [] if alt is not None else None
+        px.geo = min(px.geo, _hit_margin(scene, h, base, d, skip, near=near))
+        if alt is not None:
+            # the objects whose verdict is within its bound; those flipped are taken the
+            # other way (oracle.trace: ValueError where that side has no hit to take), and
+            # the verdicts near on the hit that gives are choice points too
+            risks, flip = near + h.risks, frozenset()
+            for _ in range(4):
+                now = frozenset(j for j, m in risks if alt.choose((b, "geo", j), m, False))
+                if now == flip:
+                    break
+                flip = now
+                h = trace(scene, base, d, rules, skip, flip)
+                risks = risks + h.risks
         if not h.hit:
             I = [EF(0.0, 0.0)] * 3
             break
@@ -147,13 +187,17 @@ def ray_trace(scene, base, d, total_dist, skip, rules: Rules, max_dist: float, p
             x = u / EF(obj.size[0])
             y = vv / EF(obj.size[1])
             off = oracle.OFF * 2.0 ** -53
-            px.tile = min(px.tile, _int_margin(x, off), _int_margin(y, off))
-            if not oracle.tile_foreground(obj, h.uv[0], h.uv[1], rules):
+            mx, my = _int_margin(x, off), _int_margin(y, off)
+            px.tile = min(px.tile, mx, my)
+            fg = oracle.tile_foreground(obj, h.uv[0], h.uv[1], rules)
+            if alt is not None:         # (either axis's floor flipped: the other colour)
+                fg = alt.choose((b, "tile", 1), my, alt.choose((b, "tile", 0), mx, fg))
+            if not fg:
                 mat = obj.background
         I = [EF(a) for a in mat.ambient]
         if getattr(obj, "texture", None) is not None:
-            I = _textured_ambient(scene, obj, h, N, px)
-        for light in scene.lights:
+            I = _textured_ambient(scene, obj, h, N, px, alt, b)
+        for l, light in enumerate(scene.lights):
             D = diff3(vec(light.center), H)
             dist = length3(D)
             L = unit3(D)
@@ -167,14 +211,21 @@ def ray_trace(scene, base, d, total_dist, skip, rules: Rules, max_dist: float, p
                 cos_t = math.cos(math.radians(light.theta))       # within a few ulps
                 s = dot3(scale3(EF(-1.0, 0.0), L), axis) - EF(cos_t, 4.0 * abs(cos_t))
                 px.shadow = min(px.shadow, _margin(s.v, s.e))
-                if s.v <= 0:
+                inside = s.v > 0
+                if alt is not None:
+                    inside = alt.choose((b, "spot", l), _margin(s.v, s.e), inside)
+                if not inside:
                     continue                                # outside the spotlight's cone
             s = trace(scene, H, L, rules, h.id)
-            px.shadow = min(px.shadow, _hit_margin(scene, s, H, L, h.id, False, dist.v))
+            m = _hit_margin(scene, s, H, L, h.id, False, dist.v)
             if s.hit:
-                px.shadow = min(px.shadow, _margin(s.t - dist.v, s.err_t + dist.e))
-                if s.t < dist.v:
-                    continue                                # shadow
+                m = min(m, _margin(s.t - dist.v, s.err_t + dist.e))
+            px.shadow = min(px.shadow, m)
+            blocked = s.hit and s.t < dist.v
+            if alt is not None:         # (whichever test is near: the light blocked or not)
+                blocked = alt.choose((b, "shadow", l), m, blocked)
+            if blocked:
+                continue                                    # shadow
             for i in range(3):
                 I[i] = I[i] + EF(mat.diffuse[i]) * EF(light.emissivity[i]) * c / dist
         seg = EF(h.t, h.err_t) if rules.reflect == "segment" else total_dist
@@ -182,16 +233,67 @@ def ray_trace(scene, base, d, total_dist, skip, rules: Rules, max_dist: float, p
         if not any(mat.specular):
             break
         px.maxdist = min(px.maxdist, _margin(total_dist.v - max_dist, total_dist.e))
-        if not total_dist.v < max_dist:
+        going = total_dist.v < max_dist
+        if alt is not None:
+            going = alt.choose((b, "maxdist", 0),
+                               _margin(total_dist.v - max_dist, total_dist.e), going)
+        if not going:
             break
         # the reflection ray: trace it next, and add specular · its intensity afterwards
         px.bounces += 1
         stack.append((I, mat.specular))
         R = unit3(diff3(d, scale3(2.0 * dot3(d, N), N)))
         base, d, skip = H, R, h.id
+        b += 1
     for local, spec in reversed(stack):
         I = [local[i] + EF(spec[i]) * I[i] for i in range(3)]
     return tuple(I)
+
+
+def other_sides(scene, columns: int, rows: int, pixel: int, sampling: str = "corners",
+                rules: Rules = Rules(), max_dist: float = 1000.0, runs: int = 32,
+                bounces: int = 64, first=None):
+    """The 8-bit colours of one pixel (index in image order, row 0 the top) that its
+    decisions within their float64 bound can give, taken either way in every combination
+    (``_Alt``): a float64 tracer may take any of them.  None where they cannot all be
+    enumerated (more than ``runs`` paths or ``bounces`` reflection bounces traced in all:
+    a mirror corridor's collapsed bounds make every bounce a choice, or a verdict whose
+    other side has no hit to take, a quadric's or a torus's): then any colour is the
+    caller's answer.  ``first``: the unflipped path's (colour, near decisions, bounces)
+    from ``shade_pixels``, not traced again."""
+    r, x = divmod(int(pixel), columns)
+    shift = 1 if rules.rows == "shifted" else 0
+    base, d = primary_ray(scene, x, rows - 1 - r + shift, columns, rows, sampling)
+    colours, todo, done = set(), [frozenset()], set()
+    if first is not None:
+        colour, near, went = first
+        bounces -= went + 1
+        if bounces < 0 or len(near) > 8:
+            return None
+        colours.add(colour)
+        done.add(frozenset())
+        todo = [frozenset({k}) for k in near]
+    while todo:
+        flips = todo.pop()
+        if flips in done:
+            continue
+        if len(done) >= runs:
+            return None
+        done.add(flips)
+        alt, px = _Alt(flips), _Pixel()
+        try:
+            I = ray_trace(scene, base, d, EF(0.0, 0.0), None, rules, max_dist, px, alt)
+        except (ValueError, ArithmeticError):
+            # no hit to take, or a hit taken at t = 0 that the intensity divides by (a
+            # course program's inf or NaN: not a colour to name)
+            return None
+        bounces -= px.bounces + 1
+        new = [k for k in dict.fromkeys(alt.seen) if k not in flips]
+        if bounces < 0 or len(flips) + len(new) > 8:
+            return None                 # (2^8 paths: more than ``runs`` anyway)
+        colours.add(tuple(int(c) for c in quantize(np.array([c.v for c in I]))))
+        todo.extend(flips | {k} for k in new)
+    return colours
 
 
 def _extra(obj, name):
@@ -213,19 +315,21 @@ def _acos(y: EF) -> EF:
     return EF(math.acos(c), e + 2 * math.acos(c))
 
 
-def _index(x: EF, n: int, wrap: bool, px: _Pixel) -> int:
+def _index(x: EF, n: int, wrap: bool, px: _Pixel, alt=None, key=None) -> int:
     """Nearest texel floor(x·n) (x wrapped into [0, 1) first, or clamped to 0..n−1); the
     margin of x·n from the integers where the texel changes (all with ``wrap``, the inner
     ones 1..n−1 without) goes into ``px.texel``."""
     xn = x * EF(float(n), 0.0)
     k = round(xn.v)
+    i = math.floor(xn.v)
     if wrap or 0 < k < n:
         px.texel = min(px.texel, _int_margin(xn))
-    i = math.floor(xn.v)
+        if alt is not None and alt.choose(key, _int_margin(xn), False):
+            i = k - 1 if i == k else k            # the texel on the integer's other side
     return i % n if wrap else min(max(i, 0), n - 1)
 
 
-def _textured_ambient(scene, obj, h, N, px: _Pixel) -> list:
+def _textured_ambient(scene, obj, h, N, px: _Pixel, alt=None, b: int = 0) -> list:
     """brightness × texel of a textured object (README "Textures"), computed from the fields
     as written and the file the scene's texture names (read here by mitsuba_ref/ppm.py)."""
     tex = ppm.texels(obj.texture.path)
@@ -242,8 +346,8 @@ def _textured_ambient(scene, obj, h, N, px: _Pixel) -> list:
         across = N[0] * EF(-fz) + N[2] * EF(fx)        # d·ŝ, ŝ = (−f̂z, 0, f̂x)
         s = _atan2(across, along) / EF(2 * math.pi)
         t = _acos(N[1]) / EF(math.pi)
-        col = _index(s, W, True, px)
-        row = _index(t, H, False, px)
+        col = _index(s, W, True, px, alt, (b, "texel", 0))
+        row = _index(t, H, False, px, alt, (b, "texel", 1))
     else:
         u = EF(h.uv[0], h.err_uv[0])
         v = EF(h.uv[1], h.err_uv[1])
@@ -256,8 +360,8 @@ def _textured_ambient(scene, obj, h, N, px: _Pixel) -> list:
         else:
             sx, sy = obj.size
             wrap = False
-        col = _index(u / EF(float(sx)), W, wrap, px)
-        row = _index(v / EF(float(sy)), H, wrap, px)
+        col = _index(u / EF(float(sx)), W, wrap, px, alt, (b, "texel", 0))
+        row = _index(v / EF(float(sy)), H, wrap, px, alt, (b, "texel", 1))
     return [EF(bright) * EF(float(c)) for c in tex[row, col]]
 
 
@@ -293,12 +397,15 @@ def shade_pixels(scene, columns: int, rows: int, pixels, sampling: str = "corner
     n = len(pixels)
     out = {"I": np.zeros((n, 3)), "err": np.zeros((n, 3)), "bounces": np.zeros(n, np.int32)}
     out.update({m: np.full(n, INF) for m in MARGINS})
+    out["paths"] = []                   # (colour, near decisions, bounces): other_sides' first
     for k, i in enumerate(pixels.tolist()):
         r, x = divmod(i, columns)
-        px = _Pixel()
+        px, alt = _Pixel(), _Alt()
         shift = 1 if rules.rows == "shifted" else 0
         base, d = primary_ray(scene, x, rows - 1 - r + shift, columns, rows, sampling)
-        I = ray_trace(scene, base, d, EF(0.0, 0.0), None, rules, max_dist, px)
+        I = ray_trace(scene, base, d, EF(0.0, 0.0), None, rules, max_dist, px, alt)
+        out["paths"].append((tuple(int(c) for c in quantize(np.array([c.v for c in I]))),
+                             tuple(dict.fromkeys(alt.seen)), px.bounces))
         out["I"][k] = [c.v for c in I]
         out["err"][k] = [c.e for c in I]
         out["bounces"][k] = px.bounces

@@ -161,10 +161,14 @@ BUGS = [("course_alias_xform", REPO / "scenes" / "fplane_tilted.txt"),
         ("course_spot_full_angle", REPO / "scenes" / "shade_spot.txt"),
         ("course_quant_round", REPO / "scenes" / "shade_shadows.txt"),
         ("course_rows_flipped", REPO / "scenes" / "mixed.txt"),
-        ("course_dir_not_unit", REPO / "scenes" / "shade_mirrors.txt")]
+        ("course_dir_not_unit", REPO / "scenes" / "shade_mirrors.txt"),
+        # bugs whose every wrong pixel had a decision near its threshold, and passed as
+        # boundary whatever its colour (now the colour must be one the decisions give)
+        ("course_amb_after", CT / "scenes" / "clip_z0.txt"),
+        ("course_off_by_one", CT / "scenes" / "clip_z0.txt")]
 
 
-@pytest.mark.parametrize("build,scene", BUGS, ids=[b[0] for b in BUGS])
+@pytest.mark.parametrize("build,scene", BUGS, ids=[f"{b[0]}-{b[1].stem}" for b in BUGS])
 def test04_each_bug_fails(ctracer, build, scene, tmp_path):
     img = _render(ctracer / build, scene, 65, tmp_path)
     r = check_image(scene, img)
@@ -745,3 +749,51 @@ def test14_a_bad_hit_dump_is_bad_input(ctracer, tmp_path, capsys):
     def refuse(token):
         raise ValueError(token)
     json.loads(out, parse_constant=refuse)
+
+
+def test04h_boundary_takes_only_the_colours_its_decisions_give(ctracer, tmp_path):
+    """A pixel whose decision lies within its float64 bound was excused whatever its colour:
+    an image of noise passed clip_z0.txt (a plane in z = 0: every pixel at the clip's
+    threshold) as 3072 boundary pixels.  Now the colour must be one those decisions give,
+    taken either way in some combination (shade_oracle.other_sides); the notes' build and
+    the '>=' clip build still pass."""
+    scene = CT / "scenes" / "clip_z0.txt"
+    good = _render(ctracer / "course", scene, 64, tmp_path)
+    data = good.read_bytes()
+    head = data[: len(data) - 64 * 48 * 3]
+    noise = tmp_path / "noise.ppm"
+    noise.write_bytes(head + np.random.default_rng(0).integers(0, 256, 64 * 48 * 3,
+                                                               np.uint8).tobytes())
+    r = check_image(scene, noise)
+    assert r.status == "fail" and r.counts["wrong"] > 0.95 * 64 * 48, r.counts
+    assert check_image(scene, good).status == "pass"
+    r = check_image(scene, _render(ctracer / "course_clip_ge", scene, 64, tmp_path))
+    assert r.status == "pass", r.counts
+
+
+def test04i_other_sides_of_a_pixel():
+    """The colours a pixel's near decisions give: one where none is near; on clip_z0.txt the
+    plane's and the wall's behind it (the '>=' clip's render has the latter); None where the
+    paths are more than asked for."""
+    from mitsuba_ref.shade_oracle import other_sides, quantize, shade_pixels
+    from rt_core import backend
+    from rt_core.camera import make_camera
+    from rt_core.parser import parse_scene
+    from rt_core.render import render_image
+    from rt_core.rules import Rules
+    scene = parse_scene(REPO / "scenes" / "sphere.txt")
+    mid = 18 * 48 + 24                          # the sphere's centre: nothing near
+    want = tuple(int(c) for c in quantize(shade_pixels(scene, 48, 36, [mid])["I"][0]))
+    assert other_sides(scene, 48, 36, mid) == {want}
+    scene = parse_scene(CT / "scenes" / "clip_z0.txt")
+    ge = Rules(screen_clip=">=")
+    imgs, _ = render_image(scene, make_camera(scene, 64, 48), backend.types("f64"), ge,
+                           geometry=False, shade=True)
+    rgb = np.floor(255 * np.clip(np.stack([imgs[c] for c in "RGB"], -1), 0, 1))
+    for p in (100, 24 * 64 + 32):
+        sides = other_sides(scene, 64, 48, p)
+        ours = tuple(int(c) for c in quantize(shade_pixels(scene, 64, 48, [p])["I"][0]))
+        assert ours in sides and len(sides) >= 2, sides
+        theirs = rgb.reshape(-1, 3)[p]
+        assert any(np.abs(theirs - np.array(c)).max() <= 1 for c in sides), (theirs, sides)
+        assert other_sides(scene, 64, 48, p, runs=1) is None

@@ -11,9 +11,10 @@ image in float64 (exact decisions) and every pixel gets one class:
   variant's); else ``wrong``;
 * ``boundary``: a ray of the pixel (primary, shadow or reflection) passes within a float64
   error bound of a decision — an edge, a tie, the window plane, a sphere outline, a shadow's
-  blocker, a tile border, the distance cut-off — so either answer is defensible.  The bound is
-  computed by the float64 shading oracle (mitsuba_ref/shade_oracle.py), independently of
-  rt_core;
+  blocker, a tile border, the distance cut-off — so either answer is defensible, and the
+  pixel has a colour those decisions give, taken either way in some combination.  The bound
+  and the colours are computed by the float64 shading oracle (mitsuba_ref/shade_oracle.py),
+  independently of rt_core;
 * ``variant``: the pixel is right under the rule variant inferred for the image and wrong
   under the notes' rule (``variant_rule`` names it);
 * ``wrong``: anything else.
@@ -231,10 +232,12 @@ class Boundary:
     THIN = 0.05              # boundary pixels lie on curves: a set of more than this
                              # fraction of the image is counted unexcused without asking
 
-    def __init__(self, r: Renderer, max_dist: float):
-        self.r, self.max_dist = r, max_dist
+    def __init__(self, r: Renderer, max_dist: float, theirs: np.ndarray | None = None):
+        self.r, self.max_dist, self.theirs = r, max_dist, theirs
         self.known = {}          # (rows, max_dist, pixel) -> bool
         self.quant = {}          # (rules, max_dist, pixel) -> bool
+        self.colours = {}        # (rules, max_dist, pixel) -> colours its decisions give
+        self.paths = {}          # (rules, max_dist, pixel) -> the oracle's unflipped path
         # one fixed random order of the pixels: every sample takes the first ones in it, so
         # the samples of different variants share their pixels (and the oracle's work)
         n = r.cam.columns * r.cam.rows
@@ -246,11 +249,12 @@ class Boundary:
         8-bit level ('quant')."""
         from mitsuba_ref.shade_oracle import flags, shade_pixels
         cam = self.r.cam
-        f = flags(shade_pixels(self.r.scene, cam.columns, cam.rows, todo, cam.sampling, rules,
-                               md), "f64")
-        for p, j, q in zip(todo, f["jump"], f["quant"]):
+        orc = shade_pixels(self.r.scene, cam.columns, cam.rows, todo, cam.sampling, rules, md)
+        f = flags(orc, "f64")
+        for p, j, q, path in zip(todo, f["jump"], f["quant"], orc["paths"]):
             self.known.setdefault((rules.rows, md, p), bool(j))
             self.quant[(_shading(rules), md, p)] = bool(q)
+            self.paths[(rules, md, p)] = path       # (sides: its first path, not again)
 
     def of(self, pixels, rules, md: float | None = None) -> np.ndarray:
         """Which ``pixels`` have a decision within its float64 bound (under the cut-off
@@ -261,6 +265,26 @@ class Boundary:
         if todo:
             self._oracle(todo, rules, md)
         return np.array([self.known[(rules.rows, md, int(p))] for p in pixels], bool)
+
+    def sides(self, pixels, theirs: np.ndarray, rules, md: float) -> np.ndarray:
+        """Which ``pixels`` have a colour (within a level) that their decisions within the
+        float64 bound give taken either way, in some combination (the shading oracle's
+        ``other_sides``); where those cannot all be enumerated, any colour (README "What
+        boundary excuses")."""
+        from mitsuba_ref.shade_oracle import other_sides
+        cam = self.r.cam
+        flat = theirs.reshape(-1, 3).astype(np.int16)
+        out = []
+        for p in np.asarray(pixels, np.int64).tolist():
+            key = (rules, md, p)
+            if key not in self.colours:
+                self.colours[key] = other_sides(self.r.scene, cam.columns, cam.rows, p,
+                                                cam.sampling, rules, md,
+                                                first=self.paths.get(key))
+            got = self.colours[key]
+            out.append(got is None or any(np.abs(flat[p] - np.array(c)).max() <= 1
+                                          for c in got))
+        return np.array(out, bool)
 
     def levels(self, pixels, rules, md: float) -> tuple:
         """(jump, quant) of ``pixels`` under exactly (rules, md): a decision within its bound,
@@ -288,9 +312,16 @@ class Boundary:
         px = np.flatnonzero(mask.ravel())
         if len(px) > self.THIN * mask.size:
             return float(len(px))
+
+        def excused(pick):              # (as classify: a near decision, and its colour)
+            ok = self.of(pick, rules, md)
+            if self.theirs is not None and ok.any():
+                ok[ok] = self.sides(pick[ok], self.theirs, rules,
+                                    self.max_dist if md is None else md)
+            return ok
         if len(px) > self.SAMPLE:
-            return len(px) * (1.0 - self.of(self.sample(px), rules, md).mean())
-        return float(len(px) - self.of(px, rules, md).sum())
+            return len(px) * (1.0 - excused(self.sample(px)).mean())
+        return float(len(px) - excused(px).sum())
 
 
 # the share of the pixels a variant's render changes that the image must take its colour at
@@ -326,7 +357,7 @@ def infer(r: Renderer, theirs: np.ndarray, start_rules, start_max_dist: float, f
         specular if relevant in (None, "specular") else relevant(kinds)) and
         _can_matter(r, n)]
     rules, md = start_rules, start_max_dist
-    bnd = Boundary(r, md)
+    bnd = Boundary(r, md, theirs)
     total = r.cam.columns * r.cam.rows
     masks = {}
 
@@ -790,10 +821,13 @@ def classify(r: Renderer, theirs: np.ndarray, rules, md: float, notes, bnd: Boun
         flat[pick[edge]] = CLASSES.index("boundary")
     bad = np.flatnonzero((flat == 4) & (diff.ravel() > 1))
     if len(bad):
-        # the float64 shading oracle's margins: a decision within K·u of its threshold
-        # (whatever the colour: README "A limit of boundary")
+        # the float64 shading oracle's margins: a decision within K·u of its threshold, and
+        # a colour those decisions give taken either way (Boundary.sides)
         def judge(pick):
-            return bnd.of(pick, rules, md)
+            edge = bnd.of(pick, rules, md)
+            if edge.any():
+                edge[edge] = bnd.sides(pick[edge], theirs, rules, md)
+            return edge
         pick = bnd.sample(bad)
         edge = judge(pick)
         if len(pick) < len(bad) and edge.all():
