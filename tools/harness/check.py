@@ -647,7 +647,8 @@ def provenance(scene, img: np.ndarray) -> dict:
             "textures": provenance_text(scene),
             "image_sha256": hashlib.sha256(np.ascontiguousarray(img).tobytes()).hexdigest(),
             "reference": "rt_core float64, exact decisions, corner sampling",
-            "boundary": "mitsuba_ref.shade_oracle float64 margins < 64 u",
+            "boundary": "mitsuba_ref.shade_oracle float64 margins < 64 u, in a colour "
+                        "other_sides gives",
             "stand_ins": scene.stand_ins(), "extras": extras_text(scene),
             "versions": versions()}
 
