@@ -555,7 +555,8 @@ def trace(scene, base, dir, rules: Rules = Rules(), skip=None, flip=frozenset())
     go to the earlier object (rules.ties == 'first') or the later one ('last').
     ``flip``: objects whose verdict is taken the other way (a decision within its bound taken
     as another precision may take it: shade_oracle.other_sides); an invalid hit is taken at
-    the t its failed test computed (FLIPPABLE kinds, a t at all), else ValueError.
+    the t its failed test computed (FLIPPABLE kinds, a t at all, not a sphere's tangent
+    point), else ValueError.
     """
     base, d = vec(base), vec(dir)
     obs = prepared(scene)
@@ -569,7 +570,11 @@ def trace(scene, base, dir, rules: Rules = Rules(), skip=None, flip=frozenset())
         cands.append(c)
         ok = c.ok
         if ob.idx in flip:
-            if not ok and (c.t is None or ob.kind not in FLIPPABLE):
+            # (a sphere missed by its discriminant has no first-order place to be hit: a
+            # float64 tracer whose disc comes out positive hits it √disc/2a, about √u of
+            # the distance, from the tangent point, and what it reflects or shadows there
+            # lies beyond every first-order bound -- a review built two such images)
+            if not ok and (c.t is None or ob.kind not in FLIPPABLE or c.why == "disc"):
                 raise ValueError(f"object {ob.idx}: no hit to take")
             ok = not ok
         if not ok:
