@@ -142,6 +142,14 @@ def primary_ray(scene, x: int, y: int, W: int, H: int, sampling: str = "corners"
     return base, unit3(diff3((wx, wy, EF(0.0, 0.0)), base))
 
 
+def pixel_ray(scene, columns: int, rows: int, pixel: int, sampling: str, rules: Rules):
+    """``primary_ray`` of pixel index ``pixel`` in image order (row 0 the top; rows shifted
+    one up under rules.rows = 'shifted')."""
+    r, x = divmod(int(pixel), columns)
+    shift = 1 if rules.rows == "shifted" else 0
+    return primary_ray(scene, x, rows - 1 - r + shift, columns, rows, sampling)
+
+
 def ray_trace(scene, base, d, total_dist, skip, rules: Rules, max_dist: float, px: _Pixel,
               alt: _Alt | None = None):
     """The notes' trace(): intensity (3 EF) of the ray base + t·d, path length so far
@@ -150,25 +158,27 @@ def ray_trace(scene, base, d, total_dist, skip, rules: Rules, max_dist: float, p
     The notes recurse, I = local + specular · trace(reflection ray); here the bounces run in
     a loop that keeps each bounce's (local, specular), and the sums are made afterwards from
     the last bounce back: the same operations in the same order, without Python's recursion
-    limit (a corridor of mirrors reaches thousands of bounces before a long MAX_DIST)."""
+    limit (a corridor of mirrors reaches thousands of bounces before a long MAX_DIST).
+    ``alt``: the decisions within their bound are recorded there, and those it names taken
+    the other way (``other_sides``)."""
+    alt = _Alt() if alt is None else alt
     stack = []                          # (local intensity, specular) of the bounces so far
     b = 0                               # the bounce (alt's keys)
     while True:
         h = trace(scene, base, d, rules, skip)
-        near = [] if alt is not None else None
+        near = []
         px.geo = min(px.geo, _hit_margin(scene, h, base, d, skip, near=near))
-        if alt is not None:
-            # the objects whose verdict is within its bound; those flipped are taken the
-            # other way (oracle.trace: ValueError where that side has no hit to take), and
-            # the verdicts near on the hit that gives are choice points too
-            risks, flip = near + h.risks, frozenset()
-            for _ in range(4):
-                now = frozenset(j for j, m in risks if alt.choose((b, "geo", j), m, False))
-                if now == flip:
-                    break
-                flip = now
-                h = trace(scene, base, d, rules, skip, flip)
-                risks = risks + h.risks
+        # the objects whose verdict is within its bound; those flipped are taken the other
+        # way (oracle.trace: ValueError where that side has no hit to take), and the
+        # verdicts near on the hit that gives are choice points too
+        risks, flip = near + h.risks, frozenset()
+        for _ in range(4):
+            now = frozenset(j for j, m in risks if alt.choose((b, "geo", j), m, False))
+            if now == flip:
+                break
+            flip = now
+            h = trace(scene, base, d, rules, skip, flip)
+            risks = risks + h.risks
         if not h.hit:
             I = [EF(0.0, 0.0)] * 3
             break
@@ -190,8 +200,8 @@ def ray_trace(scene, base, d, total_dist, skip, rules: Rules, max_dist: float, p
             mx, my = _int_margin(x, off), _int_margin(y, off)
             px.tile = min(px.tile, mx, my)
             fg = oracle.tile_foreground(obj, h.uv[0], h.uv[1], rules)
-            if alt is not None:         # (either axis's floor flipped: the other colour)
-                fg = alt.choose((b, "tile", 1), my, alt.choose((b, "tile", 0), mx, fg))
+            # (either axis's floor flipped: the other colour)
+            fg = alt.choose((b, "tile", 1), my, alt.choose((b, "tile", 0), mx, fg))
             if not fg:
                 mat = obj.background
         I = [EF(a) for a in mat.ambient]
@@ -211,9 +221,7 @@ def ray_trace(scene, base, d, total_dist, skip, rules: Rules, max_dist: float, p
                 cos_t = math.cos(math.radians(light.theta))       # within a few ulps
                 s = dot3(scale3(EF(-1.0, 0.0), L), axis) - EF(cos_t, 4.0 * abs(cos_t))
                 px.shadow = min(px.shadow, _margin(s.v, s.e))
-                inside = s.v > 0
-                if alt is not None:
-                    inside = alt.choose((b, "spot", l), _margin(s.v, s.e), inside)
+                inside = alt.choose((b, "spot", l), _margin(s.v, s.e), s.v > 0)
                 if not inside:
                     continue                                # outside the spotlight's cone
             s = trace(scene, H, L, rules, h.id)
@@ -221,9 +229,8 @@ def ray_trace(scene, base, d, total_dist, skip, rules: Rules, max_dist: float, p
             if s.hit:
                 m = min(m, _margin(s.t - dist.v, s.err_t + dist.e))
             px.shadow = min(px.shadow, m)
-            blocked = s.hit and s.t < dist.v
-            if alt is not None:         # (whichever test is near: the light blocked or not)
-                blocked = alt.choose((b, "shadow", l), m, blocked)
+            # (whichever test is near: the light blocked or not)
+            blocked = alt.choose((b, "shadow", l), m, s.hit and s.t < dist.v)
             if blocked:
                 continue                                    # shadow
             for i in range(3):
@@ -233,10 +240,8 @@ def ray_trace(scene, base, d, total_dist, skip, rules: Rules, max_dist: float, p
         if not any(mat.specular):
             break
         px.maxdist = min(px.maxdist, _margin(total_dist.v - max_dist, total_dist.e))
-        going = total_dist.v < max_dist
-        if alt is not None:
-            going = alt.choose((b, "maxdist", 0),
-                               _margin(total_dist.v - max_dist, total_dist.e), going)
+        going = alt.choose((b, "maxdist", 0), _margin(total_dist.v - max_dist, total_dist.e),
+                           total_dist.v < max_dist)
         if not going:
             break
         # the reflection ray: trace it next, and add specular · its intensity afterwards
@@ -256,23 +261,23 @@ def other_sides(scene, columns: int, rows: int, pixel: int, sampling: str = "cor
     """The 8-bit colours of one pixel (index in image order, row 0 the top) that its
     decisions within their float64 bound can give, taken either way in every combination
     (``_Alt``): a float64 tracer may take any of them.  None where they cannot all be
-    enumerated (more than ``runs`` paths or ``bounces`` reflection bounces traced in all:
-    a mirror corridor's collapsed bounds make every bounce a choice, or a verdict whose
-    other side has no hit to take, a quadric's or a torus's): then any colour is the
-    caller's answer.  ``first``: the unflipped path's (colour, near decisions, bounces)
-    from ``shade_pixels``, not traced again."""
-    r, x = divmod(int(pixel), columns)
-    shift = 1 if rules.rows == "shifted" else 0
-    base, d = primary_ray(scene, x, rows - 1 - r + shift, columns, rows, sampling)
+    enumerated: more than ``runs`` paths, ``bounces`` reflection bounces traced in all or 8
+    near decisions (a mirror corridor's collapsed bounds make every bounce a choice), a
+    verdict whose other side has no hit to take (a quadric's, a torus's, a sphere's missed
+    by its discriminant), or one taken at t = 0 that the intensity divides by: then any
+    colour is the caller's answer.  ``first``: the unflipped path from ``shade_pixels``
+    (its 'paths' entry), not traced again."""
+    base, d = pixel_ray(scene, columns, rows, pixel, sampling, rules)
+
+    def path(flips):
+        """(colour, near decisions, bounces) of the path with ``flips`` taken the other way."""
+        if not flips and first is not None:
+            return first
+        alt, px = _Alt(flips), _Pixel()
+        I = ray_trace(scene, base, d, EF(0.0, 0.0), None, rules, max_dist, px, alt)
+        return _colour(I), tuple(dict.fromkeys(alt.seen)), px.bounces
+
     colours, todo, done = set(), [frozenset()], set()
-    if first is not None:
-        colour, near, went = first
-        bounces -= went + 1
-        if bounces < 0 or len(near) > 8:
-            return None
-        colours.add(colour)
-        done.add(frozenset())
-        todo = [frozenset({k}) for k in near]
     while todo:
         flips = todo.pop()
         if flips in done:
@@ -280,20 +285,24 @@ def other_sides(scene, columns: int, rows: int, pixel: int, sampling: str = "cor
         if len(done) >= runs:
             return None
         done.add(flips)
-        alt, px = _Alt(flips), _Pixel()
         try:
-            I = ray_trace(scene, base, d, EF(0.0, 0.0), None, rules, max_dist, px, alt)
+            colour, near, went = path(flips)
         except (ValueError, ArithmeticError):
             # no hit to take, or a hit taken at t = 0 that the intensity divides by (a
             # course program's inf or NaN: not a colour to name)
             return None
-        bounces -= px.bounces + 1
-        new = [k for k in dict.fromkeys(alt.seen) if k not in flips]
+        bounces -= went + 1
+        new = [k for k in near if k not in flips]
         if bounces < 0 or len(flips) + len(new) > 8:
             return None                 # (2^8 paths: more than ``runs`` anyway)
-        colours.add(tuple(int(c) for c in quantize(np.array([c.v for c in I]))))
+        colours.add(colour)
         todo.extend(flips | {k} for k in new)
     return colours
+
+
+def _colour(I) -> tuple:
+    """The 8-bit colour of an intensity (3 EF)."""
+    return tuple(int(c) for c in quantize(np.array([c.v for c in I])))
 
 
 def _extra(obj, name):
@@ -315,7 +324,7 @@ def _acos(y: EF) -> EF:
     return EF(math.acos(c), e + 2 * math.acos(c))
 
 
-def _index(x: EF, n: int, wrap: bool, px: _Pixel, alt=None, key=None) -> int:
+def _index(x: EF, n: int, wrap: bool, px: _Pixel, alt: _Alt, key) -> int:
     """Nearest texel floor(x·n) (x wrapped into [0, 1) first, or clamped to 0..n−1); the
     margin of x·n from the integers where the texel changes (all with ``wrap``, the inner
     ones 1..n−1 without) goes into ``px.texel``."""
@@ -324,12 +333,12 @@ def _index(x: EF, n: int, wrap: bool, px: _Pixel, alt=None, key=None) -> int:
     i = math.floor(xn.v)
     if wrap or 0 < k < n:
         px.texel = min(px.texel, _int_margin(xn))
-        if alt is not None and alt.choose(key, _int_margin(xn), False):
+        if alt.choose(key, _int_margin(xn), False):
             i = k - 1 if i == k else k            # the texel on the integer's other side
     return i % n if wrap else min(max(i, 0), n - 1)
 
 
-def _textured_ambient(scene, obj, h, N, px: _Pixel, alt=None, b: int = 0) -> list:
+def _textured_ambient(scene, obj, h, N, px: _Pixel, alt: _Alt, b: int) -> list:
     """brightness × texel of a textured object (README "Textures"), computed from the fields
     as written and the file the scene's texture names (read here by mitsuba_ref/ppm.py)."""
     tex = ppm.texels(obj.texture.path)
@@ -399,13 +408,10 @@ def shade_pixels(scene, columns: int, rows: int, pixels, sampling: str = "corner
     out.update({m: np.full(n, INF) for m in MARGINS})
     out["paths"] = []                   # (colour, near decisions, bounces): other_sides' first
     for k, i in enumerate(pixels.tolist()):
-        r, x = divmod(i, columns)
         px, alt = _Pixel(), _Alt()
-        shift = 1 if rules.rows == "shifted" else 0
-        base, d = primary_ray(scene, x, rows - 1 - r + shift, columns, rows, sampling)
+        base, d = pixel_ray(scene, columns, rows, i, sampling, rules)
         I = ray_trace(scene, base, d, EF(0.0, 0.0), None, rules, max_dist, px, alt)
-        out["paths"].append((tuple(int(c) for c in quantize(np.array([c.v for c in I]))),
-                             tuple(dict.fromkeys(alt.seen)), px.bounces))
+        out["paths"].append((_colour(I), tuple(dict.fromkeys(alt.seen)), px.bounces))
         out["I"][k] = [c.v for c in I]
         out["err"][k] = [c.e for c in I]
         out["bounces"][k] = px.bounces

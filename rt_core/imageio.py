@@ -268,21 +268,32 @@ def _pnm_header(data: bytes):
     return toks[0].decode("latin-1"), int(toks[1]), int(toks[2]), int(toks[3]), i + 1
 
 
-def _pnm_diagnosis(path: str, spec) -> str | None:
-    """What is wrong with a PNM whose pixels OpenImageIO could not read, in the course
-    programs' words, where the header and the size tell: a maxval above 255 over one-byte
-    samples, a P3/P2 header over binary samples, or too few bytes for the header's size."""
-    try:                                # (the header and the first samples: the size
-        with open(path, "rb") as f:     # tells the rest)
+def _pnm_start(path: str):
+    """(first 8 KiB, file size, _pnm_header of them) of a PNM file; None if it cannot be
+    read or has no PNM header (the size tells about the samples the bytes do not hold)."""
+    try:
+        with open(path, "rb") as f:
             data = f.read(1 << 13)
         size = os.path.getsize(path)
     except OSError:
         return None
     head = _pnm_header(data)
-    if head is None:
+    return None if head is None else (data, size, head)
+
+
+# samples a pixel, per PNM kind the course writes
+_CHANNELS = {"P3": 3, "P6": 3, "P2": 1, "P5": 1}
+
+
+def _pnm_diagnosis(path: str, spec) -> str | None:
+    """What is wrong with a PNM whose pixels OpenImageIO could not read, in the course
+    programs' words, where the header and the size tell: a maxval above 255 over one-byte
+    samples, a P3/P2 header over binary samples, or too few bytes for the header's size."""
+    got = _pnm_start(path)
+    if got is None:
         return None
-    magic, w, h, maxval, start = head
-    ch = {"P3": 3, "P6": 3, "P2": 1, "P5": 1}.get(magic)
+    data, size, (magic, w, h, maxval, start) = got
+    ch = _CHANNELS.get(magic)
     if ch is None:
         return None
     body = size - start                 # bytes of samples
@@ -327,12 +338,8 @@ def _ascii_diagnosis(path: str, start: int, w: int, h: int, need: int) -> str | 
 
 def pnm_maxval(path: str) -> int | None:
     """A PNM file's maxval (None for other files, or an unreadable header)."""
-    try:
-        with open(path, "rb") as f:
-            head = _pnm_header(f.read(1 << 12))
-    except OSError:
-        return None
-    return head[3] if head and head[0] in ("P1", "P2", "P3", "P4", "P5", "P6") else None
+    got = _pnm_start(path)
+    return got[2][3] if got and got[2][0] in _CHANNELS else None
 
 
 def _pnm_surplus(path: str) -> str | None:
@@ -341,19 +348,11 @@ def _pnm_surplus(path: str) -> str | None:
     mode: the samples start a byte late, every pixel off), or a row or more beyond the
     header's size (a loop that writes one row too many).  A few bytes more (a final
     newline) are fine."""
-    try:
-        with open(path, "rb") as f:
-            data = f.read(1 << 13)
-        size = os.path.getsize(path)
-    except OSError:
+    got = _pnm_start(path)
+    if got is None or got[2][0] not in ("P6", "P5"):
         return None
-    head = _pnm_header(data)
-    if head is None:
-        return None
-    magic, w, h, maxval, start = head
-    ch = {"P6": 3, "P5": 1}.get(magic)
-    if ch is None:
-        return None
+    data, size, (magic, w, h, maxval, start) = got
+    ch = _CHANNELS[magic]
     row = w * ch * (2 if maxval > 255 else 1)
     need, body = row * h, size - start
     if body > need and data[start - 1:start + 1] == b"\r\n":

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import sys
 
-from .options import (add_code27, add_max_dist, add_parallel, add_rules, add_texture_dir, timeout_seconds,
-                      positive_int)
+from .options import (add_code27, add_max_dist, add_parallel, add_rules, add_texture_dir,
+                      positive_int, timeout_seconds)
 
 
 def add_parser(sub) -> None:

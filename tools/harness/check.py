@@ -232,8 +232,9 @@ class Boundary:
     THIN = 0.05              # boundary pixels lie on curves: a set of more than this
                              # fraction of the image is counted unexcused without asking
 
-    def __init__(self, r: Renderer, max_dist: float, theirs: np.ndarray | None = None):
-        self.r, self.max_dist, self.theirs = r, max_dist, theirs
+    def __init__(self, r: Renderer, max_dist: float, theirs: np.ndarray):
+        self.r, self.max_dist = r, max_dist
+        self.theirs = theirs.reshape(-1, 3).astype(np.int16)     # the image checked
         self.known = {}          # (rows, max_dist, pixel) -> bool
         self.quant = {}          # (rules, max_dist, pixel) -> bool
         self.colours = {}        # (rules, max_dist, pixel) -> colours its decisions give
@@ -266,14 +267,22 @@ class Boundary:
             self._oracle(todo, rules, md)
         return np.array([self.known[(rules.rows, md, int(p))] for p in pixels], bool)
 
-    def sides(self, pixels, theirs: np.ndarray, rules, md: float) -> np.ndarray:
+    def excuses(self, pixels, rules, md: float | None = None) -> np.ndarray:
+        """Which ``pixels`` are boundary: a decision within its float64 bound (``of``) and
+        the image's colour one those decisions give (``sides``)."""
+        pixels = np.asarray(pixels, np.int64)
+        ok = self.of(pixels, rules, md)
+        if ok.any():
+            ok[ok] = self.sides(pixels[ok], rules, self.max_dist if md is None else md)
+        return ok
+
+    def sides(self, pixels, rules, md: float) -> np.ndarray:
         """Which ``pixels`` have a colour (within a level) that their decisions within the
         float64 bound give taken either way, in some combination (the shading oracle's
         ``other_sides``); where those cannot all be enumerated, any colour (README "What
         boundary excuses")."""
         from mitsuba_ref.shade_oracle import other_sides
         cam = self.r.cam
-        flat = theirs.reshape(-1, 3).astype(np.int16)
         out = []
         for p in np.asarray(pixels, np.int64).tolist():
             key = (rules, md, p)
@@ -282,7 +291,7 @@ class Boundary:
                                                 cam.sampling, rules, md,
                                                 first=self.paths.get(key))
             got = self.colours[key]
-            out.append(got is None or any(np.abs(flat[p] - np.array(c)).max() <= 1
+            out.append(got is None or any(np.abs(self.theirs[p] - np.array(c)).max() <= 1
                                           for c in got))
         return np.array(out, bool)
 
@@ -312,16 +321,9 @@ class Boundary:
         px = np.flatnonzero(mask.ravel())
         if len(px) > self.THIN * mask.size:
             return float(len(px))
-
-        def excused(pick):              # (as classify: a near decision, and its colour)
-            ok = self.of(pick, rules, md)
-            if self.theirs is not None and ok.any():
-                ok[ok] = self.sides(pick[ok], self.theirs, rules,
-                                    self.max_dist if md is None else md)
-            return ok
         if len(px) > self.SAMPLE:
-            return len(px) * (1.0 - excused(self.sample(px)).mean())
-        return float(len(px) - excused(px).sum())
+            return len(px) * (1.0 - self.excuses(self.sample(px), rules, md).mean())
+        return float(len(px) - self.excuses(px, rules, md).sum())
 
 
 # the share of the pixels a variant's render changes that the image must take its colour at
@@ -823,12 +825,9 @@ def classify(r: Renderer, theirs: np.ndarray, rules, md: float, notes, bnd: Boun
     bad = np.flatnonzero((flat == 4) & (diff.ravel() > 1))
     if len(bad):
         # the float64 shading oracle's margins: a decision within K·u of its threshold, and
-        # a colour those decisions give taken either way (Boundary.sides)
+        # a colour those decisions give taken either way (Boundary.excuses)
         def judge(pick):
-            edge = bnd.of(pick, rules, md)
-            if edge.any():
-                edge[edge] = bnd.sides(pick[edge], theirs, rules, md)
-            return edge
+            return bnd.excuses(pick, rules, md)
         pick = bnd.sample(bad)
         edge = judge(pick)
         if len(pick) < len(bad) and edge.all():
