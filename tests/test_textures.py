@@ -249,8 +249,14 @@ def test09_check_and_gallery_need_the_textures(tmp_path):
     ran = tmp_path / "ran"
     r = cli("check", "--run", f"touch {ran}; cp {img} {{out}} # {{scene}}", "--columns", 40,
             scene)
-    assert r.returncode == 1 and "not found" in r.stdout, r.stdout + r.stderr
+    # (rtval's input is missing, not the tracer's fault: refused, exit 2, as a malformed
+    # scene is; a failing scene beside it still makes it 1)
+    assert r.returncode == 2 and "not found" in r.stdout and "REFUSED" in r.stdout, \
+        r.stdout + r.stderr
     assert not ran.exists()                     # the tracer was not run for nothing
+    r = cli("check", "--run", f"cp {img} {{out}} # {{scene}}", "--columns", 40, scene,
+            REPO / "scenes" / "fplane_tilted.txt")
+    assert r.returncode == 1 and "REFUSED" in r.stdout, r.stdout + r.stderr
     r = cli("gallery", "-o", tmp_path / "g", "--columns", 16, scene)
     assert r.returncode == 2 and "not found" in r.stderr.strip().splitlines()[-1]
     r = cli("gallery", "-o", tmp_path / "g", "--columns", 16, scene,

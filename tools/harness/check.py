@@ -1141,8 +1141,8 @@ def _check_runs(pool, work, template, scenes, columns, rows, timeout, kw):
                                              f"{s}: {(exc.strerror or str(exc)).lower()}")))
             continue
         sc = _textures_missing(sc, kw.get("texture_dirs", ()))
-        if isinstance(sc, str):                 # not worth running the tracer
-            jobs.append((s, None, SceneCheck(str(s), None, "error", sc)))
+        if isinstance(sc, str):                 # rtval's input missing: refused, not run
+            jobs.append((s, None, SceneCheck(str(s), None, "refused", sc)))
             continue
         h = rows if rows is not None else sc.default_rows(columns)
         if h < 2:                               # (the tracer would refuse it, or divide by 0)
