@@ -397,6 +397,30 @@ def test06_real_errors_are_wrong_not_boundary(tmp_path):
     assert r.hits["id_wrong"] < 10
 
 
+def test06b_json_lists_the_wrong_pixels(tmp_path, capsys):
+    """--json names each wrong pixel (column, row, the image's colour and rt_core's), the
+    first WRONG_LISTED in image order: three pixels painted over are those three."""
+    from rt_core.imageio import write_ppm
+    from tools.cli import main
+    from tools.harness import check
+    scene = tmp_path / "s.txt"
+    scene.write_text(VARIANT_SCENE)
+    ours = _rt_image(VARIANT_SCENE, 97, 73)
+    img = ours.copy()
+    spots = [(5, 3), (40, 30), (90, 70)]                   # (column, row), row 0 the top
+    for x, y in spots:
+        img[y, x] = 255 - img[y, x] // 2
+    write_ppm(str(tmp_path / "i.ppm"), img)
+    assert main(["check", str(scene), str(tmp_path / "i.ppm"), "--json"]) == 1
+    got = json.loads(capsys.readouterr().out)[0]["wrong_pixels"]
+    assert [(p["column"], p["row"]) for p in got] == sorted(spots, key=lambda p: p[::-1])
+    for p in got:
+        assert p["theirs"] == img[p["row"], p["column"]].tolist()
+        assert p["rtval"] == ours[p["row"], p["column"]].tolist()
+    r = check_image(scene, tmp_path / "i.ppm")
+    assert len(r.wrong_pixels(limit=2)) == 2 and check.WRONG_LISTED >= 100
+
+
 def _write_hits(text, W, H, path):
     from rt_core.parser import parse_text
     from rt_core.render import render_geometry

@@ -49,6 +49,7 @@ COLORS = {"match": ("dark grey", (48, 48, 48)), "rounding": ("blue", (70, 110, 2
           "boundary": ("yellow", (240, 200, 40)), "variant": ("green", (60, 180, 75)),
           "wrong": ("red", (230, 30, 30))}
 DEFAULT_MAX_DIST = 1000.0
+WRONG_LISTED = 1000      # wrong pixels --json lists (the first in image order; counts: all)
 MAX_DISTS = (1000.0, 20.0, 30.0, 50.0, 70.0, 200.0, 50000.0)
 # (rule, values with the notes' first, which scenes it can matter in)
 DIMENSIONS = (
@@ -137,7 +138,18 @@ class SceneCheck:
         out = {k: v for k, v in dataclasses.asdict(self).items()
                if k not in ("classes", "ours", "theirs", "findings")}
         out["findings"] = [f.as_dict() for f in self.findings]
+        out["wrong_pixels"] = self.wrong_pixels()
         return out
+
+    def wrong_pixels(self, limit: int | None = None) -> list:
+        """The first ``limit`` (WRONG_LISTED) wrong pixels in image order (row 0 the top):
+        column, row, the image's colour and rt_core's."""
+        if self.classes is None:
+            return []
+        ys, xs = np.nonzero(self.classes == CLASSES.index("wrong"))
+        n = WRONG_LISTED if limit is None else limit
+        return [{"column": int(x), "row": int(y), "theirs": self.theirs[y, x].tolist(),
+                 "rtval": self.ours[y, x].tolist()} for y, x in zip(ys[:n], xs[:n])]
 
 
 # --- rendering ----------------------------------------------------------------------------------
