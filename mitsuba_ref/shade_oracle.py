@@ -115,15 +115,16 @@ class _Alt:
     taken the other way."""
     LIMIT = K_DECISION * U["f64"]
 
-    def __init__(self, flips=frozenset()):
+    def __init__(self, flips=frozenset(), limit: float | None = None):
         self.flips, self.seen = flips, []
+        self.limit = self.LIMIT if limit is None else limit
 
     def near(self, m: float) -> bool:
-        return m < self.LIMIT
+        return m < self.limit
 
     def choose(self, key, m: float, outcome: bool) -> bool:
         """``outcome``, or its negation where this decision is near and flipped."""
-        if m < self.LIMIT:
+        if m < self.limit:
             self.seen.append(key)
             return outcome != (key in self.flips)
         return outcome
@@ -257,7 +258,7 @@ def ray_trace(scene, base, d, total_dist, skip, rules: Rules, max_dist: float, p
 
 def other_sides(scene, columns: int, rows: int, pixel: int, sampling: str = "corners",
                 rules: Rules = Rules(), max_dist: float = 1000.0, runs: int = 32,
-                bounces: int = 64, first=None):
+                bounces: int = 64, first=None, limit: float | None = None):
     """The 8-bit colours of one pixel (index in image order, row 0 the top) that its
     decisions within their float64 bound can give, taken either way in every combination
     (``_Alt``): a float64 tracer may take any of them.  None where they cannot all be
@@ -266,14 +267,16 @@ def other_sides(scene, columns: int, rows: int, pixel: int, sampling: str = "cor
     verdict whose other side has no hit to take (a quadric's, a torus's, a sphere's missed
     by its discriminant), or one taken at t = 0 that the intensity divides by: then any
     colour is the caller's answer.  ``first``: the unflipped path from ``shade_pixels``
-    (its 'paths' entry), not traced again."""
+    (its 'paths' entry), not traced again.  ``limit``: a decision is near below this
+    margin (default float64's, ``_Alt.LIMIT``; a wider one asks what a tracer computing
+    in lower precision may take either way)."""
     base, d = pixel_ray(scene, columns, rows, pixel, sampling, rules)
 
     def path(flips):
         """(colour, near decisions, bounces) of the path with ``flips`` taken the other way."""
-        if not flips and first is not None:
+        if not flips and first is not None and limit is None:
             return first
-        alt, px = _Alt(flips), _Pixel()
+        alt, px = _Alt(flips, limit), _Pixel()
         I = ray_trace(scene, base, d, EF(0.0, 0.0), None, rules, max_dist, px, alt)
         return _colour(I), tuple(dict.fromkeys(alt.seen)), px.bounces
 

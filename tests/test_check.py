@@ -855,3 +855,49 @@ def test04j_a_sphere_grazed_to_the_last_bits_excuses_its_reflection(tmp_path):
     ppm.write_bytes(b"P6 9 6 255\n" + img.tobytes())
     r = check_image(scene_path, ppm)
     assert r.status == "pass" and r.counts["boundary"] == 1, r.counts
+
+
+# --- a tracer computing in float -------------------------------------------------------------------
+
+@pytest.fixture(scope="session")
+def ctracer_f32(ctracer, tmp_path_factory):
+    """tests/ctracer/course.c with every double a float (the maths functions' float forms):
+    a correct tracer in the wrong precision."""
+    import re
+    out = tmp_path_factory.mktemp("ct32")
+    src = (CT / "course.c").read_text()
+    src = re.sub(r"\bdouble\b", "float", src)
+    for f in ("sqrt", "floor", "fmod", "cos"):
+        src = re.sub(rf"\b{f}\(", f"{f}f(", src)
+    (out / "course_f32.c").write_text(src)
+    subprocess.run(["cc", "-std=c99", "-O2", "-o", str(out / "course_f32"),
+                    str(out / "course_f32.c"), "-lm"], check=True, capture_output=True)
+    return out / "course_f32"
+
+
+def test15_a_float_tracer_is_asked_whether_it_computes_in_float(ctracer_f32, ctracer):
+    """A float32 build fails scenes by a few scattered pixels, each within float32's rounding
+    of a decision and in the colour its other side gives: each such scene and the run get
+    the hint (not the verdict: they still fail).  A double tracer with a real bug that also
+    leaves a few scattered wrong pixels (shadow rays hitting their own surface) gets none."""
+    from tools.harness.check import F32_MIN, float32_run_hint, text_report
+    if not COURSE.is_dir():
+        pytest.skip("../shared/course-scenes is not there")
+    scenes = [REPO / "scenes" / "tplane.txt", COURSE / "numeric" / "nw__spec1.txt",
+              COURSE / "numeric" / "sgw__spec1.txt"]
+    got = check_run(f"{ctracer_f32} {{columns}} {{rows}} < {{scene}} > {{out}}",
+                    [str(s) for s in scenes], 97, None)
+    for r in got:
+        assert r.status == "fail" and r.float32["asked"] >= F32_MIN, (r.scene, r.float32)
+        assert r.float32["explained"] == r.float32["asked"], (r.scene, r.float32)
+        assert any("does your tracer compute in float" in h for h in r.hints), r.hints
+    assert "rather than double" in float32_run_hint(got)
+    assert "hint: " in text_report(got).splitlines()[-1]
+    bug = check_run(f"{ctracer / 'course_self_shadow'} {{columns}} {{rows}} < {{scene}} > "
+                    "{out}", [str(scenes[0]), str(COURSE / "numeric" / "nw__specTile.txt")],
+                    97, None)
+    for r in bug:
+        assert r.status == "fail" and r.float32.get("explained", 0) < r.float32["asked"], \
+            (r.scene, r.float32)
+        assert not any("float" in h for h in r.hints), r.hints
+    assert float32_run_hint(bug) == ""

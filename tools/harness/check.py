@@ -50,6 +50,19 @@ COLORS = {"match": ("dark grey", (48, 48, 48)), "rounding": ("blue", (70, 110, 2
           "wrong": ("red", (230, 30, 30))}
 DEFAULT_MAX_DIST = 1000.0
 WRONG_LISTED = 1000      # wrong pixels --json lists (the first in image order; counts: all)
+# A tracer computing in float32 instead of double leaves a few wrong pixels scattered one or
+# two at a time, each where a decision lies within float32's rounding of its threshold (a
+# shadow's blocker, a tile border, an edge) and with the colour its other side gives.  The
+# hint (never the verdict) asks F32_SAMPLE of the wrong pixels of a scene whose wrong pixels
+# are at most F32_SHARE of the image in groups of at most F32_GROUP, the shading oracle's
+# bounds taken with F32_U for u: float32's unit roundoff, times 4 (the oracle bounds the
+# notes' float64 formulas; measured on a float32 build of tests/ctracer/course.c, README
+# "A tracer in float")
+F32_U = 4 * 2.0 ** -24
+F32_SAMPLE = 12
+F32_SHARE = 0.02
+F32_GROUP = 4
+F32_MIN = 3              # a scene's hint needs this many pixels asked, all explained
 MAX_DISTS = (1000.0, 20.0, 30.0, 50.0, 70.0, 200.0, 50000.0)
 # (rule, values with the notes' first, which scenes it can matter in)
 DIMENSIONS = (
@@ -126,6 +139,9 @@ class SceneCheck:
     # wrong pixels not asked about: the oracle's sample of their set had one nothing excuses
     unasked: int = 0
     provenance: dict = field(default_factory=dict)   # what was checked, by what
+    # wrong pixels asked whether float32's rounding explains them, and how many it does
+    # (``float32_evidence``; empty where the scene's wrong pixels do not look like that)
+    float32: dict = field(default_factory=dict)
     classes: np.ndarray | None = None        # (rows, columns) class index
     ours: np.ndarray | None = None
     theirs: np.ndarray | None = None
@@ -305,6 +321,32 @@ class Boundary:
             got = self.colours[key]
             out.append(got is None or any(np.abs(self.theirs[p] - np.array(c)).max() <= 1
                                           for c in got))
+        return np.array(out, bool)
+
+    def float32_sides(self, pixels, rules, md: float) -> np.ndarray:
+        """Which ``pixels`` a tracer computing in float may make: one level off where the
+        intensity lies within float32's bound of an 8-bit level, or a colour (within a
+        level) that the decisions within float32's rounding give taken either way, or any
+        where those cannot all be enumerated (``other_sides``); F32_U stands for float32's
+        unit roundoff.  For a hint, never the verdict."""
+        from mitsuba_ref.shade_oracle import K_DECISION, K_VALUE, other_sides, shade_pixels
+        cam = self.r.cam
+        pixels = np.asarray(pixels, np.int64)
+        orc = shade_pixels(self.r.scene, cam.columns, cam.rows, pixels, cam.sampling, rules,
+                           md)
+        q = 255.0 * orc["I"]
+        level = np.any(np.abs(q - np.round(q)) < 255.0 * K_VALUE * F32_U * orc["err"], -1)
+        ours = self.r.image(rules, md).reshape(-1, 3).astype(np.int16)
+        out = []
+        for k, p in enumerate(pixels.tolist()):
+            apart = np.abs(self.theirs[p] - ours[p]).max()
+            if apart == 1 and level[k]:
+                out.append(True)
+                continue
+            got = other_sides(self.r.scene, cam.columns, cam.rows, p, cam.sampling, rules, md,
+                              limit=K_DECISION * F32_U)
+            out.append(got is None or any(
+                np.abs(self.theirs[p] - np.array(c)).max() <= 1 for c in got))
         return np.array(out, bool)
 
     def levels(self, pixels, rules, md: float) -> tuple:
@@ -630,12 +672,32 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
         objs.sort(key=lambda kn: -kn[1])
         res.worst["objects"] = [_describe(scene, k, n) for k, n in objs[:3]]
         res.hints = hints(ids, wrong, ours, img, r.unclamped[(final_rules, md)]) + res.hints
+        res.float32 = float32_evidence(bnd, wrong, res.worst, final_rules, md)
+        n, k = res.float32.get("asked", 0), res.float32.get("explained", 0)
+        if n >= F32_MIN and k == n:
+            res.hints.append(
+                (f"all {n} wrong pixels" if n == res.worst["pixels"] else
+                 f"the {n} wrong pixels asked (of {res.worst['pixels']}) all")
+                + " lie within float32's rounding of a decision (a shadow's blocker, a tile "
+                "border, an edge) and have the colour its other side gives: does your tracer "
+                "compute in float? (the course's programs use double)")
         if maxval not in (None, 255):
             res.hints.insert(0, f"the image's maxval is {maxval}, the course writes 255: "
                              "its samples were scaled to 8 bits rounding to nearest, so a "
                              "level either way may come from that; write maxval 255")
     res.seconds = round(time.perf_counter() - t0, 3)
     return res
+
+
+def float32_evidence(bnd: Boundary, wrong: np.ndarray, worst: dict, rules, md: float) -> dict:
+    """{asked, explained}: how many of a sample of the wrong pixels float32's rounding
+    explains (``Boundary.float32_sides``); empty where the wrong pixels are not few and
+    scattered (F32_SHARE, F32_GROUP), as a float tracer leaves them."""
+    if worst["pixels"] > F32_SHARE * wrong.size or worst["largest_group"] > F32_GROUP:
+        return {}
+    pick = bnd.sample(np.flatnonzero(wrong.ravel()), F32_SAMPLE)
+    return {"asked": int(len(pick)),
+            "explained": int(bnd.float32_sides(pick, rules, md).sum())}
 
 
 def _textures_missing(scene, dirs):
@@ -1286,4 +1348,22 @@ def text_report(results) -> str:
     n = len(results)
     ok = sum(r.ok for r in results)
     lines.append(f"{ok} of {n} scenes pass")
+    hint = float32_run_hint(results)
+    if hint:
+        lines.append(f"hint: {hint}")
     return "\n".join(lines)
+
+
+def float32_run_hint(results) -> str:
+    """Across a run: every failing scene's wrong pixels few and scattered, and nine in ten
+    of those asked explained by float32's rounding (a scene alone may have too few to say)."""
+    failed = [r for r in results if r.status == "fail"]
+    if not failed or any(not r.float32 for r in failed):
+        return ""
+    asked = sum(r.float32["asked"] for r in failed)
+    explained = sum(r.float32["explained"] for r in failed)
+    if asked < 10 or explained < 0.9 * asked:
+        return ""
+    return (f"{explained} of the {asked} wrong pixels asked in the {len(failed)} failing "
+            "scenes lie within float32's rounding of a decision and have the colour its other "
+            "side gives: does your tracer compute in float rather than double?")
