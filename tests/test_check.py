@@ -901,3 +901,30 @@ def test15_a_float_tracer_is_asked_whether_it_computes_in_float(ctracer_f32, ctr
             (r.scene, r.float32)
         assert not any("float" in h for h in r.hints), r.hints
     assert float32_run_hint(bug) == ""
+
+
+def test16_many_boundary_pixels_are_named_by_their_decision(tmp_path):
+    """A plane lying in the window plane z = 0 (every ray's clip decision at its threshold):
+    an image taking either side pixel by pixel, as an FMA build does, passes as boundary, and
+    the verdict says which decision those pixels sit at, so that the user knows the scene
+    checks nothing there.  A few boundary pixels get no such line."""
+    from rt_core.imageio import write_ppm
+    from rt_core.parser import parse_scene
+    scene = CT / "scenes" / "clip_z0.txt"
+    text = scene.read_text()
+    keep, drop = _rt_image(text, 97, 72), _rt_image(text, 97, 72, "screen_clip=>=")
+    assert (keep != drop).any(-1).mean() > 0.3
+    coin = np.random.default_rng(5).random((72, 97)) < 0.5
+    write_ppm(str(tmp_path / "i.ppm"), np.where(coin[..., None], keep, drop))
+    r = check_image(scene, tmp_path / "i.ppm")
+    plane = next(k for k, o in enumerate(parse_scene(str(scene)).objects)
+                 if o.kind == "plane")
+    n = r.counts["boundary"]
+    assert r.status == "pass" and n > 1000, r.counts
+    line = parse_scene(str(scene)).objects[plane].line
+    assert r.boundary_note.startswith(f"{n} pixels ("), r.boundary_note
+    assert f"whether the primary ray hits object {plane} (plane, line {line})" in \
+        r.boundary_note and "checks nothing" in r.boundary_note, r.boundary_note
+    assert f"boundary: {r.boundary_note}" in details(r)
+    write_ppm(str(tmp_path / "k.ppm"), keep)
+    assert check_image(scene, tmp_path / "k.ppm").boundary_note == ""

@@ -63,6 +63,9 @@ F32_SAMPLE = 12
 F32_SHARE = 0.02
 F32_GROUP = 4
 F32_MIN = 3              # a scene's hint needs this many pixels asked, all explained
+# boundary pixels at least this share of the image (and 20) are summed up in words: which
+# decision most of them sit at (``boundary_note``)
+BOUNDARY_NOTE = 0.01
 MAX_DISTS = (1000.0, 20.0, 30.0, 50.0, 70.0, 200.0, 50000.0)
 # (rule, values with the notes' first, which scenes it can matter in)
 DIMENSIONS = (
@@ -142,6 +145,7 @@ class SceneCheck:
     # wrong pixels asked whether float32's rounding explains them, and how many it does
     # (``float32_evidence``; empty where the scene's wrong pixels do not look like that)
     float32: dict = field(default_factory=dict)
+    boundary_note: str = ""      # many boundary pixels: the decision most of them sit at
     classes: np.ndarray | None = None        # (rows, columns) class index
     ours: np.ndarray | None = None
     theirs: np.ndarray | None = None
@@ -663,6 +667,8 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
             return res
     wrong = res.classes == CLASSES.index("wrong")
     res.status = "pass" if not wrong.any() and not res.hits.get("wrong") else "fail"
+    res.boundary_note = boundary_note(scene, bnd, res.classes == CLASSES.index("boundary"),
+                                      final_rules, md)
     res.hints += hit_hints(scene, res.hits)
     if wrong.any():
         res.worst = worst_region(wrong)
@@ -687,6 +693,47 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
                              "level either way may come from that; write maxval 255")
     res.seconds = round(time.perf_counter() - t0, 3)
     return res
+
+
+def boundary_note(scene, bnd: Boundary, boundary: np.ndarray, rules, md: float) -> str:
+    """Where the boundary pixels are many (BOUNDARY_NOTE of the image, 20 at least), the
+    decision most of them sit at, in words: a scene whose decision lies on its threshold
+    over a region (a plane in the window plane z = 0, a light in a plane) checks nothing
+    there, and the user should know."""
+    n = int(boundary.sum())
+    if n < max(20, BOUNDARY_NOTE * boundary.size):
+        return ""
+    count: dict = {}
+    for p in np.flatnonzero(boundary.ravel()).tolist():
+        path = bnd.paths.get((rules, md, p))
+        for key in set(path[1]) if path else ():
+            count[key] = count.get(key, 0) + 1
+    head = f"{n} pixels ({100.0 * n / boundary.size:.0f}% of the image)"
+    if not count:
+        return head
+    key, k = max(count.items(), key=lambda kv: (kv[1], kv[0]))
+    return (f"{head}; {k} of them at {_decision_words(scene, key)}: within float64's rounding "
+            "of its threshold there, so either side is right and the scene checks nothing at "
+            "those pixels")
+
+
+def _decision_words(scene, key) -> str:
+    """A choice point of shade_oracle (``_Alt``'s key: bounce, what, which) in words."""
+    b, what, which = key
+    ray = "the primary ray" if b == 0 else f"the reflection ray of bounce {b}"
+    if what == "geo":
+        o = scene.objects[which]
+        return f"whether {ray} hits object {which} ({o.kind}, line {o.line})"
+    if what in ("shadow", "spot"):
+        light = scene.lights[which]
+        test = "shadow test" if what == "shadow" else "spotlight cone"
+        hit = "the primary hit" if b == 0 else f"the hit of bounce {b}"
+        return f"the {test} of {hit} toward light {which} (line {light.line})"
+    if what == "maxdist":
+        return "the reflection cut-off (the path length against MAX_DIST" + \
+            (f" after bounce {b})" if b else ")")
+    return f"a {what} border ({'u' if which == 0 else 'v'}" + \
+        (f", bounce {b})" if b else ")")
 
 
 def float32_evidence(bnd: Boundary, wrong: np.ndarray, worst: dict, rules, md: float) -> dict:
@@ -1306,7 +1353,8 @@ def _one_line(r: SceneCheck) -> str:
     return f"{'PASS' if r.ok else 'FAIL'} {r.scene} {r.columns}x{r.rows}: {counts}"
 
 
-def details(r: SceneCheck, kinds=("rules", "deviation", "hint", "wrong", "hit dump")) -> list:
+def details(r: SceneCheck, kinds=("rules", "deviation", "hint", "wrong", "boundary",
+                                   "hit dump")) -> list:
     """The lines under a checked scene's verdict, in words (the text report, the HTML
     report, JUnit): the rules, each deviation and hint, the wrong pixels, the hit dump."""
     out = []
@@ -1329,6 +1377,8 @@ def details(r: SceneCheck, kinds=("rules", "deviation", "hint", "wrong", "hit du
                    f"{w['columns'][1]}; " + "; ".join(w.get("objects", []))
                    + (f" ({r.unasked} of them judged from a sample of their kind, in which "
                       "some pixels were wrong)" if r.unasked else ""))
+    if r.boundary_note and "boundary" in kinds:
+        out.append(f"boundary: {r.boundary_note}")
     if r.hits and "hit dump" in kinds:
         h = r.hits
         out.append(f"hit dump: {h['pixels']} pixels listed"
