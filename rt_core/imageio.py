@@ -120,9 +120,36 @@ def open_input(path, what: str = "image", error=ImageError):
     with native_output_captured(fds=(2,)):            # libpng's own "libpng error: ..."
         inp = oiio.ImageInput.open(path, config)
     if inp is None:
-        raise error(f"{path}: cannot read it as an image ({_reason(_error_of(oiio), path)}); "
+        reason = _reason(_error_of(oiio), path)
+        said = _text_before_pnm(path)
+        if said:
+            raise error(f"{path}: {said}")
+        raise error(f"{path}: cannot read it as an image ({reason}); "
                     "rtval reads what OpenImageIO reads: EXR, PPM, PNG, TIFF, ...")
     return inp
+
+
+def _text_before_pnm(path: str) -> str | None:
+    """Lines of text, then a PNM header at the start of a line (within the first 8 KiB): a
+    tracer that printed messages to standard output before its image (> {out} took both)."""
+    try:
+        with open(path, "rb") as f:
+            data = f.read(1 << 13)
+    except OSError:
+        return None
+    for k in range(len(data)):
+        if data[k:k + 1] == b"P" and data[k + 1:k + 2] in b"1234567" and k and \
+                data[k - 1:k] == b"\n" and _pnm_header(data[k:]) is not None:
+            text = data[:k]
+            if not all(32 <= c < 127 or c in b"\t\r\n" for c in text):
+                return None
+            first = text.decode("ascii").splitlines()[0][:40]
+            lines = text.count(b"\n")
+            return (f"{lines} line{'s' if lines > 1 else ''} of text before the PPM header "
+                    f"(P{chr(data[k + 1])} at byte {k}), the first {first!r}: the tracer printed "
+                    "messages to standard output, where the image goes? (print them to "
+                    "stderr, or remove them)")
+    return None
 
 
 def _type_name(t) -> str:

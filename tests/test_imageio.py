@@ -91,6 +91,11 @@ def test03_course_ppm_bytes_and_channels_of_each_format(tmp_path):
     ("rows16.ppm", b"P6 4 3 65535\n" + bytes(72 + 48), "the file holds 120, 2 rows more"),
     # OpenImageIO's 'could not find a format reader for "x"' without the name read 'for)'
     ("notimg.dat", b"hello\n", "could not find a format reader for it)"),
+    # a tracer's debugging output before its image on standard output (an instructor's
+    # review: 'Could not parse spec for file' sent the student looking at the format)
+    ("debug.ppm", b"DEBUG x=3\nrows 3\nP6 4 3 255\n" + bytes(36),
+     "2 lines of text before the PPM header (P6 at byte 17), the first 'DEBUG x=3': the "
+     "tracer printed messages to standard output"),
 ])
 def test04_unreadable_images_are_one_line(tmp_path, name, data, why, capfd):
     p = tmp_path / name
