@@ -661,6 +661,11 @@ def test09b_run_with_a_refused_scene_exits_2_unless_one_fails(ctracer, tmp_path,
                      *map(str, scenes)]) == code, (run, scenes)
         out = capsys.readouterr().out
         assert ("REFUSED" in out) == (bad in scenes)
+        # the last line counts the refused apart, as the HTML report does
+        ran = len(scenes) - (bad in scenes)
+        assert out.splitlines()[-1].startswith(
+            f"{out.count(chr(10) + 'PASS ') + out.startswith('PASS ')} of {ran} scenes pass"
+            + ("; 1 refused" if bad in scenes else "")), out
     # a missing scene and a directory: refused too, the other scenes still run (a missing
     # one was a failed run, exit 1; a directory stopped the whole run)
     for odd in (tmp_path / "no_such.txt", tmp_path):

@@ -1395,9 +1395,11 @@ def text_report(results) -> str:
         lines.append(_one_line(r))
         if r.status in ("pass", "fail"):
             lines += ["  " + d for d in details(r)]
-    n = len(results)
+    # (the refused scenes apart, as the HTML report counts them)
+    refused = sum(r.status == "refused" for r in results)
+    n = len(results) - refused
     ok = sum(r.ok for r in results)
-    lines.append(f"{ok} of {n} scenes pass")
+    lines.append(f"{ok} of {n} scenes pass" + (f"; {refused} refused" if refused else ""))
     hint = float32_run_hint(results)
     if hint:
         lines.append(f"hint: {hint}")
