@@ -461,6 +461,25 @@ def test08_run_reports_each_failure_per_scene(ctracer, tmp_path):
     for cmd, why in cases.items():
         r, = check_run(cmd + " # {scene} {out}", scenes[:1], 40, None, timeout=1.0)
         assert r.status == "error" and why in r.reason, (cmd, r.reason)
+        # the reasons show {out}, not the scratch file that is gone after the check
+        assert "rtval-check-" not in r.reason, r.reason
+
+
+def test08h_a_tracer_writing_its_own_file_name_is_told_so(ctracer, tmp_path, monkeypatch):
+    """A tracer that writes image.ppm into the current directory (where the command runs)
+    instead of {out}: the reason names the file, whether {out} was left missing or empty
+    (by '> {out}'); a file there that did not change is not named."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "old.ppm").write_bytes(b"P6 1 1 255\n\0\0\0")
+    os.utime(tmp_path / "old.ppm", (1, 1))
+    scene = str(REPO / "scenes" / "seed_fplane.txt")
+    course = f"{ctracer / 'course'} {{columns}} {{rows}} < {{scene}}"
+    for cmd, what in ((f"{course} > image.ppm # {{out}}", "no image"),
+                      (f"{course} > image.ppm; : > {{out}}", "an empty image")):
+        r, = check_run(cmd, [scene], 40, None)
+        assert r.status == "error" and r.reason.startswith(f"wrote {what} to {{out}}"), r.reason
+        assert f"(image.ppm in the current directory {tmp_path} changed meanwhile" in \
+            r.reason and "old.ppm" not in r.reason, r.reason
 
 
 def test08b_run_commands_with_braces_and_escaped_children(ctracer, tmp_path):

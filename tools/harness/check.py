@@ -1120,6 +1120,11 @@ def run_tracer(template: str, scene: str, columns: int, rows: int, workdir: str,
     hits = os.path.join(workdir, f"{stem}.hits")
     cmd = fill_command(template, scene=shlex.quote(str(scene)), out=shlex.quote(out),
                        columns=columns, rows=rows, hits=shlex.quote(hits))
+    # the command as the reasons show it: {out} and {hits} named, not the scratch files
+    # that are gone once the check ends
+    shown = fill_command(template, scene=shlex.quote(str(scene)), out="{out}",
+                         columns=columns, rows=rows, hits="{hits}")
+    started = time.time()
     try:
         p = subprocess.Popen(cmd, shell=True, stdout=subprocess.DEVNULL,
                              stderr=subprocess.PIPE, stdin=subprocess.DEVNULL,
@@ -1146,26 +1151,46 @@ def run_tracer(template: str, scene: str, columns: int, rows: int, workdir: str,
         _RUNNING.discard(p)
         said.stop()
     if timed_out:
-        return None, None, f"timed out after {timeout:g} s: {cmd}"
+        return None, None, f"timed out after {timeout:g} s: {shown}"
     tail = said.last_line()
     said = f" ({tail})" if tail else ""
     rc = p.returncode
     name = _signal_name(-rc if rc < 0 else rc - 128) if rc < 0 or 128 < rc <= 128 + 64 \
         else None
     if name and rc < 0:
-        return None, None, f"crashed with {name}: {cmd}{said}"
+        return None, None, f"crashed with {name}: {shown}{said}"
     if name:                            # (the shell's status for a command a signal killed)
-        return None, None, f"crashed with {name} (exit status {rc}): {cmd}{said}"
+        return None, None, f"crashed with {name} (exit status {rc}): {shown}{said}"
     if rc != 0:
-        return None, None, f"exited with status {rc}: {cmd}{said}"
+        return None, None, f"exited with status {rc}: {shown}{said}"
+    here = _written_here(started) if not os.path.exists(out) or not os.path.getsize(out) \
+        else []
+    if here:
+        # a name of its own in rtval's current directory, where the command runs
+        what = "no image" if not os.path.exists(out) else "an empty image"
+        return None, None, (f"wrote {what} to {{out}}: {shown} ({', '.join(here[:3])} in the "
+                            f"current directory {os.getcwd()} changed meanwhile: does it "
+                            "write its image there? write it to the path {out} stands for)")
     if not os.path.exists(out):
         # what it wrote instead, in the run's directory (a name of its own, {out} ignored)
         other = sorted(f for f in os.listdir(workdir) if f != os.path.basename(hits))
-        return None, None, (f"wrote no image to {{out}}: {cmd}" + (
+        return None, None, (f"wrote no image to {{out}}: {shown}" + (
             f" (it wrote {', '.join(other[:3])} beside it: write the path {{out}} stands for)"
             if other else " (write the image to the path {out} stands for, e.g. "
             "'> {out}' for a tracer that prints it)"))
     return out, (hits if "{hits}" in template and os.path.exists(hits) else None), ""
+
+
+def _written_here(since: float) -> list:
+    """The image files (by their names' endings) in the current directory modified since
+    ``since``: where a tracer that ignores {out} writes its own file name."""
+    try:
+        with os.scandir(".") as it:
+            return sorted(e.name for e in it
+                          if e.name.lower().endswith((".ppm", ".pnm", ".png"))
+                          and e.is_file() and e.stat().st_mtime >= since - 1.0)
+    except OSError:
+        return []
 
 
 def _signal_name(sig: int) -> str | None:
