@@ -221,6 +221,19 @@ def test04b_a_bug_names_no_deviation_and_gets_a_hint(ctracer, build, scene, hint
         assert r.counts["rounding"] == 0
 
 
+def test04bb_an_upside_down_image_is_named_whatever_variant_is_inferred(ctracer, tmp_path):
+    """nw__a07 is nearly symmetric top to bottom: the upside-down build's image has a rule
+    variant inferred that explains some of its pixels (clipped spheres), and the hint that
+    it is rt_core's upside down comes from the notes' image."""
+    if not COURSE.is_dir():
+        pytest.skip("../shared/course-scenes is not there")
+    scene = COURSE / "numeric" / "nw__a07.txt"
+    r = check_image(scene, _render(ctracer / "course_rows_flipped", scene, 80, tmp_path))
+    assert r.status == "fail" and r.counts["variant"] > 0, r.counts
+    assert any("upside down" in h and "(0 pixels differ that way" in h for h in r.hints), \
+        r.hints
+
+
 def test04c_one_level_differences_decide_the_cut_off(ctracer, tmp_path):
     """The notes' build stops reflecting at total_dist >= 50000; on the mirror corridor
     that changes 6 pixels by one level only.  They were passed as 'rounding' under rtval's

@@ -678,6 +678,12 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
         objs.sort(key=lambda kn: -kn[1])
         res.worst["objects"] = [_describe(scene, k, n) for k, n in objs[:3]]
         res.hints = hints(ids, wrong, ours, img, r.unclamped[(final_rules, md)]) + res.hints
+        # an image upside down or with channels exchanged may still have a rule variant
+        # inferred that explains some of its pixels (a near-symmetric scene): asked against
+        # the notes' image too
+        base = r.image(notes, DEFAULT_MAX_DIST)
+        if (base != ours).any():
+            res.hints = _orientation(base, img) + _channels(base, img) + res.hints
         res.float32 = float32_evidence(bnd, wrong, res.worst, final_rules, md)
         n, k = res.float32.get("asked", 0), res.float32.get("explained", 0)
         if n >= F32_MIN and k == n:
