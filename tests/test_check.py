@@ -478,6 +478,27 @@ def test08_run_reports_each_failure_per_scene(ctracer, tmp_path):
         assert "rtval-check-" not in r.reason, r.reason
 
 
+def test08i_a_run_of_many_scenes_says_each_verdict_as_it_is_known(ctracer, tmp_path, capsys):
+    """--run over several scenes prints each scene's one-line verdict on stderr as it is
+    known, numbered, with --verbose (or on a terminal); the report on stdout is unchanged."""
+    import io
+    from tools.cli import main
+    scenes = [str(REPO / "scenes" / s) for s in ("seed_fplane.txt", "mixed.txt")]
+    course = f"{ctracer / 'course'} {{columns}} {{rows}} < {{scene}} > {{out}}"
+    seen = io.StringIO()
+    check_run(course, scenes, 40, None, progress=seen)
+    lines = seen.getvalue().splitlines()
+    assert [ln.split("] ")[0] for ln in lines] == ["rtval check: [1/2", "rtval check: [2/2"]
+    assert all(" PASS " in ln for ln in lines) and scenes[0] in seen.getvalue(), lines
+    assert main(["check", "--serial", "--verbose", "--run", course, "--columns", "40",
+                 *scenes]) == 0
+    got = capsys.readouterr()
+    assert got.err.count("rtval check: [") == 2 and "[2/2] PASS" in got.err, got.err
+    assert "rtval check: [" not in got.out
+    assert main(["check", "--serial", "--run", course, "--columns", "40", *scenes]) == 0
+    assert "rtval check: [" not in capsys.readouterr().err     # (not a terminal here)
+
+
 def test08h_a_tracer_writing_its_own_file_name_is_told_so(ctracer, tmp_path, monkeypatch):
     """A tracer that writes image.ppm into the current directory (where the command runs)
     instead of {out}: the reason names the file, whether {out} was left missing or empty

@@ -71,8 +71,11 @@ def run(args) -> int:
             args.usage_error("--hits is for a given image; with --run put {hits} in the "
                              "command")
         from tools.harness.parallel import plan_of
+        # each scene's verdict on stderr as it is known, where someone watches (a terminal)
+        # or asks (--verbose): a run of many scenes is not silent for minutes
+        watch = len(args.inputs) > 1 and (args.verbose or sys.stderr.isatty())
         results = check_run(args.run, args.inputs, args.columns, args.rows, args.timeout,
-                            plan_of(args), **kw)
+                            plan_of(args), progress=sys.stderr if watch else None, **kw)
     else:
         if args.scheduler or (args.workers or 0) > 1:
             args.usage_error("--workers/--scheduler: only with --run (one image is checked "

@@ -1243,12 +1243,14 @@ def seconds_per_check(columns: int) -> float:
 
 
 def check_run(template: str, scenes, columns: int, rows: int | None, timeout: float = 60.0,
-              plan=None, **kw) -> list:
+              plan=None, progress=None, **kw) -> list:
     """Run the user's tracer on each scene, then check its image.  The runs go ahead of the
     checks in a background thread (one run at a time, in this process: the tracer is the
     user's program on this machine), so the tracer's time and rtval's overlap; the checks
     run where ``plan`` says (default in this process; tools/harness/parallel.py), each
-    sent with its scene and image as data as soon as the tracer has written it."""
+    sent with its scene and image as data as soon as the tracer has written it.
+    ``progress``: a text stream that gets each scene's one-line verdict as it is known,
+    numbered ([k/n]), in the order they finish (a long run is not silent)."""
     from concurrent.futures import ThreadPoolExecutor
     from tools.harness.parallel import SERIAL, run_cases
     from rt_core.outputs import scratch_dir
@@ -1258,9 +1260,17 @@ def check_run(template: str, scenes, columns: int, rows: int | None, timeout: fl
         stack.callback(shutil.rmtree, work, ignore_errors=True)
         pool = ThreadPoolExecutor(max_workers=1)
         try:
+            done = []
+
+            def each(i, r):
+                if progress is not None:
+                    done.append(i)
+                    print(f"rtval check: [{len(done)}/{len(scenes)}] {_one_line(r)}",
+                          file=progress, flush=True)
+                return r
             results = run_cases(_check_job, _check_runs(pool, work, template, scenes, columns,
                                                         rows, timeout, kw),
-                                plan or SERIAL, count=len(scenes),
+                                plan or SERIAL, each=each, count=len(scenes),
                                 seconds_per_case=seconds_per_check(columns))
         except BaseException:
             pool.shutdown(wait=False, cancel_futures=True)      # no queued run starts
