@@ -386,6 +386,21 @@ def _pnm_surplus(path: str) -> str | None:
         return ("the header's lines end in CR LF (a file written in text mode?): after "
                 "maxval a PPM takes one byte, so its samples would start a byte late; write "
                 "the file in binary mode, lines ending in \\n")
+    extra = body - need
+    if extra >= 2:
+        # text after the samples: messages printed to standard output after the image
+        try:
+            with open(path, "rb") as f:
+                f.seek(size - min(extra, 1 << 12))
+                tail = f.read()
+        except OSError:
+            tail = b""
+        if b"\n" in tail and all(32 <= c < 127 or c in b"\t\r\n" for c in tail) and \
+                any(chr(c).isalnum() for c in tail):
+            last = [ln.strip() for ln in tail.decode("ascii").splitlines() if ln.strip()][-1]
+            return (f"{extra} bytes after the pixels end in text ({last[:40]!r}): the tracer "
+                    "printed messages to standard output after the image? (print them to "
+                    "stderr, or remove them)")
     if body - need >= row:
         return (f"the header says {w}x{h} pixels, {need} bytes of samples; the file holds "
                 f"{body}, {(body - need) / row:.3g} row{'s' if body - need != row else ''} more: "

@@ -93,6 +93,8 @@ def test03_course_ppm_bytes_and_channels_of_each_format(tmp_path):
     ("notimg.dat", b"hello\n", "could not find a format reader for it)"),
     # a tracer's debugging output before its image on standard output (an instructor's
     # review: 'Could not parse spec for file' sent the student looking at the format)
+    ("done.ppm", b"P6 4 3 255\n" + bytes(36) + b"done in 0.2 s\n",
+     "14 bytes after the pixels end in text ('done in 0.2 s'): the tracer printed messages"),
     ("debug.ppm", b"DEBUG x=3\nrows 3\nP6 4 3 255\n" + bytes(36),
      "2 lines of text before the PPM header (P6 at byte 17), the first 'DEBUG x=3': the "
      "tracer printed messages to standard output"),
