@@ -499,6 +499,24 @@ def test08i_a_run_of_many_scenes_says_each_verdict_as_it_is_known(ctracer, tmp_p
     assert "rtval check: [" not in capsys.readouterr().err     # (not a terminal here)
 
 
+def test08j_a_misspelt_placeholder_is_a_usage_error(capsys):
+    """'{colums}' would reach the tracer as written (only the five placeholders are filled
+    in): a usage error (64) naming the placeholder meant; a shell's ${ROWS} and awk's
+    braces are no placeholders."""
+    from tools.cli import main
+    scene = str(REPO / "scenes" / "mixed.txt")
+    for cmd, meant in (("./ray {colums} {rows} < {scene} > {out}", "columns"),
+                       ("./ray {columns} {Row} < {scene} > {out}", "rows"),
+                       ("./ray < {secne} > {out} # {scene}", "scene")):
+        with pytest.raises(SystemExit) as e:
+            main(["check", "--run", cmd, "--columns", "8", scene])
+        assert e.value.code == 64
+        err = capsys.readouterr().err
+        assert f"is not a placeholder: did you mean {{{meant}}}?" in err, err
+    from tools.harness.check import misspelt_placeholder
+    assert misspelt_placeholder("awk '{print $1}' {scene} > ${ROWS}{out}") is None
+
+
 def test08h_a_tracer_writing_its_own_file_name_is_told_so(ctracer, tmp_path, monkeypatch):
     """A tracer that writes image.ppm into the current directory (where the command runs)
     instead of {out}: the reason names the file, whether {out} was left missing or empty

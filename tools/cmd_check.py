@@ -70,6 +70,11 @@ def run(args) -> int:
         if args.hits:
             args.usage_error("--hits is for a given image; with --run put {hits} in the "
                              "command")
+        from tools.harness.check import misspelt_placeholder
+        said = misspelt_placeholder(args.run)
+        if said:
+            args.usage_error(f"--run: {said} (the placeholders: {{scene}} {{out}} "
+                             "{columns} {rows} {hits})")
         from tools.harness.parallel import plan_of
         # each scene's verdict on stderr as it is known, where someone watches (a terminal)
         # or asks (--verbose): a run of many scenes is not silent for minutes

@@ -1115,6 +1115,19 @@ def fill_command(template: str, **values) -> str:
                   lambda m: str(values[m.group(1)]), template)
 
 
+def misspelt_placeholder(template: str) -> str | None:
+    """'{colums}' meant as {columns}: the first brace word close to a placeholder but not
+    one, as 'did you mean' words; None when there is none ('{print $1}' is not close)."""
+    import difflib
+    for word in re.findall(r"(?<!\$)\{([A-Za-z_]+)\}", template):     # (not ${VAR})
+        if word in PLACEHOLDERS:
+            continue
+        close = difflib.get_close_matches(word.lower(), PLACEHOLDERS, n=1, cutoff=0.7)
+        if close:
+            return f"{{{word}}} is not a placeholder: did you mean {{{close[0]}}}?"
+    return None
+
+
 def run_tracer(template: str, scene: str, columns: int, rows: int, workdir: str,
                timeout: float) -> tuple[str | None, str | None, str]:
     """Run ``template`` for one scene: (image path or None, hit-dump path or None, failure
