@@ -795,6 +795,13 @@ def test12_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
     trunc.write_bytes(b"P6 40 30 255\n" + b"\0" * 100)
     assert main(["check", str(scene), str(trunc)]) == 2
     assert "truncated" in capsys.readouterr().err
+    # the arguments swapped (an instructor's review: it read as a malformed scene header)
+    from rt_core.imageio import write_png, write_ppm
+    for name, write in (("i.ppm", write_ppm), ("i.png", write_png)):
+        write(str(tmp_path / name), np.zeros((3, 4, 3), np.uint8))
+        assert main(["check", str(tmp_path / name), str(scene)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert "image, not a scene file: the arguments are SCENE IMAGE" in err[-1], err
     # usage errors: one line, exit 64 (README "Exit codes")
     for argv in ([str(scene)],                                  # no image, no --run
                  [str(scene), "--run", "x {scene}", "--columns", "8"],     # no {out}

@@ -603,7 +603,7 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
     try:
         scene = scene if scene is not None else parse_agreed(scene_path, code27)
     except SceneError as exc:
-        res.status, res.reason = "refused", str(exc)
+        res.status, res.reason = "refused", _not_a_scene(scene_path) or str(exc)
         return res
     except OSError as exc:
         res.reason = f"{scene_path}: {(exc.strerror or str(exc)).lower()}"
@@ -751,6 +751,27 @@ def float32_evidence(bnd: Boundary, wrong: np.ndarray, worst: dict, rules, md: f
     pick = bnd.sample(np.flatnonzero(wrong.ravel()), F32_SAMPLE)
     return {"asked": int(len(pick)),
             "explained": int(bnd.float32_sides(pick, rules, md).sum())}
+
+
+# the first bytes of the image files a scene's place may be given by mistake
+_IMAGE_MAGIC = ((re.compile(rb"P[1-6]\s"), "a PPM/PGM/PBM image"),
+                (re.compile(rb"\x89PNG"), "a PNG image"),
+                (re.compile(rb"v/1\x01"), "an EXR image"))
+
+
+def _not_a_scene(path) -> str | None:
+    """Why a file that is no scene was given as one, where its first bytes are an image's:
+    the arguments in the wrong order (IMAGE SCENE)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(8)
+    except OSError:
+        return None
+    for magic, what in _IMAGE_MAGIC:
+        if magic.match(head):
+            return (f"{path}: {what}, not a scene file: the arguments are SCENE IMAGE, in "
+                    "that order (with --run: scenes only)")
+    return None
 
 
 def _textures_missing(scene, dirs):
@@ -1309,7 +1330,8 @@ def _check_runs(pool, work, template, scenes, columns, rows, timeout, kw):
         try:
             sc = parse_agreed(s, kw.get("code27", "auto"))
         except (SceneError, InputError) as exc:
-            jobs.append((s, None, SceneCheck(str(s), None, "refused", str(exc))))
+            jobs.append((s, None, SceneCheck(str(s), None, "refused",
+                                             _not_a_scene(s) or str(exc))))
             continue
         except OSError as exc:
             jobs.append((s, None, SceneCheck(str(s), None, "refused",
