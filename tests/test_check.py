@@ -517,6 +517,38 @@ def test08j_a_misspelt_placeholder_is_a_usage_error(capsys):
     assert misspelt_placeholder("awk '{print $1}' {scene} > ${ROWS}{out}") is None
 
 
+def test08k_a_directory_of_images_is_checked_scene_by_scene(ctracer, tmp_path, capsys):
+    """--images DIR: each scene's image DIR/STEM.ppm (or .png), checked as --run checks what
+    the tracer writes: a good image passes, a bug's fails, a missing one is an error (exit
+    1 as a failed run), a malformed scene refused; all good: exit 0."""
+    from tools.cli import main
+    subs = tmp_path / "alice"
+    subs.mkdir()
+    good, bad, gone = (REPO / "scenes" / s for s in ("seed_fplane.txt", "shade_shadows.txt",
+                                                      "mixed.txt"))
+    shutil.copy(_render(ctracer / "course", good, 40, tmp_path), subs / "seed_fplane.ppm")
+    shutil.copy(_render(ctracer / "course_no_shadows", bad, 40, tmp_path),
+                subs / "shade_shadows.ppm")
+    broken = tmp_path / "broken.txt"
+    broken.write_text("sphere\n")
+    assert main(["check", "--images", str(subs), "--json",
+                 *map(str, (good, bad, gone, broken))]) == 1
+    got = {Path(r["scene"]).name: r for r in json.loads(capsys.readouterr().out)}
+    assert [got[n]["status"] for n in ("seed_fplane.txt", "shade_shadows.txt", "mixed.txt",
+                                       "broken.txt")] == ["pass", "fail", "error", "refused"]
+    assert got["seed_fplane.txt"]["image"] == str(subs / "seed_fplane.ppm")
+    assert "no image for this scene (looked for mixed.ppm" in got["mixed.txt"]["reason"]
+    assert main(["check", "--images", str(subs), str(good)]) == 0
+    capsys.readouterr()
+    for argv in (["--images", str(subs), "--run", "x {scene} {out}", str(good)],
+                 ["--images", str(subs), "--columns", "40", str(good)]):
+        with pytest.raises(SystemExit) as e:
+            main(["check", *argv])
+        assert e.value.code == 64, argv
+    assert main(["check", "--images", str(tmp_path / "nope"), str(good)]) == 2
+    assert "not a directory" in capsys.readouterr().err
+
+
 def test08h_a_tracer_writing_its_own_file_name_is_told_so(ctracer, tmp_path, monkeypatch):
     """A tracer that writes image.ppm into the current directory (where the command runs)
     instead of {out}: the reason names the file, whether {out} was left missing or empty
@@ -940,7 +972,7 @@ def test04j_a_sphere_grazed_to_the_last_bits_excuses_its_reflection(tmp_path):
     assert r.status == "pass" and r.counts["boundary"] == 1, r.counts
 
 
-# --- a tracer computing in float -------------------------------------------------------------------
+# --- a tracer computing in float ---------------------------------------------------------------
 
 @pytest.fixture(scope="session")
 def ctracer_f32(ctracer, tmp_path_factory):

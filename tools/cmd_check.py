@@ -19,10 +19,14 @@ def add_parser(sub) -> None:
                     "wrong.  Exit 0 if no pixel is wrong, 1 if some are (or, with --run, a run "
                     "failed), 2 on bad input (with --run: a scene refused, and none failed).")
     p.add_argument("inputs", nargs="+", metavar="INPUT",
-                   help="SCENE IMAGE; with --run: one or more SCENEs")
+                   help="SCENE IMAGE; with --run or --images: one or more SCENEs")
     p.add_argument("--run", metavar="CMD",
                    help="the tracer's command line, with {scene} {out} {columns} {rows} and "
                         "optionally {hits}, e.g. './ray {columns} {rows} < {scene} > {out}'")
+    p.add_argument("--images", metavar="DIR",
+                   help="check the images a tracer left in DIR, one per SCENE named after "
+                        "it (STEM.ppm, .pnm or .png): a directory of submitted images, "
+                        "checked as --run checks what the tracer writes")
     p.add_argument("--columns", type=positive_int, default=None,
                    help="image width (with --run: required; otherwise only to override)")
     p.add_argument("--rows", type=positive_int, default=None,
@@ -57,6 +61,8 @@ def run(args) -> int:
                                    "image": image})
     if args.junit:
         check_file_target(args.junit, make_dirs=False)
+    if args.run is not None and args.images is not None:
+        args.usage_error("--run or --images, not both")
     if args.run is not None:
         if not args.run.strip():
             args.usage_error("--run: give the tracer's command line, e.g. "
@@ -81,13 +87,28 @@ def run(args) -> int:
         watch = len(args.inputs) > 1 and (args.verbose or sys.stderr.isatty())
         results = check_run(args.run, args.inputs, args.columns, args.rows, args.timeout,
                             plan_of(args), progress=sys.stderr if watch else None, **kw)
+    elif args.images is not None:
+        import os
+        if args.hits:
+            args.usage_error("--hits is for one given image, not --images")
+        if args.columns is not None or args.rows is not None:
+            args.usage_error("--images: the images' sizes give the columns and rows")
+        if not os.path.isdir(args.images):
+            print(f"rtval check: --images {args.images}: not a directory", file=sys.stderr)
+            return 2
+        from tools.harness.check import check_images
+        from tools.harness.parallel import plan_of
+        watch = len(args.inputs) > 1 and (args.verbose or sys.stderr.isatty())
+        results = check_images(args.images, args.inputs, plan_of(args),
+                               progress=sys.stderr if watch else None, **kw)
     else:
         if args.scheduler or (args.workers or 0) > 1:
-            args.usage_error("--workers/--scheduler: only with --run (one image is checked "
-                             "in this process)")
+            args.usage_error("--workers/--scheduler: only with --run or --images (one image "
+                             "is checked in this process)")
         if len(args.inputs) != 2:
-            args.usage_error(f"expected SCENE IMAGE, got {len(args.inputs)} argument(s); to "
-                             "run a tracer on several scenes use --run")
+            args.usage_error(f"expected SCENE IMAGE, got {len(args.inputs)} argument(s); for "
+                             "several scenes use --run (your tracer) or --images DIR (its "
+                             "images, named after the scenes)")
         results = [check_image(args.inputs[0], args.inputs[1], columns=args.columns,
                                rows=args.rows, hits_path=args.hits, **kw)]
     if args.json:                       # (strict JSON: a t of NaN in a hit dump as "nan")
@@ -112,14 +133,15 @@ def run(args) -> int:
                                 **kw)
     if page:
         print(f"report: {page}", file=sys.stderr)
-    single = len(results) == 1 and not args.run
+    many = args.run is not None or args.images is not None
+    single = len(results) == 1 and not many
     if single and results[0].status in ("error", "refused"):
         print(f"rtval check: {results[0].reason}", file=sys.stderr)
         return 2
     if any(r.status == "fail" for r in results):
         return 1
     if any(r.status == "error" for r in results):
-        return 1 if args.run else 2
+        return 1 if many else 2
     # (--run) a scene that could not be checked at all: malformed, or of a kind rtval
     # does not implement; it is listed as REFUSED
     if any(r.status == "refused" for r in results):

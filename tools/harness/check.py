@@ -1294,17 +1294,10 @@ def check_run(template: str, scenes, columns: int, rows: int | None, timeout: fl
         stack.callback(shutil.rmtree, work, ignore_errors=True)
         pool = ThreadPoolExecutor(max_workers=1)
         try:
-            done = []
-
-            def each(i, r):
-                if progress is not None:
-                    done.append(i)
-                    print(f"rtval check: [{len(done)}/{len(scenes)}] {_one_line(r)}",
-                          file=progress, flush=True)
-                return r
             results = run_cases(_check_job, _check_runs(pool, work, template, scenes, columns,
                                                         rows, timeout, kw),
-                                plan or SERIAL, each=each, count=len(scenes),
+                                plan or SERIAL, each=_progress(progress, len(scenes)),
+                                count=len(scenes),
                                 seconds_per_case=seconds_per_check(columns))
         except BaseException:
             pool.shutdown(wait=False, cancel_futures=True)      # no queued run starts
@@ -1385,6 +1378,80 @@ def _check_runs(pool, work, template, scenes, columns, rows, timeout, kw):
             except OSError as exc:
                 hits = exc
         yield (str(s), img, sc, theirs, columns, h, hits, {**kw, "maxval": pnm_maxval(img)})
+
+
+# the image files ``check_images`` looks for, per scene, in this order
+IMAGE_SUFFIXES = (".ppm", ".pnm", ".png")
+
+
+def check_images(directory: str, scenes, plan=None, progress=None, **kw) -> list:
+    """Check the images a tracer left in ``directory``, one per scene named after it
+    (STEM.ppm, .pnm or .png): what ``check_run`` does with the tracer run already (an
+    instructor's directory of submitted images).  A scene without its image, or whose
+    image cannot be read, is an error; a scene rtval cannot read is refused."""
+    from tools.harness.parallel import SERIAL, run_cases
+    scenes = list(scenes)
+    return run_cases(_check_image_job, _image_jobs(directory, scenes, kw), plan or SERIAL,
+                     each=_progress(progress, len(scenes)), count=len(scenes),
+                     seconds_per_case=seconds_per_check(160))
+
+
+def _progress(stream, n: int):
+    """run_cases' ``each``: the one-line verdict on ``stream`` as each is known ([k/n])."""
+    done = []
+
+    def each(i, r):
+        if stream is not None:
+            done.append(i)
+            print(f"rtval check: [{len(done)}/{n}] {_one_line(r)}", file=stream, flush=True)
+        return r
+    return each
+
+
+def _image_jobs(directory, scenes, kw):
+    """check_images' jobs: a finished SceneCheck where the scene or its image is missing or
+    unreadable, else the scene and image as data (for ``_check_image_job``)."""
+    from rt_core.imageio import ImageError, pnm_maxval, read_image
+    from tools.harness.agree import parse_agreed
+    from rt_core.scene import SceneError
+    from rt_core.usererror import InputError
+    for s in scenes:
+        try:
+            sc = parse_agreed(s, kw.get("code27", "auto"))
+        except (SceneError, InputError) as exc:
+            yield SceneCheck(str(s), None, "refused", _not_a_scene(s) or str(exc))
+            continue
+        except OSError as exc:
+            yield SceneCheck(str(s), None, "refused", f"{s}: {(exc.strerror or str(exc)).lower()}")
+            continue
+        sc = _textures_missing(sc, kw.get("texture_dirs", ()))
+        if isinstance(sc, str):
+            yield SceneCheck(str(s), None, "refused", sc)
+            continue
+        stem = Path(s).stem
+        found = [os.path.join(directory, stem + x) for x in IMAGE_SUFFIXES
+                 if os.path.isfile(os.path.join(directory, stem + x))]
+        if not found:
+            yield SceneCheck(str(s), os.path.join(directory, stem + ".ppm"), "error",
+                             f"{directory}: no image for this scene (looked for "
+                             f"{', '.join(stem + x for x in IMAGE_SUFFIXES)})")
+            continue
+        try:
+            theirs = read_image(found[0])
+        except ImageError as exc:
+            yield SceneCheck(str(s), found[0], "error", str(exc))
+            continue
+        yield (str(s), found[0], sc, theirs, None, None, None,
+               {**kw, "maxval": pnm_maxval(found[0])})
+
+
+def _check_image_job(job) -> SceneCheck:
+    """One of check_images' checks (in this process or on a Dask worker)."""
+    if isinstance(job, SceneCheck):
+        return job
+    scene_path, image_path, scene, theirs, columns, rows, hits, kw = job
+    return check_image(scene_path, image_path, columns=columns, rows=rows, hits_path=hits,
+                       theirs=theirs, scene=scene, **kw)
 
 
 def _check_job(job) -> SceneCheck:
