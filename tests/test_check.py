@@ -747,6 +747,14 @@ def test09_cli_outputs_and_exit_codes(ctracer, tmp_path):
     assert "{'" not in html
     good = _render(ctracer / "course", scene, 40, tmp_path)
     assert main(["check", str(scene), str(good)]) == 0
+    # --name: whose tracer, in the suite's and cases' names and the report's title
+    assert main(["check", str(scene), str(good), "--name", "alice", "--junit",
+                 str(tmp_path / "a.xml"), "--report", str(tmp_path / "rep_a")]) == 0
+    suite = ET.parse(tmp_path / "a.xml").getroot()
+    assert suite.get("name") == "rtval check: alice", suite.attrib
+    assert next(suite.iter("testcase")).get("classname") == "rtval.check.alice"
+    html = (tmp_path / "rep_a" / "index.html").read_text()
+    assert "<title>rtval check: alice: PASS" in html and "<th>theirs</th>" in html
 
 
 def test09b_run_with_a_refused_scene_exits_2_unless_one_fails(ctracer, tmp_path, capsys):

@@ -45,6 +45,9 @@ def add_parser(sub) -> None:
                         "failures first, rt_core's image, yours and the classes side by side")
     p.add_argument("--junit", metavar="FILE", help="write JUnit XML (one test case per scene)")
     p.add_argument("--json", action="store_true", help="print the results as JSON on stdout")
+    p.add_argument("--name", metavar="NAME",
+                   help="whose tracer this is (a student's name): in the JUnit suite's and "
+                        "classes' names and the report's title")
     add_parallel(p, "checks of --run's images (the tracer itself runs here)")
     p.set_defaults(func=run, usage_error=p.error)
 
@@ -120,7 +123,7 @@ def run(args) -> int:
     page = None
     with together():                    # the JUnit and the report: both or neither
         if args.junit:
-            text = junit_xml(results)
+            text = junit_xml(results, args.name)
 
             def write(tmp):
                 with open(tmp, "w", encoding="utf-8") as f:
@@ -128,7 +131,7 @@ def run(args) -> int:
             atomic_write(args.junit, write)
         if args.report:
             from tools.harness.html_report import check_report
-            page = check_report(args.report, results, run=args.run, rows=args.rows,
+            page = check_report(args.report, results, args.name, run=args.run, rows=args.rows,
                                 hits=args.hits, timeout=args.timeout, columns=args.columns,
                                 **kw)
     if page:

@@ -1469,14 +1469,16 @@ def _check_job(job) -> SceneCheck:
 
 # --- outputs --------------------------------------------------------------------------------------
 
-def junit_xml(results) -> str:
+def junit_xml(results, name: str | None = None) -> str:
+    """One test case per scene; ``name`` (whose tracer: check --name) names the suite and
+    the cases' class."""
     from .junit import Case, junit_xml as xml
     cases = []
     names = [Path(r.scene).name for r in results]
     for r in results:
         # the file's name, or its path where two scenes share one (a/x.txt, b/x.txt)
         c = Case(Path(r.scene).name if names.count(Path(r.scene).name) == 1 else r.scene,
-                 "rtval.check", r.seconds)
+                 "rtval.check" + (f".{name}" if name else ""), r.seconds)
         if r.status == "fail":
             c.failure = f"{r.counts.get('wrong', 0)} wrong pixels"
             c.body = "\n".join([f"rules: {r.rules}, max_dist={r.max_dist:g}"] +
@@ -1486,7 +1488,7 @@ def junit_xml(results) -> str:
         else:
             c.body = _one_line(r)
         cases.append(c)
-    return xml("rtval check", cases)
+    return xml("rtval check" + (f": {name}" if name else ""), cases)
 
 
 def _one_line(r: SceneCheck) -> str:

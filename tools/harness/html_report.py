@@ -481,7 +481,7 @@ places, the class image shows the difference (|reference − ours|, grey: any di
 least dark grey).</p></section>
 <p><label><input type="checkbox" id="failures-only"> show only what did not pass</label></p>
 <table id="results"><thead><tr><th></th><th>comparison</th><th>reference</th>
-<th>{'theirs' if kinds == ['check'] or title == 'rtval check' else 'ours'}</th><th>classes</th></tr></thead><tbody>
+<th>{'theirs' if kinds == ['check'] or title.startswith('rtval check') else 'ours'}</th><th>classes</th></tr></thead><tbody>
 {chr(10).join(body)}
 </tbody></table>
 {skips}
@@ -640,7 +640,9 @@ def comparisons_report(directory: str, title: str, results, skipped=(), rows_giv
                         [Skip(s.path, s.category, s.reason) for s in skipped], meta=meta)
 
 
-def check_report(directory: str, results, **command) -> str:
-    """The report of ``rtval check`` (``command``: check_command's options)."""
+def check_report(directory: str, results, name: str | None = None, **command) -> str:
+    """The report of ``rtval check`` (``command``: check_command's options; ``name``: whose
+    tracer, in the title)."""
     rows, skipped = check_rows(results, **command)
-    return write_report(directory, "rtval check", rows, skipped, skipped_fail=True)
+    return write_report(directory, "rtval check" + (f": {name}" if name else ""), rows,
+                        skipped, skipped_fail=True)
