@@ -322,7 +322,8 @@ def reports(tmp_path_factory):
                parse_scene(str(SPHERE)), 24, 18).image(Rules(), 1000.0)),
            SceneCheck("c/ell.txt", None, "refused", "c/ell.txt:3:1: ellipsoid is not supported")]
     H.check_report(str(tmp / "c"), res)
-    return {"rc": rc, "json": out.getvalue(), "v": tmp / "v", "c": tmp / "c"}
+    return {"rc": rc, "json": out.getvalue(), "v": tmp / "v", "c": tmp / "c",
+            "check_theirs": theirs}
 
 
 def test04_validate_report_and_json(reports):
@@ -378,7 +379,20 @@ def test07_check_report(reports):
     text = "".join(page.text)
     assert "Skipped (1)" in text and "ellipsoid is not supported" in text
     assert "your tracer (theirs)" in text and "rtval check" in text
-    assert len(list(c.glob("*.png"))) == 8
+    # the failing row's largest wrong group magnified: the same crop of rt_core's image,
+    # theirs and the classes, side by side (a single wrong pixel was hard to see)
+    assert len(list(c.glob("*.png"))) == 9
+    zoom, = c.glob("*.zoom.png")
+    from PIL import Image
+    z = np.asarray(Image.open(zoom).convert("RGB"))
+    theirs = reports["check_theirs"]
+    k = 120 // 12                            # rows 4-7, columns 4-9, 3 around: 10 x 12
+    assert z.shape == (10 * k, 3 * 12 * k + 2 * 4, 3), z.shape
+    crop = np.repeat(np.repeat(theirs[1:11, 1:13], k, 0), k, 1)
+    assert (z[:, 12 * k + 4:24 * k + 4] == crop).all()
+    html = (c / "index.html").read_text()
+    assert f'src="{zoom.name}"' in html and "rows 1–10, columns 1–12, magnified 10×" in html
+    assert 'alt="your tracer (theirs) of mixed.txt (mine.ppm)"' in html, html
 
 
 # --- in a real browser ---------------------------------------------------------------------------
@@ -464,3 +478,32 @@ def test08_in_a_browser(reports, browser, which):
     assert shown and set(shown) == {"fail"}
     # and the page's script raised nothing
     assert [e for e in browser.get_log("browser") if e["level"] == "SEVERE"] == []
+
+
+# Machado, Oliveira and Fernandes (2009), severity 1.0, on linear RGB
+DICHROMACY = {
+    "deuteranopia": [[0.367322, 0.860646, -0.227968], [0.280085, 0.672501, 0.047413],
+                     [-0.011820, 0.042940, 0.968881]],
+    "protanopia": [[0.152286, 1.052583, -0.204868], [0.114503, 0.786281, 0.099216],
+                   [-0.003882, -0.048116, 1.051998]],
+    "tritanopia": [[1.255528, -0.076749, -0.178779], [-0.078411, 0.930809, 0.147602],
+                   [0.004733, 0.691367, 0.303900]]}
+
+
+def _seen(rgb, m):
+    c = np.asarray(rgb, float) / 255
+    lin = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+    out = np.clip(np.asarray(m) @ lin, 0, 1)
+    return 255 * np.where(out <= 0.0031308, 12.92 * out, 1.055 * out ** (1 / 2.4) - 0.055)
+
+
+@pytest.mark.parametrize("kind", ["check", "shaded"])
+def test09_the_course_image_classes_are_told_apart_by_the_colour_blind(kind):
+    """The classes of a check (and of a shaded comparison) stay 100 apart in sRGB under each
+    simulated dichromacy: the old palette's green variant and red wrong came to 77 for a
+    deuteranope, its red wrong and dark grey match to 72 for a protanope."""
+    import itertools
+    colours = [rgb for _, _, rgb, _ in H.palette(kind)]
+    for name, m in DICHROMACY.items():
+        for a, b in itertools.combinations(colours, 2):
+            assert np.linalg.norm(_seen(a, m) - _seen(b, m)) >= 100, (name, a, b)

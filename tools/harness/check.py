@@ -45,9 +45,11 @@ import numpy as np
 
 CLASSES = ("match", "rounding", "boundary", "variant", "wrong")
 # named colours of the class image (legend in the report)
-COLORS = {"match": ("dark grey", (48, 48, 48)), "rounding": ("blue", (70, 110, 230)),
-          "boundary": ("yellow", (240, 200, 40)), "variant": ("green", (60, 180, 75)),
-          "wrong": ("red", (230, 30, 30))}
+# (told apart by the colour-blind too: no green beside the red, a red that is not dark, a
+# near-black match; tests/test_html_report.py test09 simulates the three dichromacies)
+COLORS = {"match": ("near black", (24, 24, 24)), "rounding": ("blue", (40, 80, 200)),
+          "boundary": ("yellow", (240, 228, 66)), "variant": ("lavender", (150, 150, 255)),
+          "wrong": ("red", (255, 40, 0))}
 DEFAULT_MAX_DIST = 1000.0
 WRONG_LISTED = 1000      # wrong pixels --json lists (the first in image order; counts: all)
 # A tracer computing in float32 instead of double leaves a few wrong pixels scattered one or

@@ -137,11 +137,13 @@ def difference_picture(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 @dataclass
 class Pictures:
-    """A comparison's pictures as PNG bytes: reference, ours, classes, difference."""
+    """A comparison's pictures as PNG bytes: reference, ours, classes, difference (and a
+    magnified view of the largest group of failing pixels, ``zoom``)."""
     kind: str                          # the class palette: geometry, shaded, check
     width: int
     height: int
     png: dict                          # name -> bytes
+    zoom: tuple | None = None          # (width, height, caption) of png["zoom"]
 
     @classmethod
     def make(cls, kind: str, reference, ours, classes, text: dict) -> "Pictures":
@@ -182,12 +184,43 @@ def comparison_pictures(cmp) -> Pictures:
 
 def check_pictures(r) -> Pictures | None:
     """The pictures of an ``rtval check`` result (tools/harness/check.py): rt_core's image
-    is the reference, the tracer's is "ours" (shown as theirs); None without images."""
+    is the reference, the tracer's is "ours" (shown as theirs); None without images.  A
+    failing one gets its largest group of wrong pixels magnified (``zoom_picture``)."""
     if r.classes is None:
         return None
-    return Pictures.make("check", r.ours, r.theirs, r.classes,
-                         {"rtval.scene": str(r.scene), "rtval.image_checked": str(r.image),
-                          "rtval.reference": "rt_core f64", "rtval.rules": r.rules})
+    text = {"rtval.scene": str(r.scene), "rtval.image_checked": str(r.image),
+            "rtval.reference": "rt_core f64", "rtval.rules": r.rules}
+    pics = Pictures.make("check", r.ours, r.theirs, r.classes, text)
+    if r.worst:
+        img, k, (y0, y1, x0, x1) = zoom_picture(
+            [r.ours, r.theirs, class_picture(r.classes, "check")], r.worst)
+        pics.png["zoom"] = png_bytes(img, {**text, "rtval.image": "zoom",
+                                           "rtval.zoom": f"rows {y0}-{y1}, columns {x0}-{x1}, "
+                                                         f"x{k}: rt_core | theirs | classes"})
+        pics.zoom = (img.shape[1], img.shape[0],
+                     f"the largest group of wrong pixels, rows {y0}–{y1}, columns {x0}–{x1}, "
+                     f"magnified {k}×: rt_core · theirs · classes")
+    return pics
+
+
+ZOOM_PAD = 3            # pixels around the group
+ZOOM_SIZE = 120         # the magnified crop's longer side, about
+
+
+def zoom_picture(images: list, worst: dict) -> tuple:
+    """(picture, factor, (first row, last row, first column, last column)): the same crop of
+    each image around the largest wrong group (check.worst_region, ZOOM_PAD around it),
+    magnified by a whole factor to about ZOOM_SIZE pixels, side by side with a grey gap."""
+    H, W = images[0].shape[:2]
+    y0, y1 = max(0, worst["rows"][0] - ZOOM_PAD), min(H - 1, worst["rows"][1] + ZOOM_PAD)
+    x0, x1 = max(0, worst["columns"][0] - ZOOM_PAD), min(W - 1, worst["columns"][1] + ZOOM_PAD)
+    k = max(1, min(16, ZOOM_SIZE // max(y1 - y0 + 1, x1 - x0 + 1)))
+    crops = [np.repeat(np.repeat(im[y0:y1 + 1, x0:x1 + 1], k, 0), k, 1) for im in images]
+    gap = np.full((crops[0].shape[0], 4, 3), 128, np.uint8)
+    parts = [crops[0]]
+    for c in crops[1:]:
+        parts += [gap, c]
+    return np.concatenate(parts, 1).astype(np.uint8), k, (y0, y1, x0, x1)
 
 
 # --- rows ----------------------------------------------------------------------------------------
@@ -339,6 +372,7 @@ td.info{max-width:38em;overflow-wrap:anywhere} td.info ul{margin:.3em 0;padding-
 figure{margin:0} figcaption{font-size:.8em;color:#555}
 img.flip{image-rendering:pixelated;cursor:pointer;border:1px solid #999;background:#000}
 img.flip:focus{outline:2px solid #36c}
+figure.zoom{margin-top:.5em} figure.zoom img{image-rendering:pixelated;border:1px solid #999}
 code{background:#eee;padding:1px 3px;overflow-wrap:anywhere}
 .swatch{display:inline-block;width:1em;height:1em;border:1px solid #888;vertical-align:middle;
  margin-right:.3em}
@@ -351,7 +385,7 @@ JS = """
 function flip(img){
   var b = img.dataset.showing !== 'b';
   img.src = b ? img.dataset.b : img.dataset.a;
-  img.alt = b ? img.dataset.bLabel : img.dataset.aLabel;
+  img.alt = (b ? img.dataset.bLabel : img.dataset.aLabel) + (img.dataset.of || '');
   img.dataset.showing = b ? 'b' : 'a';
   var cap = img.parentNode.querySelector('figcaption');
   cap.textContent = (b ? img.dataset.bLabel : img.dataset.aLabel) + ' · click: ' +
@@ -371,12 +405,15 @@ def _safe(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", text)[:80]
 
 
-def _flip(src_a, src_b, label_a, label_b, w, h, scale) -> str:
+def _flip(src_a, src_b, label_a, label_b, w, h, scale, of: str = "") -> str:
+    """An image that flips between two pictures; its alt text names the picture shown and
+    the comparison (``of``)."""
+    of = f" of {of}" if of else ""
     return (f'<figure><img class="flip" tabindex="0" src="{escape(src_a)}" '
             f'data-a="{escape(src_a)}" data-b="{escape(src_b)}" '
             f'data-a-label="{escape(label_a)}" data-b-label="{escape(label_b)}" '
-            f'data-showing="a" alt="{escape(label_a)}" width="{w * scale}" '
-            f'height="{h * scale}"><figcaption>{escape(label_a)} · click: '
+            f'data-of="{escape(of)}" data-showing="a" alt="{escape(label_a + of)}" '
+            f'width="{w * scale}" height="{h * scale}"><figcaption>{escape(label_a)} · click: '
             f'{escape(label_b)}</figcaption></figure>')
 
 
@@ -417,12 +454,18 @@ def _row_html(k: int, row: Row, directory: str, files: dict) -> str:
         files.update({names[n]: data for n, data in pics.png.items()})
         ref, ours = LABELS[pics.kind]
         scale = max(1, 240 // max(pics.width, 1))
-        size = (pics.width, pics.height, scale)
+        size = (pics.width, pics.height, scale, row.title)
         cells.append(f'<td class="reference">{_flip(names["reference"], names["ours"], ref, ours, *size)}</td>')
         cells.append(f'<td class="ours">{_flip(names["ours"], names["reference"], ours, ref, *size)}</td>')
         cells.append(f'<td class="classes">'
                      f'{_flip(names["classes"], names["difference"], "classes", "difference", *size)}'
                      f'{_legend(pics.kind, row.counts)}</td>')
+        if pics.zoom:
+            zw, zh, caption = pics.zoom
+            cells[1] = cells[1][:-len("</td>")] + (
+                f'<figure class="zoom"><img src="{escape(names["zoom"])}" width="{zw}" '
+                f'height="{zh}" alt="{escape(caption + " of " + row.title)}">'
+                f'<figcaption>{escape(caption)}</figcaption></figure></td>')
     return (f'<tr class="{row.status}" id="row{k}" data-status="{row.status}">'
             + "".join(cells) + "</tr>")
 
@@ -502,7 +545,7 @@ def _is_report(directory: str) -> bool:
 
 
 # what a report directory holds: its page and the pictures _row_html names
-_OWN = re.compile(r"index\.html\Z|\d{3}-.*\.(?:reference|ours|classes|difference)\.png\Z")
+_OWN = re.compile(r"index\.html\Z|\d{3}-.*\.(?:reference|ours|classes|difference|zoom)\.png\Z")
 
 
 def _foreign(directory: str) -> list:

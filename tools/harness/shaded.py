@@ -35,6 +35,7 @@ from rt_core.render import render_image
 from rt_core.rules import Rules
 from rt_core.scene import Scene
 from rt_core.shading import DEFAULT_MAX_DIST, quantize
+from .check import COLORS as CHECK_COLORS
 from .timing import Stopwatch
 
 SHADED_CLASSES = ("match", "rounding", "boundary", "wrong")
@@ -43,10 +44,8 @@ SHADED_CLASSES = ("match", "rounding", "boundary", "wrong")
 SHADED_KINDS = ("sphere", "plane", "fplane", "tplane", "cylinder", "triangle", "disk")
 SHADED_CODE = {c: i for i, c in enumerate(SHADED_CLASSES)}
 # named colours of the classes image (evidence, HTML report): those of rtval check's classes
-SHADED_COLOURS = {"match": (48, 48, 48), "rounding": (70, 110, 230), "boundary": (240, 200, 40),
-                  "wrong": (230, 30, 30)}
-SHADED_COLOUR_NAMES = {"match": "dark grey", "rounding": "blue", "boundary": "yellow",
-                       "wrong": "red"}
+SHADED_COLOURS = {c: rgb for c, (_, rgb) in CHECK_COLORS.items() if c in SHADED_CLASSES}
+SHADED_COLOUR_NAMES = {c: name for c, (name, _) in CHECK_COLORS.items() if c in SHADED_CLASSES}
 
 
 @dataclass
