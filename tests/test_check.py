@@ -739,8 +739,10 @@ def test09_cli_outputs_and_exit_codes(ctracer, tmp_path):
     assert suite.get("tests") == "1" and suite.get("failures") == "1"
     assert any(p.get("name") == "drjit" for p in suite.iter("property"))
     html = (report / "index.html").read_text()
-    # reference, theirs, classes and their difference (tests/test_html_report.py: the page)
-    assert "wrong" in html and len(list(report.glob("*.png"))) == 4
+    # reference, theirs, classes, their difference and the largest wrong group magnified
+    # (tests/test_html_report.py: the page)
+    assert "wrong" in html and len(list(report.glob("*.png"))) == 5
+    assert len(list(report.glob("*.zoom.png"))) == 1
     # the failure's text in JUnit is sentences, as on stdout, not Python's dicts
     body = next(suite.iter("failure")).text
     assert "wrong: " in body and "the largest group" in body and "{'" not in body
