@@ -430,8 +430,17 @@ def test06b_json_lists_the_wrong_pixels(tmp_path, capsys):
     for p in got:
         assert p["theirs"] == img[p["row"], p["column"]].tolist()
         assert p["rtval"] == ours[p["row"], p["column"]].tolist()
+    assert all(p["asked"] for p in got)
     r = check_image(scene, tmp_path / "i.ppm")
     assert len(r.wrong_pixels(limit=2)) == 2 and check.WRONG_LISTED >= 100
+    # a block of 150: a sample of them asked, found wrong, the others wrong unasked, and
+    # said so pixel by pixel
+    img[20:35, 20:30] = 255 - img[20:35, 20:30] // 2
+    write_ppm(str(tmp_path / "b.ppm"), img)
+    r = check_image(scene, tmp_path / "b.ppm")
+    listed = r.wrong_pixels()
+    assert r.unasked > 0 and len(listed) == r.counts["wrong"], (r.unasked, r.counts)
+    assert sum(not p["asked"] for p in listed) == r.unasked
 
 
 def _write_hits(text, W, H, path):

@@ -143,6 +143,7 @@ class SceneCheck:
     hits: dict = field(default_factory=dict)
     # wrong pixels not asked about: the oracle's sample of their set had one nothing excuses
     unasked: int = 0
+    unasked_pixels: np.ndarray | None = None      # their flat indices (row 0 the top)
     provenance: dict = field(default_factory=dict)   # what was checked, by what
     # wrong pixels asked whether float32's rounding explains them, and how many it does
     # (``float32_evidence``; empty where the scene's wrong pixels do not look like that)
@@ -158,20 +159,24 @@ class SceneCheck:
 
     def summary(self) -> dict:
         out = {k: v for k, v in dataclasses.asdict(self).items()
-               if k not in ("classes", "ours", "theirs", "findings")}
+               if k not in ("classes", "ours", "theirs", "findings", "unasked_pixels")}
         out["findings"] = [f.as_dict() for f in self.findings]
         out["wrong_pixels"] = self.wrong_pixels()
         return out
 
     def wrong_pixels(self, limit: int | None = None) -> list:
         """The first ``limit`` (WRONG_LISTED) wrong pixels in image order (row 0 the top):
-        column, row, the image's colour and rt_core's."""
+        column, row, the image's colour and rt_core's, and whether the oracle was asked
+        about it (false: wrong because a sample of its kind held a wrong pixel; ``classify``)."""
         if self.classes is None:
             return []
         ys, xs = np.nonzero(self.classes == CLASSES.index("wrong"))
         n = WRONG_LISTED if limit is None else limit
+        unasked = set() if self.unasked_pixels is None else set(self.unasked_pixels.tolist())
+        W = self.classes.shape[1]
         return [{"column": int(x), "row": int(y), "theirs": self.theirs[y, x].tolist(),
-                 "rtval": self.ours[y, x].tolist()} for y, x in zip(ys[:n], xs[:n])]
+                 "rtval": self.ours[y, x].tolist(),
+                 "asked": int(y) * W + int(x) not in unasked} for y, x in zip(ys[:n], xs[:n])]
 
 
 # --- rendering ----------------------------------------------------------------------------------
@@ -654,8 +659,8 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
     res.rules, res.max_dist = final_rules.describe(), md
     ours = r.image(final_rules, md)
     res.ours = ours
-    res.classes, res.variant_counts, res.unasked = classify(r, img, final_rules, md, notes,
-                                                            bnd)
+    res.classes, res.variant_counts, unasked = classify(r, img, final_rules, md, notes, bnd)
+    res.unasked, res.unasked_pixels = len(unasked), unasked
     res.counts = {c: int((res.classes == i).sum()) for i, c in enumerate(CLASSES)}
     res.deviations = [WORDS[(f.rule, f.value)] for f in res.findings
                       if (f.rule, f.value) in WORDS and f.determined]
@@ -934,14 +939,14 @@ def _variant_colour(r: Renderer, ours: np.ndarray, theirs: np.ndarray) -> np.nda
 
 
 def classify(r: Renderer, theirs: np.ndarray, rules, md: float, notes, bnd: Boundary):
-    """(classes (rows, columns) of CLASSES indices, {rule: pixels it explains}, pixels left
-    wrong unasked (below))."""
+    """(classes (rows, columns) of CLASSES indices, {rule: pixels it explains}, the pixels
+    left wrong unasked (flat indices; below))."""
     ours = r.image(rules, md)
     diff = _apart(ours, theirs)
     cls = np.where(diff == 0, 0, np.where(diff == 1, 1, 4)).astype(np.int8)
     flat = cls.ravel()
     variant = _variant_colour(r, ours, theirs).ravel()
-    unasked = 0
+    unasked = []
     # Each set below is asked about in a fixed sample first when it holds more than
     # SAMPLE pixels (the oracle's work grows with the pixels and their bounces: 0.1-0.3 s a
     # pixel on deep mirror paths).  A sampled pixel that nothing excuses fails the image,
@@ -968,7 +973,7 @@ def classify(r: Renderer, theirs: np.ndarray, rules, md: float, notes, bnd: Boun
         if len(pick) < len(one) and (rnd | edge).all():
             pick = one
             rnd, edge = judge(pick)
-        unasked += len(one) - len(pick)
+        unasked.append(np.setdiff1d(one, pick))
         flat[one] = CLASSES.index("wrong")
         flat[pick[rnd]] = CLASSES.index("rounding")
         flat[pick[edge]] = CLASSES.index("boundary")
@@ -983,7 +988,7 @@ def classify(r: Renderer, theirs: np.ndarray, rules, md: float, notes, bnd: Boun
         if len(pick) < len(bad) and edge.all():
             pick = bad
             edge = judge(pick)
-        unasked += len(bad) - len(pick)
+        unasked.append(np.setdiff1d(bad, pick))
         flat[pick[edge]] = CLASSES.index("boundary")
     # pixels the inferred variants explain: wrong under the notes' value of that rule
     variants = {}
@@ -997,7 +1002,7 @@ def classify(r: Renderer, theirs: np.ndarray, rules, md: float, notes, bnd: Boun
         if name != "max_dist":
             cls[flips] = CLASSES.index("variant")
             variants[f"{name}={v}"] = int(flips.sum())
-    return cls, variants, unasked
+    return cls, variants, np.concatenate(unasked + [np.zeros(0, np.int64)]).astype(np.int64)
 
 
 def _groups(mask: np.ndarray) -> list:
