@@ -18,6 +18,7 @@ PPM writer stays here; every reader of PPM (OpenImageIO's included) accepts both
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -130,27 +131,39 @@ def open_input(path, what: str = "image", error=ImageError):
 
 
 def _text_before_pnm(path: str) -> str | None:
-    """Lines of text, then a PNM header at the start of a line (within the first 8 KiB): a
-    tracer that printed messages to standard output before its image (> {out} took both)."""
+    """Text, then a PNM header (within the first 8 KiB): a tracer that printed messages to
+    standard output before its image (> {out} took both)."""
     try:
         with open(path, "rb") as f:
             data = f.read(1 << 13)
     except OSError:
         return None
-    for k in range(len(data)):
-        if data[k:k + 1] == b"P" and data[k + 1:k + 2] in b"1234567" and k and \
-                data[k - 1:k] == b"\n" and _pnm_header(data[k:]) is not None:
-            text = data[:k]
-            if not all(32 <= c < 127 or c in b"\t\r\n" for c in text):
-                return None
-            first = text.decode("ascii").splitlines()[0][:40]
-            lines = text.count(b"\n")
-            return (f"{lines} line{'s' if lines > 1 else ''} of text before the PPM header "
-                    f"(P{chr(data[k + 1])} at byte {k}), the first {first!r}: the tracer printed "
-                    "messages to standard output, where the image goes? (print them to "
-                    "stderr, or remove them)")
+    for m in re.finditer(rb"P[1-6]\s", data):
+        k = m.start()
+        if not k or _pnm_header(data[k:]) is None:
+            continue
+        text = _text(data[:k])
+        if text is None:
+            return None
+        lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+        first = f", the first {lines[0][:40]!r}" if lines else ""
+        return (f"{k} bytes of text before the PPM header (P{chr(data[k + 1])} at byte {k})"
+                f"{first}: the tracer printed messages to standard output, where the image "
+                "goes? (print them to stderr, or remove them)")
     return None
 
+
+def _text(data: bytes) -> str | None:
+    """``data`` as text, if it is text a program printed: UTF-8, printable characters and
+    white space, two letters at least; else None."""
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError:
+        return None
+    if sum(c.isalpha() for c in text) < 2 or \
+            not all(c.isprintable() or c in "\t\r\n" for c in text):
+        return None
+    return text
 
 def _type_name(t) -> str:
     return str(t).upper()
@@ -395,9 +408,11 @@ def _pnm_surplus(path: str) -> str | None:
                 tail = f.read()
         except OSError:
             tail = b""
-        if b"\n" in tail and all(32 <= c < 127 or c in b"\t\r\n" for c in tail) and \
-                any(chr(c).isalnum() for c in tail):
-            last = [ln.strip() for ln in tail.decode("ascii").splitlines() if ln.strip()][-1]
+        # (a whole text: a partial row of pixel bytes that happen to spell letters would
+        # need to be valid UTF-8 and free of control bytes too)
+        text = _text(tail[len(tail) - extra:] if extra <= len(tail) else tail)
+        if text is not None:
+            last = [ln.strip() for ln in text.splitlines() if ln.strip()][-1]
             return (f"{extra} bytes after the pixels end in text ({last[:40]!r}): the tracer "
                     "printed messages to standard output after the image? (print them to "
                     "stderr, or remove them)")

@@ -516,7 +516,9 @@ def test08j_a_misspelt_placeholder_is_a_usage_error(capsys):
     scene = str(REPO / "scenes" / "mixed.txt")
     for cmd, meant in (("./ray {colums} {rows} < {scene} > {out}", "columns"),
                        ("./ray {columns} {Row} < {scene} > {out}", "rows"),
-                       ("./ray < {secne} > {out} # {scene}", "scene")):
+                       ("./ray < {secne} > {out} # {scene}", "scene"),
+                       ("./ray {width} < {scene} > {out}", "columns"),
+                       ("./ray < {scene} > {output} # {out}", "out")):
         with pytest.raises(SystemExit) as e:
             main(["check", "--run", cmd, "--columns", "8", scene])
         assert e.value.code == 64
@@ -524,6 +526,8 @@ def test08j_a_misspelt_placeholder_is_a_usage_error(capsys):
         assert f"is not a placeholder: did you mean {{{meant}}}?" in err, err
     from tools.harness.check import misspelt_placeholder
     assert misspelt_placeholder("awk '{print $1}' {scene} > ${ROWS}{out}") is None
+    # jq's and JSON's braces (a review: '{count}' was taken for {out})
+    assert misspelt_placeholder("jq '{count}' {scene} > {out}") is None
 
 
 def test08k_a_directory_of_images_is_checked_scene_by_scene(ctracer, tmp_path, capsys):
@@ -556,6 +560,13 @@ def test08k_a_directory_of_images_is_checked_scene_by_scene(ctracer, tmp_path, c
         assert e.value.code == 64, argv
     assert main(["check", "--images", str(tmp_path / "nope"), str(good)]) == 2
     assert "not a directory" in capsys.readouterr().err
+    # two scenes of one name would take the same image: refused, the others checked
+    twin = tmp_path / "twin"
+    twin.mkdir()
+    shutil.copy(good, twin / good.name)
+    assert main(["check", "--images", str(subs), str(good), str(twin / good.name)]) == 2
+    out = capsys.readouterr().out
+    assert out.count("2 scenes are named seed_fplane") == 2, out
 
 
 def test08h_a_tracer_writing_its_own_file_name_is_told_so(ctracer, tmp_path, monkeypatch):
@@ -764,6 +775,10 @@ def test09_cli_outputs_and_exit_codes(ctracer, tmp_path):
     suite = ET.parse(tmp_path / "a.xml").getroot()
     assert suite.get("name") == "rtval check: alice", suite.attrib
     assert next(suite.iter("testcase")).get("classname") == "rtval.check.alice"
+    assert main(["check", str(scene), str(good), "--name", "j.doe", "--junit",
+                 str(tmp_path / "b.xml")]) == 0
+    case = next(ET.parse(tmp_path / "b.xml").getroot().iter("testcase"))
+    assert case.get("classname") == "rtval.check.j_doe"
     html = (tmp_path / "rep_a" / "index.html").read_text()
     assert "<title>rtval check: alice: PASS" in html and "<th>theirs</th>" in html
 
@@ -852,7 +867,7 @@ def test12_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
         write(str(tmp_path / name), np.zeros((3, 4, 3), np.uint8))
         assert main(["check", str(tmp_path / name), str(scene)]) == 2
         err = capsys.readouterr().err.strip().splitlines()
-        assert "image, not a scene file: the arguments are SCENE IMAGE" in err[-1], err
+        assert "image, not a scene file: the scene comes first (SCENE IMAGE)" in err[-1], err
     # usage errors: one line, exit 64 (README "Exit codes")
     for argv in ([str(scene)],                                  # no image, no --run
                  [str(scene), "--run", "x {scene}", "--columns", "8"],     # no {out}
@@ -1035,6 +1050,15 @@ def test15_a_float_tracer_is_asked_whether_it_computes_in_float(ctracer_f32, ctr
             (r.scene, r.float32)
         assert not any("float" in h for h in r.hints), r.hints
     assert float32_run_hint(bug) == ""
+    # a review's false hints: the same build at 240 columns, and missing shadows at 160 on a
+    # scene whose sides at float32's limit cannot all be enumerated (those count as not
+    # explained)
+    for build, scene, columns in (("course_self_shadow", "nw__specTile.txt", 240),
+                                  ("course_no_shadows", "m4__v0_model.txt", 160)):
+        r, = check_run(f"{ctracer / build} {{columns}} {{rows}} < {{scene}} > {{out}}",
+                       [str(COURSE / "numeric" / scene)], columns, None)
+        assert r.status == "fail" and not any("float" in h for h in r.hints), (build, r.hints)
+        assert float32_run_hint([r]) == ""
 
 
 def test16_many_boundary_pixels_are_named_by_their_decision(tmp_path):

@@ -392,6 +392,9 @@ def test07_check_report(reports):
     assert (z[:, 12 * k + 4:24 * k + 4] == crop).all()
     html = (c / "index.html").read_text()
     assert f'src="{zoom.name}"' in html and "rows 1–10, columns 1–12, magnified 10×" in html
+    # under the tracer's image, not in the text (a review: it pushed the table apart)
+    cell = re.search(r'<td class="ours">(.*?)</td>', html).group(1)
+    assert f'src="{zoom.name}"' in cell, cell
     assert 'alt="your tracer (theirs) of mixed.txt (mine.ppm)"' in html, html
 
 
@@ -507,3 +510,24 @@ def test09_the_course_image_classes_are_told_apart_by_the_colour_blind(kind):
     for name, m in DICHROMACY.items():
         for a, b in itertools.combinations(colours, 2):
             assert np.linalg.norm(_seen(a, m) - _seen(b, m)) >= 100, (name, a, b)
+
+
+def test10_the_magnified_view_of_a_group_at_a_border_or_too_large():
+    """A group in the image's corner: the crop moved inside the image, its size kept; a group
+    larger than ZOOM_MAX (a whole wrong image, a long thin strip): a ZOOM_MAX square around
+    its first wrong pixel, said to be part of it, never 'magnified 1×'."""
+    H_, W_ = 60, 80
+    imgs = [np.random.default_rng(k).integers(0, 256, (H_, W_, 3), np.uint8) for k in range(3)]
+    for rows, cols in (([0, 0], [0, 0]), ([59, 59], [79, 79]), ([10, 12], [5, 79]),
+                       ([0, 59], [0, 79])):
+        wrong = np.zeros((H_, W_), bool)
+        wrong[rows[0]:rows[1] + 1, cols[0]:cols[1] + 1] = True
+        img, k, (y0, y1, x0, x1), part = H.zoom_picture(imgs, {"rows": rows, "columns": cols},
+                                                        wrong)
+        assert 0 <= y0 <= rows[0] <= y1 < H_ and 0 <= x0 <= cols[0] <= x1 < W_
+        assert k >= 4 and part == (max(rows[1] - rows[0], cols[1] - cols[0]) + 7 > H.ZOOM_MAX)
+        h, w = y1 - y0 + 1, x1 - x0 + 1
+        assert (h, w) == ((H.ZOOM_MAX,) * 2 if part else (7, 7)) and \
+            img.shape == (h * k, 3 * w * k + 8, 3)
+        assert (img[:, w * k + 4:2 * w * k + 4] ==
+                np.repeat(np.repeat(imgs[1][y0:y1 + 1, x0:x1 + 1], k, 0), k, 1)).all()

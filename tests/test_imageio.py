@@ -96,8 +96,13 @@ def test03_course_ppm_bytes_and_channels_of_each_format(tmp_path):
     ("done.ppm", b"P6 4 3 255\n" + bytes(36) + b"done in 0.2 s\n",
      "14 bytes after the pixels end in text ('done in 0.2 s'): the tracer printed messages"),
     ("debug.ppm", b"DEBUG x=3\nrows 3\nP6 4 3 255\n" + bytes(36),
-     "2 lines of text before the PPM header (P6 at byte 17), the first 'DEBUG x=3': the "
+     "17 bytes of text before the PPM header (P6 at byte 17), the first 'DEBUG x=3': the "
      "tracer printed messages to standard output"),
+    # (a review: without a newline, or not ASCII, it was the old message)
+    ("nonl.ppm", "Rendering… ✓P6 4 3 255\n".encode() + bytes(36),
+     "16 bytes of text before the PPM header (P6 at byte 16), the first 'Rendering… ✓'"),
+    ("done2.ppm", b"P6 4 3 255\n" + bytes(36) + b"Done.",
+     "5 bytes after the pixels end in text ('Done.')"),
 ])
 def test04_unreadable_images_are_one_line(tmp_path, name, data, why, capfd):
     p = tmp_path / name

@@ -192,35 +192,52 @@ def check_pictures(r) -> Pictures | None:
             "rtval.reference": "rt_core f64", "rtval.rules": r.rules}
     pics = Pictures.make("check", r.ours, r.theirs, r.classes, text)
     if r.worst:
-        img, k, (y0, y1, x0, x1) = zoom_picture(
-            [r.ours, r.theirs, class_picture(r.classes, "check")], r.worst)
+        from .check import CLASSES
+        wrong = r.classes == CLASSES.index("wrong")
+        img, k, (y0, y1, x0, x1), part = zoom_picture(
+            [r.ours, r.theirs, class_picture(r.classes, "check")], r.worst, wrong)
         pics.png["zoom"] = png_bytes(img, {**text, "rtval.image": "zoom",
                                            "rtval.zoom": f"rows {y0}-{y1}, columns {x0}-{x1}, "
                                                          f"x{k}: rt_core | theirs | classes"})
+        what = "part of the largest group" if part else "the largest group"
         pics.zoom = (img.shape[1], img.shape[0],
-                     f"the largest group of wrong pixels, rows {y0}–{y1}, columns {x0}–{x1}, "
+                     f"{what} of wrong pixels, rows {y0}–{y1}, columns {x0}–{x1}, "
                      f"magnified {k}×: rt_core · theirs · classes")
     return pics
 
 
 ZOOM_PAD = 3            # pixels around the group
 ZOOM_SIZE = 120         # the magnified crop's longer side, about
+ZOOM_MAX = 30           # a crop's longer side at most (magnified 4× at least)
 
 
-def zoom_picture(images: list, worst: dict) -> tuple:
-    """(picture, factor, (first row, last row, first column, last column)): the same crop of
-    each image around the largest wrong group (check.worst_region, ZOOM_PAD around it),
-    magnified by a whole factor to about ZOOM_SIZE pixels, side by side with a grey gap."""
+def zoom_picture(images: list, worst: dict, wrong: np.ndarray) -> tuple:
+    """(picture, factor, (first row, last row, first column, last column), part): the same
+    crop of each image, magnified by a whole factor to about ZOOM_SIZE pixels, side by side
+    with a grey gap.  The crop is the largest wrong group (check.worst_region) with ZOOM_PAD
+    around it; a group wider or taller than ZOOM_MAX gives a ZOOM_MAX square around its
+    first wrong pixel instead (``part``)."""
     H, W = images[0].shape[:2]
-    y0, y1 = max(0, worst["rows"][0] - ZOOM_PAD), min(H - 1, worst["rows"][1] + ZOOM_PAD)
-    x0, x1 = max(0, worst["columns"][0] - ZOOM_PAD), min(W - 1, worst["columns"][1] + ZOOM_PAD)
-    k = max(1, min(16, ZOOM_SIZE // max(y1 - y0 + 1, x1 - x0 + 1)))
+    y0, y1 = worst["rows"][0] - ZOOM_PAD, worst["rows"][1] + ZOOM_PAD
+    x0, x1 = worst["columns"][0] - ZOOM_PAD, worst["columns"][1] + ZOOM_PAD
+    part = max(y1 - y0, x1 - x0) + 1 > ZOOM_MAX
+    if part:
+        ys, xs = np.nonzero(wrong[worst["rows"][0]:worst["rows"][1] + 1,
+                                  worst["columns"][0]:worst["columns"][1] + 1])
+        cy, cx = worst["rows"][0] + int(ys[0]), worst["columns"][0] + int(xs[0])
+        y0, x0 = cy - ZOOM_MAX // 2, cx - ZOOM_MAX // 2
+        y1, x1 = y0 + ZOOM_MAX - 1, x0 + ZOOM_MAX - 1
+    # moved inside the image, keeping its size where the image is large enough
+    h, w = y1 - y0 + 1, x1 - x0 + 1
+    y0, x0 = max(0, min(y0, H - h)), max(0, min(x0, W - w))
+    y1, x1 = min(H - 1, y0 + h - 1), min(W - 1, x0 + w - 1)
+    k = max(2, min(16, ZOOM_SIZE // max(y1 - y0 + 1, x1 - x0 + 1)))
     crops = [np.repeat(np.repeat(im[y0:y1 + 1, x0:x1 + 1], k, 0), k, 1) for im in images]
     gap = np.full((crops[0].shape[0], 4, 3), 128, np.uint8)
     parts = [crops[0]]
     for c in crops[1:]:
         parts += [gap, c]
-    return np.concatenate(parts, 1).astype(np.uint8), k, (y0, y1, x0, x1)
+    return np.concatenate(parts, 1).astype(np.uint8), k, (y0, y1, x0, x1), part
 
 
 # --- rows ----------------------------------------------------------------------------------------
@@ -462,7 +479,7 @@ def _row_html(k: int, row: Row, directory: str, files: dict) -> str:
                      f'{_legend(pics.kind, row.counts)}</td>')
         if pics.zoom:
             zw, zh, caption = pics.zoom
-            cells[1] = cells[1][:-len("</td>")] + (
+            cells[3] = cells[3][:-len("</td>")] + (
                 f'<figure class="zoom"><img src="{escape(names["zoom"])}" width="{zw}" '
                 f'height="{zh}" alt="{escape(caption + " of " + row.title)}">'
                 f'<figcaption>{escape(caption)}</figcaption></figure></td>')
