@@ -408,10 +408,11 @@ def _pnm_surplus(path: str) -> str | None:
                 tail = f.read()
         except OSError:
             tail = b""
-        # (a whole text: a partial row of pixel bytes that happen to spell letters would
-        # need to be valid UTF-8 and free of control bytes too)
+        # (words, not a few extra pixels whose bytes happen to be letters: white space in
+        # it, or four letters and more than one character)
         text = _text(tail[len(tail) - extra:] if extra <= len(tail) else tail)
-        if text is not None:
+        if text is not None and (any(c.isspace() for c in text) or (
+                sum(c.isalpha() for c in text) >= 4 and len(set(text)) > 1)):
             last = [ln.strip() for ln in text.splitlines() if ln.strip()][-1]
             return (f"{extra} bytes after the pixels end in text ({last[:40]!r}): the tracer "
                     "printed messages to standard output after the image? (print them to "

@@ -1029,6 +1029,7 @@ def test15_a_float_tracer_is_asked_whether_it_computes_in_float(ctracer_f32, ctr
     of a decision and in the colour its other side gives: each such scene and the run get
     the hint (not the verdict: they still fail).  A double tracer with a real bug that also
     leaves a few scattered wrong pixels (shadow rays hitting their own surface) gets none."""
+    from tools.harness import check
     from tools.harness.check import F32_MIN, float32_run_hint, text_report
     if not COURSE.is_dir():
         pytest.skip("../shared/course-scenes is not there")
@@ -1041,6 +1042,15 @@ def test15_a_float_tracer_is_asked_whether_it_computes_in_float(ctracer_f32, ctr
         assert r.float32["explained"] == r.float32["asked"], (r.scene, r.float32)
         assert any("does your tracer compute in float" in h for h in r.hints), r.hints
     assert "rather than double" in float32_run_hint(got)
+    # no run's hint where a scene's wrong pixels read as a named bug (shadow specks), as no
+    # scene's does (a review)
+    from types import SimpleNamespace
+    specked = [SimpleNamespace(status="fail", float32={"asked": 12, "explained": 12},
+                               hints=[f"... {check.SPECKS} they start on ..."])] * 2
+    assert float32_run_hint(specked) == ""
+    for r in specked:
+        r.hints = []
+    assert float32_run_hint(specked) != ""
     assert "hint: " in text_report(got).splitlines()[-1]
     bug = check_run(f"{ctracer / 'course_self_shadow'} {{columns}} {{rows}} < {{scene}} > "
                     "{out}", [str(scenes[0]), str(COURSE / "numeric" / "nw__specTile.txt")],

@@ -524,10 +524,26 @@ def test10_the_magnified_view_of_a_group_at_a_border_or_too_large():
         wrong[rows[0]:rows[1] + 1, cols[0]:cols[1] + 1] = True
         img, k, (y0, y1, x0, x1), part = H.zoom_picture(imgs, {"rows": rows, "columns": cols},
                                                         wrong)
-        assert 0 <= y0 <= rows[0] <= y1 < H_ and 0 <= x0 <= cols[0] <= x1 < W_
         assert k >= 4 and part == (max(rows[1] - rows[0], cols[1] - cols[0]) + 7 > H.ZOOM_MAX)
+        assert 0 <= y0 <= y1 < H_ and 0 <= x0 <= x1 < W_
+        # the whole group in the crop, or (part of it) a square around its middle
+        middle = lambda a, b, n: min(max((a + b) / 2, H.ZOOM_MAX / 2 - 0.5),
+                                     n - H.ZOOM_MAX / 2 - 0.5)
+        assert (y0 <= rows[0] and rows[1] <= y1 and x0 <= cols[0] and cols[1] <= x1) if \
+            not part else wrong[y0:y1 + 1, x0:x1 + 1].any() and \
+            abs((y0 + y1) / 2 - middle(*rows, H_)) <= 1 and \
+            abs((x0 + x1) / 2 - middle(*cols, W_)) <= 1
         h, w = y1 - y0 + 1, x1 - x0 + 1
         assert (h, w) == ((H.ZOOM_MAX,) * 2 if part else (7, 7)) and \
             img.shape == (h * k, 3 * w * k + 8, 3)
         assert (img[:, w * k + 4:2 * w * k + 4] ==
                 np.repeat(np.repeat(imgs[1][y0:y1 + 1, x0:x1 + 1], k, 0), k, 1)).all()
+    # a large L-shaped group with a lone wrong pixel in its box's corner (a review: the crop
+    # went around the lone pixel, and showed nothing of the group it named)
+    from tools.harness.check import worst_region
+    m = np.zeros((200, 200), bool)
+    m[0:101, 100] = m[100, 0:101] = m[0, 0] = True
+    big = [np.zeros((200, 200, 3), np.uint8)] * 3
+    _, k, (y0, y1, x0, x1), part = H.zoom_picture(big, worst_region(m), m)
+    crop = m[y0:y1 + 1, x0:x1 + 1]
+    assert part and not crop[0, 0] and crop.sum() >= H.ZOOM_MAX, ((y0, y1, x0, x1), crop.sum())

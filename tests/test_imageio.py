@@ -126,10 +126,16 @@ def test04b_a_final_newline_or_a_cr_sample_is_fine(tmp_path):
     """A byte or so beyond the samples (a final newline) is no error, nor a header whose
     last byte is CR before a first sample of 10."""
     for data in (b"P6\n4 3\n255\n" + bytes(36) + b"\n",
-                 b"P6\n4 3\n255\r" + bytes([10]) + bytes(35)):
+                 b"P6\n4 3\n255\r" + bytes([10]) + bytes(35),
+                 # an extra pixel or two whose bytes happen to be letters: not taken for
+                 # text printed after the image (a review)
+                 b"P6 4 3 255\n" + bytes(36) + b"ddd",
+                 b"P6 4 3 255\n" + bytes(36) + b"dddddd"):
         p = tmp_path / "ok.ppm"
         p.write_bytes(data)
-        assert read_image(str(p)).shape == (3, 4, 3)
+        assert read_image(str(p)).shape == (3, 4, 3), data[-8:]
+    p.write_bytes(b"P5 4 3 255\n" + bytes(12) + b"AB")
+    assert read_image(str(p)).shape == (3, 4, 3)
 
 
 def test05_a_size_beyond_memory_is_refused_before_reading(tmp_path, monkeypatch):

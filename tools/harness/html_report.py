@@ -216,15 +216,20 @@ def zoom_picture(images: list, worst: dict, wrong: np.ndarray) -> tuple:
     crop of each image, magnified by a whole factor to about ZOOM_SIZE pixels, side by side
     with a grey gap.  The crop is the largest wrong group (check.worst_region) with ZOOM_PAD
     around it; a group wider or taller than ZOOM_MAX gives a ZOOM_MAX square around its
-    first wrong pixel instead (``part``)."""
+    pixel nearest its centre instead (``part``)."""
     H, W = images[0].shape[:2]
     y0, y1 = worst["rows"][0] - ZOOM_PAD, worst["rows"][1] + ZOOM_PAD
     x0, x1 = worst["columns"][0] - ZOOM_PAD, worst["columns"][1] + ZOOM_PAD
     part = max(y1 - y0, x1 - x0) + 1 > ZOOM_MAX
     if part:
-        ys, xs = np.nonzero(wrong[worst["rows"][0]:worst["rows"][1] + 1,
-                                  worst["columns"][0]:worst["columns"][1] + 1])
-        cy, cx = worst["rows"][0] + int(ys[0]), worst["columns"][0] + int(xs[0])
+        # the group's pixel nearest its centre of mass (the largest group within its box is
+        # the group: another wrong pixel in the box may belong to a smaller one)
+        from .check import _groups
+        box = wrong[worst["rows"][0]:worst["rows"][1] + 1,
+                    worst["columns"][0]:worst["columns"][1] + 1]
+        group = np.array(max(_groups(box), key=len))
+        cy, cx = group[np.argmin(((group - group.mean(0)) ** 2).sum(1))]
+        cy, cx = worst["rows"][0] + int(cy), worst["columns"][0] + int(cx)
         y0, x0 = cy - ZOOM_MAX // 2, cx - ZOOM_MAX // 2
         y1, x1 = y0 + ZOOM_MAX - 1, x0 + ZOOM_MAX - 1
     # moved inside the image, keeping its size where the image is large enough
