@@ -13,11 +13,13 @@ def add_parser(sub) -> None:
         "check", help="check a course tracer's image (or run the tracer) against rt_core",
         description="Check the image a course tracer wrote for SCENE (binary/ASCII PPM or PNG; "
                     "its size gives the columns and rows), or with --run run the tracer on each "
-                    "SCENE and check what it writes.  Every pixel is classed match, rounding, "
+                    "SCENE and check what it writes, or with --images check the images it left "
+                    "in DIR, named after the scenes.  Every pixel is classed match, rounding, "
                     "boundary (within a float64 error bound of a decision), variant (explained "
                     "by a rule variant of real course programs, inferred from the image) or "
-                    "wrong.  Exit 0 if no pixel is wrong, 1 if some are (or, with --run, a run "
-                    "failed), 2 on bad input (with --run: a scene refused, and none failed).")
+                    "wrong.  Exit 0 if no pixel is wrong, 1 if some are (or, with --run or "
+                    "--images, a scene's run or image failed), 2 on bad input (with --run or "
+                    "--images: a scene refused, and none failed).")
     p.add_argument("inputs", nargs="+", metavar="INPUT",
                    help="SCENE IMAGE; with --run or --images: one or more SCENEs")
     p.add_argument("--run", metavar="CMD",
