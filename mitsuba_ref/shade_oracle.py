@@ -119,9 +119,6 @@ class _Alt:
         self.flips, self.seen = flips, []
         self.limit = self.LIMIT if limit is None else limit
 
-    def near(self, m: float) -> bool:
-        return m < self.limit
-
     def choose(self, key, m: float, outcome: bool) -> bool:
         """``outcome``, or its negation where this decision is near and flipped."""
         if m < self.limit:
@@ -428,12 +425,12 @@ def quantize(I: np.ndarray) -> np.ndarray:
     return np.floor(255.0 * np.clip(I, 0.0, 1.0)).astype(np.uint8)
 
 
-def flags(orc: dict, precision: str) -> dict:
+def flags(orc: dict, precision: str, u: float | None = None) -> dict:
     """Per-pixel flags (rows, columns) for a tracer in ``precision``: each discontinuous
     decision that may flip ('geo', 'shadow', 'tile', 'maxdist', 'texel', together 'jump'); 'quant': a
     channel within the intensity bound of an 8-bit level boundary (255·I near an integer);
-    'any'."""
-    u = U[precision]
+    'any'.  ``u``: the unit roundoff to take instead of the precision's."""
+    u = U[precision] if u is None else u
     out = {m: orc[m] < K_DECISION * u for m in MARGINS}
     q = 255.0 * orc["I"]
     bound = K_VALUE * u * orc["err"]

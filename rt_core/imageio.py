@@ -165,6 +165,7 @@ def _text(data: bytes) -> str | None:
         return None
     return text
 
+
 def _type_name(t) -> str:
     return str(t).upper()
 

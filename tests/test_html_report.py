@@ -515,15 +515,17 @@ def test09_the_course_image_classes_are_told_apart_by_the_colour_blind(kind):
 def test10_the_magnified_view_of_a_group_at_a_border_or_too_large():
     """A group in the image's corner: the crop moved inside the image, its size kept; a group
     larger than ZOOM_MAX (a whole wrong image, a long thin strip): a ZOOM_MAX square around
-    its first wrong pixel, said to be part of it, never 'magnified 1×'."""
+    its middle pixel, said to be part of it, never 'magnified 1×'."""
+    from tools.harness.check import worst_region
     H_, W_ = 60, 80
     imgs = [np.random.default_rng(k).integers(0, 256, (H_, W_, 3), np.uint8) for k in range(3)]
     for rows, cols in (([0, 0], [0, 0]), ([59, 59], [79, 79]), ([10, 12], [5, 79]),
                        ([0, 59], [0, 79])):
         wrong = np.zeros((H_, W_), bool)
         wrong[rows[0]:rows[1] + 1, cols[0]:cols[1] + 1] = True
-        img, k, (y0, y1, x0, x1), part = H.zoom_picture(imgs, {"rows": rows, "columns": cols},
-                                                        wrong)
+        worst = worst_region(wrong)
+        assert (worst["rows"], worst["columns"]) == (rows, cols)
+        img, k, (y0, y1, x0, x1), part = H.zoom_picture(imgs, worst)
         assert k >= 4 and part == (max(rows[1] - rows[0], cols[1] - cols[0]) + 7 > H.ZOOM_MAX)
         assert 0 <= y0 <= y1 < H_ and 0 <= x0 <= x1 < W_
         # the whole group in the crop, or (part of it) a square around its middle
@@ -540,10 +542,9 @@ def test10_the_magnified_view_of_a_group_at_a_border_or_too_large():
                 np.repeat(np.repeat(imgs[1][y0:y1 + 1, x0:x1 + 1], k, 0), k, 1)).all()
     # a large L-shaped group with a lone wrong pixel in its box's corner (a review: the crop
     # went around the lone pixel, and showed nothing of the group it named)
-    from tools.harness.check import worst_region
     m = np.zeros((200, 200), bool)
     m[0:101, 100] = m[100, 0:101] = m[0, 0] = True
     big = [np.zeros((200, 200, 3), np.uint8)] * 3
-    _, k, (y0, y1, x0, x1), part = H.zoom_picture(big, worst_region(m), m)
+    _, k, (y0, y1, x0, x1), part = H.zoom_picture(big, worst_region(m))
     crop = m[y0:y1 + 1, x0:x1 + 1]
     assert part and not crop[0, 0] and crop.sum() >= H.ZOOM_MAX, ((y0, y1, x0, x1), crop.sum())

@@ -61,13 +61,18 @@ def run(args) -> int:
           "code27": args.code27}
     if args.report:                     # refused before the runs, not after them
         from tools.harness.html_report import check_target
-        image = args.inputs[1] if args.run is None and len(args.inputs) == 2 else None
+        image = args.inputs[1] if args.run is None and args.images is None and \
+            len(args.inputs) == 2 else None
         check_target(args.report, {"--junit": args.junit, "--hits": args.hits,
                                    "image": image})
     if args.junit:
         check_file_target(args.junit, make_dirs=False)
     if args.run is not None and args.images is not None:
         args.usage_error("--run or --images, not both")
+    # each scene's verdict on stderr as it is known, where someone watches (a terminal) or
+    # asks (--verbose): a run of many scenes is not silent for minutes
+    watch = sys.stderr if len(args.inputs) > 1 and (args.verbose or sys.stderr.isatty()) \
+        else None
     if args.run is not None:
         if not args.run.strip():
             args.usage_error("--run: give the tracer's command line, e.g. "
@@ -87,11 +92,8 @@ def run(args) -> int:
             args.usage_error(f"--run: {said} (the placeholders: {{scene}} {{out}} "
                              "{columns} {rows} {hits})")
         from tools.harness.parallel import plan_of
-        # each scene's verdict on stderr as it is known, where someone watches (a terminal)
-        # or asks (--verbose): a run of many scenes is not silent for minutes
-        watch = len(args.inputs) > 1 and (args.verbose or sys.stderr.isatty())
         results = check_run(args.run, args.inputs, args.columns, args.rows, args.timeout,
-                            plan_of(args), progress=sys.stderr if watch else None, **kw)
+                            plan_of(args), progress=watch, **kw)
     elif args.images is not None:
         import os
         if args.hits:
@@ -103,9 +105,7 @@ def run(args) -> int:
             return 2
         from tools.harness.check import check_images
         from tools.harness.parallel import plan_of
-        watch = len(args.inputs) > 1 and (args.verbose or sys.stderr.isatty())
-        results = check_images(args.images, args.inputs, plan_of(args),
-                               progress=sys.stderr if watch else None, **kw)
+        results = check_images(args.images, args.inputs, plan_of(args), progress=watch, **kw)
     else:
         if args.scheduler or (args.workers or 0) > 1:
             args.usage_error("--workers/--scheduler: only with --run or --images (one image "

@@ -198,5 +198,5 @@ def add_parallel(p: argparse.ArgumentParser, what: str) -> None:
                         "ADDRESS`; its workers need the same rtval, Dr.Jit and Mitsuba)")
     g.add_argument("--verbose", action="store_true",
                    help="show Dask's log, and each worker's cases, set-ups and kernels "
-                        "(check --run: also each scene's verdict as it is known, as on a "
-                        "terminal)")
+                        "(check --run and --images: also each scene's verdict as it is "
+                        "known, as on a terminal)")

@@ -343,13 +343,12 @@ class Boundary:
         level) that the decisions within float32's rounding give taken either way,
         F32_U standing for float32's unit roundoff (a pixel whose sides cannot all be
         enumerated is not explained).  For a hint, never the verdict."""
-        from mitsuba_ref.shade_oracle import K_DECISION, K_VALUE, other_sides, shade_pixels
+        from mitsuba_ref.shade_oracle import K_DECISION, flags, other_sides, shade_pixels
         cam = self.r.cam
         pixels = np.asarray(pixels, np.int64)
         orc = shade_pixels(self.r.scene, cam.columns, cam.rows, pixels, cam.sampling, rules,
                            md)
-        q = 255.0 * orc["I"]
-        level = np.any(np.abs(q - np.round(q)) < 255.0 * K_VALUE * F32_U * orc["err"], -1)
+        level = flags(orc, "f32", u=F32_U)["quant"]
         ours = self.r.image(rules, md).reshape(-1, 3).astype(np.int16)
         out = []
         for k, p in enumerate(pixels.tolist()):
@@ -907,7 +906,7 @@ def _speckles(wrong: np.ndarray, ours: np.ndarray, theirs: np.ndarray) -> list:
     if len(sizes) < 10 or np.median(sizes) > 2 or max(sizes) > 0.5 * n:
         return []
     return [f"{n} wrong pixels darker than rt_core's, scattered in {len(sizes)} specks: "
-            "shadow rays that hit the surface they start on (rounding puts it at a tiny "
+            f"{SPECKS} they start on (rounding puts it at a tiny "
             "t > 0)? the notes test only the other objects"]
 
 
@@ -1035,11 +1034,14 @@ def _groups(mask: np.ndarray) -> list:
 
 
 def worst_region(mask: np.ndarray) -> dict:
-    """The bounding box of the largest 8-connected group of ``mask`` pixels."""
-    best = max(_groups(mask), key=len)
-    ys, xs = zip(*best)
+    """The bounding box of the largest 8-connected group of ``mask`` pixels, and its pixel
+    nearest its centre of mass (``middle``: row, column; where a view of part of it looks)."""
+    best = np.array(max(_groups(mask), key=len))
+    middle = best[np.argmin(((best - best.mean(0)) ** 2).sum(1))]
     return {"pixels": int(mask.sum()), "largest_group": len(best),
-            "rows": [int(min(ys)), int(max(ys))], "columns": [int(min(xs)), int(max(xs))]}
+            "rows": [int(best[:, 0].min()), int(best[:, 0].max())],
+            "columns": [int(best[:, 1].min()), int(best[:, 1].max())],
+            "middle": [int(middle[0]), int(middle[1])]}
 
 
 # --- hit dumps ------------------------------------------------------------------------------------
@@ -1329,31 +1331,36 @@ def check_run(template: str, scenes, columns: int, rows: int | None, timeout: fl
     return results
 
 
+def _read_scene(s, kw):
+    """The scene of a --run or --images job with its textures, or the SceneCheck that
+    refuses it (malformed, missing, an image given in its place, its textures missing:
+    rtval's input, so the tracer is not run for it)."""
+    from tools.harness.agree import parse_agreed
+    from rt_core.scene import SceneError
+    from rt_core.usererror import InputError
+    try:
+        sc = parse_agreed(s, kw.get("code27", "auto"))
+    except (SceneError, InputError) as exc:
+        return SceneCheck(str(s), None, "refused", _not_a_scene(s) or str(exc))
+    except OSError as exc:
+        return SceneCheck(str(s), None, "refused", f"{s}: {(exc.strerror or str(exc)).lower()}")
+    sc = _textures_missing(sc, kw.get("texture_dirs", ()))
+    return SceneCheck(str(s), None, "refused", sc) if isinstance(sc, str) else sc
+
+
 def _check_runs(pool, work, template, scenes, columns, rows, timeout, kw):
     """check_run's jobs: the runs submitted to ``pool``, then, as each finishes, a job for
     ``_check_job`` (a finished SceneCheck when the scene or the run failed)."""
     from rt_core.imageio import ImageError, pnm_maxval, read_image
     from rt_core.memory import check_bytes, guard
-    from tools.harness.agree import parse_agreed
-    from rt_core.scene import SceneError
     from rt_core.usererror import InputError
     jobs = []
     for k, s in enumerate(scenes):
         # a scene rtval cannot read is refused, as a malformed one is (exit 2 when no
         # scene fails): a missing one was a failed run (exit 1), a directory stopped them all
-        try:
-            sc = parse_agreed(s, kw.get("code27", "auto"))
-        except (SceneError, InputError) as exc:
-            jobs.append((s, None, SceneCheck(str(s), None, "refused",
-                                             _not_a_scene(s) or str(exc))))
-            continue
-        except OSError as exc:
-            jobs.append((s, None, SceneCheck(str(s), None, "refused",
-                                             f"{s}: {(exc.strerror or str(exc)).lower()}")))
-            continue
-        sc = _textures_missing(sc, kw.get("texture_dirs", ()))
-        if isinstance(sc, str):                 # rtval's input missing: refused, not run
-            jobs.append((s, None, SceneCheck(str(s), None, "refused", sc)))
+        sc = _read_scene(s, kw)
+        if isinstance(sc, SceneCheck):
+            jobs.append((s, None, sc))
             continue
         h = rows if rows is not None else sc.default_rows(columns)
         if h < 2:                               # (the tracer would refuse it, or divide by 0)
@@ -1433,9 +1440,6 @@ def _image_jobs(directory, scenes, kw):
     """check_images' jobs: a finished SceneCheck where the scene or its image is missing or
     unreadable, else the scene and image as data (for ``_check_image_job``)."""
     from rt_core.imageio import ImageError, pnm_maxval, read_image
-    from tools.harness.agree import parse_agreed
-    from rt_core.scene import SceneError
-    from rt_core.usererror import InputError
     stems = [Path(s).stem for s in scenes]
     for s in scenes:
         stem = Path(s).stem
@@ -1445,17 +1449,9 @@ def _image_jobs(directory, scenes, kw):
                              f"gives each the image named after it: check them in separate "
                              "runs")
             continue
-        try:
-            sc = parse_agreed(s, kw.get("code27", "auto"))
-        except (SceneError, InputError) as exc:
-            yield SceneCheck(str(s), None, "refused", _not_a_scene(s) or str(exc))
-            continue
-        except OSError as exc:
-            yield SceneCheck(str(s), None, "refused", f"{s}: {(exc.strerror or str(exc)).lower()}")
-            continue
-        sc = _textures_missing(sc, kw.get("texture_dirs", ()))
-        if isinstance(sc, str):
-            yield SceneCheck(str(s), None, "refused", sc)
+        sc = _read_scene(s, kw)
+        if isinstance(sc, SceneCheck):
+            yield sc
             continue
         found = [os.path.join(directory, stem + x) for x in IMAGE_SUFFIXES
                  if os.path.isfile(os.path.join(directory, stem + x))]
@@ -1486,9 +1482,7 @@ def _check_job(job) -> SceneCheck:
     """One of check_run's checks (in this process or on a Dask worker)."""
     if isinstance(job, SceneCheck):
         return job
-    scene_path, image_path, scene, theirs, columns, rows, hits, kw = job
-    res = check_image(scene_path, image_path, columns=columns, rows=rows, hits_path=hits,
-                      theirs=theirs, scene=scene, **kw)
+    res, image_path = _check_image_job(job), job[1]
     res.image = "(--run)"
     # (named as what it is: the file is a temporary, gone after the run)
     res.reason = res.reason.replace(image_path, "the tracer's image {out}")

@@ -192,10 +192,8 @@ def check_pictures(r) -> Pictures | None:
             "rtval.reference": "rt_core f64", "rtval.rules": r.rules}
     pics = Pictures.make("check", r.ours, r.theirs, r.classes, text)
     if r.worst:
-        from .check import CLASSES
-        wrong = r.classes == CLASSES.index("wrong")
         img, k, (y0, y1, x0, x1), part = zoom_picture(
-            [r.ours, r.theirs, class_picture(r.classes, "check")], r.worst, wrong)
+            [r.ours, r.theirs, class_picture(r.classes, "check")], r.worst)
         pics.png["zoom"] = png_bytes(img, {**text, "rtval.image": "zoom",
                                            "rtval.zoom": f"rows {y0}-{y1}, columns {x0}-{x1}, "
                                                          f"x{k}: rt_core | theirs | classes"})
@@ -211,25 +209,18 @@ ZOOM_SIZE = 120         # the magnified crop's longer side, about
 ZOOM_MAX = 30           # a crop's longer side at most (magnified 4× at least)
 
 
-def zoom_picture(images: list, worst: dict, wrong: np.ndarray) -> tuple:
+def zoom_picture(images: list, worst: dict) -> tuple:
     """(picture, factor, (first row, last row, first column, last column), part): the same
     crop of each image, magnified by a whole factor to about ZOOM_SIZE pixels, side by side
     with a grey gap.  The crop is the largest wrong group (check.worst_region) with ZOOM_PAD
     around it; a group wider or taller than ZOOM_MAX gives a ZOOM_MAX square around its
-    pixel nearest its centre instead (``part``)."""
+    pixel nearest its centre (``middle``) instead (``part``)."""
     H, W = images[0].shape[:2]
     y0, y1 = worst["rows"][0] - ZOOM_PAD, worst["rows"][1] + ZOOM_PAD
     x0, x1 = worst["columns"][0] - ZOOM_PAD, worst["columns"][1] + ZOOM_PAD
     part = max(y1 - y0, x1 - x0) + 1 > ZOOM_MAX
     if part:
-        # the group's pixel nearest its centre of mass (the largest group within its box is
-        # the group: another wrong pixel in the box may belong to a smaller one)
-        from .check import _groups
-        box = wrong[worst["rows"][0]:worst["rows"][1] + 1,
-                    worst["columns"][0]:worst["columns"][1] + 1]
-        group = np.array(max(_groups(box), key=len))
-        cy, cx = group[np.argmin(((group - group.mean(0)) ** 2).sum(1))]
-        cy, cx = worst["rows"][0] + int(cy), worst["columns"][0] + int(cx)
+        cy, cx = worst["middle"]
         y0, x0 = cy - ZOOM_MAX // 2, cx - ZOOM_MAX // 2
         y1, x1 = y0 + ZOOM_MAX - 1, x0 + ZOOM_MAX - 1
     # moved inside the image, keeping its size where the image is large enough
@@ -478,16 +469,17 @@ def _row_html(k: int, row: Row, directory: str, files: dict) -> str:
         scale = max(1, 240 // max(pics.width, 1))
         size = (pics.width, pics.height, scale, row.title)
         cells.append(f'<td class="reference">{_flip(names["reference"], names["ours"], ref, ours, *size)}</td>')
-        cells.append(f'<td class="ours">{_flip(names["ours"], names["reference"], ours, ref, *size)}</td>')
+        zoom = ""
+        if pics.zoom:                   # under the tracer's image
+            zw, zh, caption = pics.zoom
+            zoom = (f'<figure class="zoom"><img src="{escape(names["zoom"])}" width="{zw}" '
+                    f'height="{zh}" alt="{escape(caption + " of " + row.title)}">'
+                    f'<figcaption>{escape(caption)}</figcaption></figure>')
+        cells.append(f'<td class="ours">'
+                     f'{_flip(names["ours"], names["reference"], ours, ref, *size)}{zoom}</td>')
         cells.append(f'<td class="classes">'
                      f'{_flip(names["classes"], names["difference"], "classes", "difference", *size)}'
                      f'{_legend(pics.kind, row.counts)}</td>')
-        if pics.zoom:
-            zw, zh, caption = pics.zoom
-            cells[3] = cells[3][:-len("</td>")] + (
-                f'<figure class="zoom"><img src="{escape(names["zoom"])}" width="{zw}" '
-                f'height="{zh}" alt="{escape(caption + " of " + row.title)}">'
-                f'<figcaption>{escape(caption)}</figcaption></figure></td>')
     return (f'<tr class="{row.status}" id="row{k}" data-status="{row.status}">'
             + "".join(cells) + "</tr>")
 
