@@ -45,6 +45,11 @@ U = {"f32": 2.0 ** -24, "f64": 2.0 ** -53}
 K_DECISION = 64.0
 K_VALUE = 8.0
 MARGINS = ("geo", "shadow", "tile", "maxdist", "texel")
+# from this many pixels on, shade_pixels runs shade_batch (where it covers the scene): below,
+# numpy's per-call cost outweighs the per-pixel loop's.  Measured on the differing pixels of
+# rtval validate's 149 shaded comparisons (48 columns): the oracle took 1.10 s per pixel,
+# 0.67 s with the batch from 32 pixels, 0.58 s from 64, 0.71 s from 128
+BATCH_MIN = 64
 
 
 def _hit_margin(scene, h, base, d, skip, ties: bool = True, tmax: float = INF,
@@ -406,12 +411,27 @@ def shade_pixels(scene, columns: int, rows: int, pixels, sampling: str = "corner
     n = len(pixels)
     out = {"I": np.zeros((n, 3)), "err": np.zeros((n, 3)), "bounces": np.zeros(n, np.int32)}
     out.update({m: np.full(n, INF) for m in MARGINS})
-    out["paths"] = []                   # (colour, near decisions, bounces): other_sides' first
-    for k, i in enumerate(pixels.tolist()):
+    out["paths"] = [None] * n           # (colour, near decisions, bounces): other_sides' first
+    todo = range(n)
+    if n >= BATCH_MIN:
+        # many pixels: shade_batch, the same numbers on arrays; the per-pixel code below
+        # only where its numbers are not all numbers (a division by zero: raised here)
+        from mitsuba_ref import shade_batch
+        if shade_batch.supported(scene):
+            base, d = shade_batch.rays(scene, columns, rows, pixels, sampling, rules)
+            got = shade_batch.shade(scene, base, d, rules, max_dist)
+            ok = shade_batch.usable(got)
+            for key in ("I", "err", "bounces", *MARGINS):
+                out[key][:] = got[key]
+            out["paths"] = list(zip(shade_batch.colours(np.where(ok[:, None], got["I"], 0.0)),
+                                    got["seen"], got["bounces"].tolist()))
+            todo = np.flatnonzero(~ok).tolist()
+    for k in todo:
+        i = int(pixels[k])
         px, alt = _Pixel(), _Alt()
         base, d = pixel_ray(scene, columns, rows, i, sampling, rules)
         I = ray_trace(scene, base, d, EF(0.0, 0.0), None, rules, max_dist, px, alt)
-        out["paths"].append((_colour(I), tuple(dict.fromkeys(alt.seen)), px.bounces))
+        out["paths"][k] = (_colour(I), tuple(dict.fromkeys(alt.seen)), px.bounces)
         out["I"][k] = [c.v for c in I]
         out["err"][k] = [c.e for c in I]
         out["bounces"][k] = px.bounces

@@ -24,7 +24,8 @@ REPO = Path(__file__).resolve().parents[1]
 REFERENCES = ("mitsuba_ref.oracle", "mitsuba_ref.exact", "mitsuba_ref.scenefile",
               "mitsuba_ref.geometry", "mitsuba_ref.explain", "mitsuba_ref.convert",
               "mitsuba_ref.reference", "mitsuba_ref.integrator", "mitsuba_ref.oracle_planar",
-              "mitsuba_ref.exact_planar", "mitsuba_ref.convert_planar")
+              "mitsuba_ref.exact_planar", "mitsuba_ref.convert_planar",
+              "mitsuba_ref.shade_oracle", "mitsuba_ref.shade_batch")
 FORBIDDEN = ("rt_core.scene", "rt_core.parser", "rt_core.camera", "rt_core.shapes",
              "rt_core.tracer", "rt_core.accel", "rt_core.decide", "rt_core.shading",
              "rt_core.render", "rt_core.quadrics", "rt_core.shapes_quadric")

@@ -1,0 +1,710 @@
+"""The shading oracle's first pass (``shade_oracle.shade_pixels``) over many pixels at once.
+
+``shade_oracle.ray_trace`` follows one pixel's path in Python floats, which costs about a
+millisecond a bounce: 4,000 differing pixels of a validation run take a second, and a mirror
+corridor's 800 bounces a pixel take ``rtval check`` half a minute.  Here the same operations
+run in the same order on numpy float64 arrays, one lane per pixel: every value, error bound
+and margin is the same float64 number as the per-pixel oracle's (IEEE operations on arrays
+round as on scalars), and tests/test_shade_batch.py asserts that equality, bit for bit, on
+the bundled and the course scenes.  Where the per-pixel code branches, the lanes are
+selected (``np.where``) or the lanes that go on are kept (a bounce's lanes shrink as paths
+end).
+
+Covers what most course scenes hold (``supported``): spheres, planes, finite and tiled
+planes, point lights and spotlights, no texture.  The per-pixel oracle does the rest, and
+every pixel whose numbers come out NaN or infinite here: that is a division by zero or a
+square root of a negative number, on which the per-pixel oracle raises as it always has.
+
+The per-pixel oracle stays the specification (and ``other_sides``, which takes decisions
+the other way, uses it alone).  The near decisions of a path (``paths``' second entry) are
+the same set, listed by bounce; their order means nothing to ``other_sides``.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from mitsuba_ref import oracle
+from mitsuba_ref.oracle import EF, _f32_exact
+from mitsuba_ref.shade_oracle import K_DECISION, U, _Alt, quantize
+
+INF = math.inf
+KINDS = ("sphere", "plane", "fplane", "tplane")
+LIMIT = _Alt.LIMIT                      # a decision is near below this margin
+
+
+def supported(scene) -> bool:
+    """Can this module shade the scene's pixels (its kinds, no texture)?"""
+    return all(o.kind in KINDS and getattr(o, "texture", None) is None
+               for o in scene.objects) and \
+        all(l.kind in ("pointlight", "spotlight") for l in scene.lights)
+
+
+# --- EF on arrays: shade_oracle's EF, each rule elementwise ----------------------------------
+
+class V:
+    """An EF whose value and bound are arrays (or floats, broadcast): ``v``, ``e``."""
+    __slots__ = ("v", "e")
+
+    def __init__(self, v, e):
+        self.v, self.e = v, e
+
+    def at(self, idx) -> "V":
+        """The lanes ``idx`` (a constant stays itself)."""
+        return V(_at(self.v, idx), _at(self.e, idx))
+
+
+def _at(x, idx):
+    return x[idx] if isinstance(x, np.ndarray) else x
+
+
+def c(x: EF) -> V:
+    """A constant: an EF made once (an input read from a file, a computed constant)."""
+    return V(x.v, x.e)
+
+
+def inp(x: float) -> V:
+    """``EF(x)``: an input read from a file, rounded once unless it is a float32 number."""
+    return V(float(x), 0.0 if _f32_exact(float(x)) else abs(float(x)))
+
+
+def _zero(a: V):
+    """An exact 0 (False when no lane is: most bounds are not 0, and numpy's calls cost)."""
+    e = a.e
+    if type(e) is float:
+        return False if e != 0.0 else a.v == 0.0
+    z = e == 0.0
+    if not z.any():
+        return False
+    return z & (a.v == 0.0)
+
+
+def _pow2(a: V):
+    """An exact ±2^k or 0 (oracle._pow2; False when no lane is exact)."""
+    e, v = a.e, a.v
+    if type(e) is float:
+        if e != 0.0:
+            return False
+        if type(v) is float:
+            return v == 0.0 or math.frexp(abs(v))[0] == 0.5
+        return (v == 0.0) | (np.frexp(np.abs(v))[0] == 0.5)
+    z = e == 0.0
+    if not z.any():
+        return False
+    return z & ((v == 0.0) | (np.frexp(np.abs(v))[0] == 0.5))
+
+
+def _sum_bound(a: V, b: V, v):
+    """The bound of a sum: EF.__add__'s exact zeros first, else both bounds and a rounding."""
+    e = a.e + b.e + np.abs(v)
+    zb = _zero(b)
+    if zb is not False:
+        e = np.where(zb, a.e, e)
+    za = _zero(a)
+    if za is not False:
+        e = np.where(za, b.e, e)
+    return e
+
+
+def add(a: V, b: V) -> V:
+    v = a.v + b.v
+    return V(v, _sum_bound(a, b, v))
+
+
+def sub(a: V, b: V) -> V:
+    v = a.v + -b.v
+    return V(v, _sum_bound(a, b, v))
+
+
+def neg(a: V) -> V:
+    return V(-a.v, a.e)
+
+
+def mul(a: V, b: V) -> V:
+    v = a.v * b.v
+    e = np.abs(a.v) * b.e + np.abs(b.v) * a.e
+    p = _pow2(a) | _pow2(b)
+    return V(v, e + np.abs(v) if p is False else np.where(p, e, e + np.abs(v)))
+
+
+def div(a: V, b: V) -> V:
+    q = a.v / b.v
+    e = (a.e + np.abs(q) * b.e) / np.abs(b.v)
+    return V(q, np.where(_pow2(b), e, e + np.abs(q)))
+
+
+def sqrt(x: V) -> V:
+    s = np.sqrt(x.v)
+    e = np.where(s > 0, x.e / (2.0 * s), np.where(x.e == 0, 0.0, INF))
+    return V(s, e + s)
+
+
+def exact(x: float) -> V:
+    return V(float(x), 0.0)
+
+
+def dot3(a, b) -> V:
+    return add(add(mul(a[0], b[0]), mul(a[1], b[1])), mul(a[2], b[2]))
+
+
+def diff3(a, b) -> tuple:
+    return (sub(a[0], b[0]), sub(a[1], b[1]), sub(a[2], b[2]))
+
+
+def sum3(a, b) -> tuple:
+    return (add(a[0], b[0]), add(a[1], b[1]), add(a[2], b[2]))
+
+
+def scale3(s: V, a) -> tuple:
+    return (mul(s, a[0]), mul(s, a[1]), mul(s, a[2]))
+
+
+def length3(a) -> V:
+    return sqrt(dot3(a, a))
+
+
+def unit3(a) -> tuple:
+    n = length3(a)
+    return (div(a[0], n), div(a[1], n), div(a[2], n))
+
+
+def unit3z(a) -> tuple:
+    """(unit3(a), where a's length is 0: the per-pixel oracle's division by zero)."""
+    n = length3(a)
+    return (div(a[0], n), div(a[1], n), div(a[2], n)), n.v == 0.0
+
+
+def cross3(a, b) -> tuple:
+    return (sub(mul(a[1], b[2]), mul(a[2], b[1])), sub(mul(a[2], b[0]), mul(a[0], b[2])),
+            sub(mul(a[0], b[1]), mul(a[1], b[0])))
+
+
+def xform3(m, a) -> tuple:
+    return (dot3(m[0], a), dot3(m[1], a), dot3(m[2], a))
+
+
+def where(m, a: V, b: V) -> V:
+    return V(np.where(m, a.v, b.v), np.where(m, a.e, b.e))
+
+
+def pmin(a, *bs):
+    """Python's min(a, b, ...) on every lane: the first of the smallest (a NaN is never
+    smaller, so where one comes first it stays; numpy's minimum would spread it)."""
+    for b in bs:
+        a = np.where(b < a, b, a)
+    return a
+
+
+def pmax(a, *bs):
+    """Python's max(a, b, ...) on every lane."""
+    for b in bs:
+        a = np.where(b > a, b, a)
+    return a
+
+
+def _margin(slack, err):
+    """oracle._margin: |slack| / err, inf where err is 0."""
+    return np.where(err == 0.0, INF, np.abs(slack) / np.where(err == 0.0, 1.0, err))
+
+
+def _vec(p) -> tuple:
+    return tuple(c(x) for x in p)
+
+
+# --- oracle.trace on lanes ------------------------------------------------------------------
+
+class _Cand:
+    """One object's verdict on every lane (oracle.Cand): ``t`` None where the object has no
+    t anywhere (a plane parallel on no lane still has one: ``par`` marks the lanes)."""
+
+    def __init__(self, ok, t, hitloc, par=None, ndotd=None, disc=None, newhit=()):
+        self.ok, self.t, self.hitloc, self.par = ok, t, hitloc, par
+        self.ndotd, self.disc, self.newhit = ndotd, disc, newhit
+
+
+def _clipped(z, rules):
+    if rules.screen_clip == ">":
+        return z > 0.0
+    if rules.screen_clip == ">=":
+        return z >= 0.0
+    return np.zeros(np.shape(z), bool)
+
+
+def _plane(ob, base, d, rules) -> _Cand:
+    """oracle.plane_hits, fplane_hits, tplane_hits."""
+    n = _vec(ob.normal)
+    ndotd = dot3(n, d)
+    par = ndotd.v == 0.0
+    t = div(sub(dot3(n, _vec(ob.point)), dot3(n, base)), ndotd)
+    hitloc = sum3(base, scale3(t, d))
+    ok = ~par & (t.v > rules.t_min) & ~_clipped(hitloc[2].v, rules)
+    cand = _Cand(ok, t, hitloc, par=par, ndotd=ndotd)
+    if ob.kind in ("fplane", "tplane"):
+        cand.newhit = xform3([_vec(r) for r in ob.rotmat], diff3(hitloc, _vec(ob.point)))
+    if ob.kind == "fplane":
+        u, v = cand.newhit[0].v, cand.newhit[1].v
+        w, h = ob.size[0].v, ob.size[1].v
+        if rules.edges == "closed":
+            inside = (0.0 <= u) & (u <= w) & (0.0 <= v) & (v <= h)
+        else:
+            inside = (0.0 < u) & (u < w) & (0.0 < v) & (v < h)
+        cand.ok = ok & inside
+    return cand
+
+
+def _sphere(ob, base, d, rules) -> _Cand:
+    """oracle.sphere_hits: the near root where the discriminant is positive, else the root
+    where it would vanish."""
+    oc = diff3(base, _vec(ob.center))
+    a = dot3(d, d)
+    b = mul(dot3(d, oc), exact(2.0))
+    r = c(ob.radius)
+    cc = sub(dot3(oc, oc), mul(r, r))
+    disc = sub(mul(b, b), mul(mul(a, exact(4.0)), cc))
+    pos = disc.v > 0.0
+    two_a = mul(a, exact(2.0))
+    t = where(pos, div(sub(neg(b), sqrt(disc)), two_a), div(neg(b), two_a))
+    hitloc = sum3(base, scale3(t, d))
+    ok = pos & (t.v > 0.0)
+    if rules.clip_spheres:
+        ok = ok & ~_clipped(hitloc[2].v, rules)
+    cand = _Cand(ok, t, hitloc, disc=disc)
+    cand.zero = two_a.v == 0.0                  # (the per-pixel oracle raises there)
+    return cand
+
+
+class _Hit:
+    """oracle.Hit on lanes: hit, id (−1 on a miss), t, position, normal, uv, the margins,
+    and ``risk`` (lanes, objects): each object's smallest margin among ``risks``."""
+
+
+def _edge_margin(ob, cand, base, d, rules):
+    """oracle._edge_margin on every lane."""
+    u, v = cand.newhit[0], cand.newhit[1]
+    w, h = c(ob.size[0]), c(ob.size[1])
+    nd = cand.ndotd
+    qxd = cross3(diff3(_vec(ob.point), base), d)
+    su = dot3(_vec(ob.rotmat[1]), qxd)
+    sv = neg(dot3(_vec(ob.rotmat[0]), qxd))
+    swu, shv = sub(mul(w, nd), su), sub(mul(h, nd), sv)
+    slacks = ((u.v, u.e, su), (w.v - u.v, u.e + w.e, swu),
+              (v.v, v.e, sv), (h.v - v.v, v.e + h.e, shv))
+    ok = [(s >= 0.0) if rules.edges == "closed" else (s > 0.0) for s, _, _ in slacks]
+    ms = [pmax(_margin(s, e), _margin(x.v, x.e)) for s, e, x in slacks]
+    inside = ok[0] & ok[1] & ok[2] & ok[3]
+    low = pmin(*ms)
+    # max over the failed slacks, in their order: the first failed one, then larger ones
+    high, seen = np.full(np.shape(low), np.nan), np.zeros(np.shape(low), bool)
+    for m, good in zip(ms, ok):
+        high = np.where(good, high, np.where(seen, pmax(high, m), m))
+        seen = seen | ~good
+    return np.where(inside, low, high)
+
+
+def _tests(ob, cand, base, d, rules) -> list:
+    """oracle._tests on every lane: (diagnostic, passed, margin, present)."""
+    out = []
+    clip = rules.screen_clip != "off" and (ob.kind in oracle.PLANE_KINDS or rules.clip_spheres)
+    if ob.kind == "sphere":
+        t = cand.t
+        out.append(("disc_margin", cand.disc.v > 0.0, _margin(cand.disc.v, cand.disc.e), True))
+        out.append(("tmin_margin", t.v > 0.0, _margin(t.v, t.e), True))
+        has_t = True
+    else:
+        nd = cand.ndotd
+        out.append(("graze", nd.v != 0.0, _margin(nd.v, nd.e), True))
+        has_t = ~cand.par
+        tmin = EF(rules.t_min)
+        t = cand.t
+        out.append(("tmin_margin", t.v > tmin.v, _margin(t.v - tmin.v, t.e + tmin.e), has_t))
+    if clip:
+        z = cand.hitloc[2]
+        out.append(("clip_margin", ~_clipped(z.v, rules), _margin(z.v, z.e), has_t))
+    if ob.kind == "fplane":
+        u, v = cand.newhit[0].v, cand.newhit[1].v
+        w, h = ob.size[0].v, ob.size[1].v
+        if rules.edges == "closed":
+            inside = (0.0 <= u) & (u <= w) & (0.0 <= v) & (v <= h)
+        else:
+            inside = (0.0 < u) & (u < w) & (0.0 < v) & (v < h)
+        out.append(("edge_margin", inside, _edge_margin(ob, cand, base, d, rules), has_t))
+    return out
+
+
+def _at_risk(tests, valid, shape):
+    """oracle._at_risk on every lane: (index into ``tests``, margin).  Python's min and max
+    of (margin, diagnostic) tuples, in the tests' order: a valid hit's smallest margin (on a
+    tie, the first diagnostic by name), an invalid one's largest failed margin (on a tie,
+    the last by name)."""
+    rank = {name: r for r, name in enumerate(sorted(t[0] for t in tests))}
+    lo, lo_k = np.full(shape, np.nan), np.full(shape, -1)
+    hi, hi_k = np.full(shape, np.nan), np.full(shape, -1)
+    for k, (name, passed, m, present) in enumerate(tests):
+        m, r = np.broadcast_to(m, shape), rank[name]
+        rk_lo = np.array([rank[tests[j][0]] if j >= 0 else -1 for j in range(-1, len(tests))])
+        less = (m < lo) | ((m == lo) & (r < rk_lo[lo_k + 1]))
+        take = present & ((lo_k < 0) | less)
+        lo, lo_k = np.where(take, m, lo), np.where(take, k, lo_k)
+        more = (m > hi) | ((m == hi) & (r > rk_lo[hi_k + 1]))
+        take = present & ~passed & ((hi_k < 0) | more)
+        hi, hi_k = np.where(take, m, hi), np.where(take, k, hi_k)
+    return np.where(valid, lo_k, hi_k), np.where(valid, lo, hi)
+
+
+_KEYS = ("edge_margin", "tie_gap", "clip_margin", "tmin_margin", "graze", "disc_margin")
+
+
+def trace(obs, base, d, rules, skip) -> _Hit:
+    """oracle.trace on lanes: ``skip`` the object each lane ignores (−1: none)."""
+    n = len(skip)
+    cands = []
+    win = np.full(n, -1)
+    wt = np.zeros(n)
+    raised = np.zeros(n, bool)
+    for ob in obs:
+        cand = (_sphere if ob.kind == "sphere" else _plane)(ob, base, d, rules)
+        if ob.kind == "sphere":
+            raised |= cand.zero & (skip != ob.idx)
+        cand.ok = cand.ok & (skip != ob.idx)
+        cands.append(cand)
+        t = cand.t.v
+        take = cand.ok & ((win < 0) | (t < wt) | ((t == wt) & (rules.ties == "last")))
+        win = np.where(take, ob.idx, win)
+        wt = np.where(take, t, wt)
+    h = _Hit()
+    h.hit, h.id, h.raised = win >= 0, win, raised
+    z = np.zeros(n)
+    h.t = V(z.copy(), z.copy())
+    h.position = [V(z.copy(), z.copy()) for _ in range(3)]
+    h.normal = [V(z.copy(), z.copy()) for _ in range(3)]
+    h.uv = [V(z.copy(), z.copy()) for _ in range(2)]
+    for ob, cand in zip(obs, cands):
+        w = win == ob.idx
+        if not w.any():
+            continue
+        h.t = where(w, cand.t, h.t)
+        h.position = [where(w, a, b) for a, b in zip(cand.hitloc, h.position)]
+        if ob.kind == "sphere":
+            nrm, zero = unit3z(diff3(cand.hitloc, _vec(ob.center)))
+            h.raised |= w & zero
+        else:
+            nrm = _vec(ob.normal)
+        h.normal = [where(w, a, b) for a, b in zip(nrm, h.normal)]
+        if ob.kind in ("fplane", "tplane"):
+            h.uv = [where(w, a, b) for a, b in zip(cand.newhit[:2], h.uv)]
+    _diagnose(h, obs, cands, base, d, rules, skip)
+    return h
+
+
+def _diagnose(h, obs, cands, base, d, rules, skip) -> None:
+    """oracle._diagnose on lanes."""
+    n = len(skip)
+    for k in _KEYS:
+        setattr(h, k, np.full(n, INF))
+    h.risk = np.full((n, len(obs)), INF)
+    win, has = h.id, h.hit
+    lanes = np.arange(n)
+    tw = h.t
+    keys = [ob.key for ob in obs]
+    for ob, cand in zip(obs, cands):
+        live = skip != ob.idx
+        behind = live & cand.ok & (win != ob.idx)
+        if behind.any():
+            # a valid hit behind the winner: a near tie (not of an identical surface)
+            other = np.array([keys[j] != ob.key for j in range(len(obs))])[np.maximum(win, 0)]
+            tie = behind & has & other
+            m = _margin(cand.t.v - tw.v, cand.t.e + tw.e)
+            h.tie_gap = np.where(tie, pmin(h.tie_gap, m), h.tie_gap)
+            j = np.maximum(win, 0)
+            h.risk[lanes, j] = np.fmin(h.risk[lanes, j], np.where(tie, m, INF))
+        go = live & ~behind
+        mine = win == ob.idx
+        if ob.kind == "sphere":
+            far = np.abs(cand.t.v) > tw.v + 1e-4 * (tw.v + tw.e + cand.t.e)
+            go = go & (mine | ~(has & far))
+        else:
+            par = cand.par
+            gone = par & (has | (ob.kind == "fplane"))
+            far = ~par & has & (np.abs(cand.t.v) > tw.v + 1e-4 * (tw.v + tw.e + cand.t.e))
+            go = go & (mine | ~(gone | far))
+        if not go.any():
+            continue
+        tests = _tests(ob, cand, base, d, rules)
+        k, m = _at_risk(tests, cand.ok, n)
+        for i, (name, *_rest) in enumerate(tests):
+            sel = go & (k == i)
+            setattr(h, name, np.where(sel, pmin(getattr(h, name), m), getattr(h, name)))
+        # (risks: a key is near where any of its margins is: NaN margins are never near)
+        h.risk[:, ob.idx] = np.fmin(h.risk[:, ob.idx], np.where(go, m, INF))
+
+
+def _hit_margin(scene, obs, h, base, d, skip, ties, tmax, near=None):
+    """shade_oracle._hit_margin on lanes; ``near`` (lanes, objects) gets each sphere's margin
+    of the ray passing inside or outside it."""
+    m = pmin(h.edge_margin, h.clip_margin, h.tmin_margin, h.graze)
+    if ties:
+        m = pmin(m, h.tie_gap)
+    tw = np.where(h.hit, h.t.v, INF)
+    top = np.minimum(tw, tmax)
+    bv, dv = [x.v for x in base], [x.v for x in d]
+    for ob in obs:
+        if ob.kind != "sphere":
+            continue
+        cen, r = ob.center, ob.radius
+        along_v = ((cen[0].v - bv[0]) * dv[0] + (cen[1].v - bv[1]) * dv[1]) + \
+            (cen[2].v - bv[2]) * dv[2]
+        go = (skip != ob.idx) & ~((along_v + r.v < 0) | (along_v - r.v > top))
+        if not go.any():
+            continue
+        q = diff3(_vec(cen), base)
+        along = dot3(q, d)
+        p = length3(diff3(q, scale3(along, d)))
+        mm = _margin(p.v - r.v, p.e + c(r).e)
+        m = np.where(go, pmin(m, mm), m)
+        if near is not None:
+            near[:, ob.idx] = np.fmin(near[:, ob.idx], np.where(go, mm, INF))
+    return m
+
+
+# --- shade_oracle.ray_trace on lanes ------------------------------------------------------------
+
+def _materials(scene):
+    """Per object, as arrays indexed by object: ambient, diffuse, specular (3 V each, EF of
+    the numbers as written), of the material and of a tiled plane's background."""
+    def table(mats):
+        return {f: [V(np.array([inp(getattr(m, f)[i]).v for m in mats]),
+                      np.array([inp(getattr(m, f)[i]).e for m in mats])) for i in range(3)]
+                for f in ("ambient", "diffuse", "specular")} | \
+            {"shiny": np.array([any(m.specular) for m in mats])}
+    objs = scene.objects
+    return table([o.material for o in objs]), \
+        table([getattr(o, "background", None) or o.material for o in objs])
+
+
+def _gather(tab, fg, ids):
+    """Per lane, the field values of object ``ids``' material (background where not fg)."""
+    fgm, bgm = tab
+    out = {}
+    for f in ("ambient", "diffuse", "specular"):
+        out[f] = [V(np.where(fg, a.v[ids], b.v[ids]), np.where(fg, a.e[ids], b.e[ids]))
+                  for a, b in zip(fgm[f], bgm[f])]
+    out["shiny"] = np.where(fg, fgm["shiny"][ids], bgm["shiny"][ids])
+    return out
+
+
+def _int_margin(x: V, extra: float):
+    dist = np.abs(x.v - np.round(x.v)) - extra
+    return np.where(dist <= 0, 0.0, _margin(dist, x.e))
+
+
+def shade(scene, base, d, rules, max_dist: float) -> dict:
+    """shade_oracle.ray_trace of every lane's ray (base, d: EF triples of arrays), no decision
+    flipped: 'I', 'err' (n, 3), 'bounces', the MARGINS (n,), 'seen' (each lane's near
+    decisions, _Alt's keys).  (numpy's warnings are off: the lanes a branch does not take
+    compute whatever they compute, and are not used.)"""
+    with np.errstate(all="ignore"):
+        return _shade(scene, base, d, rules, max_dist)
+
+
+def _shade(scene, base, d, rules, max_dist: float) -> dict:
+    obs = oracle.prepared(scene)
+    n = len(base[0].v)
+    nobj = len(obs)
+    tabs = _materials(scene)
+    tile = {ob.idx: (oracle.tile_scale(ob.src, rules), ob.src.size) for ob in obs
+            if ob.kind == "tplane"}
+    out = {"I": np.zeros((n, 3)), "err": np.zeros((n, 3)), "bounces": np.zeros(n, np.int32)}
+    for k in ("geo", "shadow", "tile", "maxdist", "texel"):
+        out[k] = np.full(n, INF)
+    seen = [[] for _ in range(n)]
+    # the lanes where the per-pixel oracle raises (a division by zero, a rounding of
+    # infinity): a primary direction of no length first
+    raised = np.isnan(d[0].v) & np.isnan(d[1].v) & np.isnan(d[2].v)
+    lights = []
+    for light in scene.lights:
+        spot = None
+        if light.kind == "spotlight":
+            cos_t = math.cos(math.radians(light.theta))
+            try:
+                axis = oracle.unit3(oracle.diff3(oracle.vec(light.aim),
+                                                 oracle.vec(light.center)))
+            except ZeroDivisionError:           # aimed at itself: raised where it is asked
+                axis = None
+            spot = (axis and tuple(c(a) for a in axis), V(cos_t, 4.0 * abs(cos_t)))
+        lights.append((_vec(oracle.vec(light.center)),
+                       [inp(x) for x in light.emissivity], spot))
+
+    lane = np.arange(n)                           # the lanes still going, into ``out``
+    skip = np.full(n, -1)
+    total = V(np.zeros(n), np.zeros(n))
+    stack = []                                    # per bounce: (lanes, local I, specular)
+    b = 0
+
+    def note(key, m, at):
+        for i in np.flatnonzero(m < LIMIT):
+            seen[at[i]].append(key)
+
+    while len(lane):
+        h = trace(obs, base, d, rules, skip)
+        raised[lane] |= h.raised
+        near = np.full((len(lane), nobj), INF)
+        out["geo"][lane] = pmin(out["geo"][lane],
+                                _hit_margin(scene, obs, h, base, d, skip, True, INF, near))
+        risk = np.fmin(near, h.risk)
+        for j in range(nobj):
+            note((b, "geo", j), risk[:, j], lane)
+        # a miss ends the path, black
+        gone = ~h.hit
+        out["I"][lane[gone]] = 0.0
+        out["err"][lane[gone]] = 0.0
+        keep = np.flatnonzero(h.hit)
+        lane, base, d, h = lane[keep], [x.at(keep) for x in base], [x.at(keep) for x in d], \
+            _take(h, keep)
+        total = add(total.at(keep), h.t)
+        ids = h.id
+        H, N = h.position, h.normal
+        fg = np.ones(len(lane), bool)
+        for j, (k, size) in tile.items():
+            on = np.flatnonzero(ids == j)
+            if not len(on):
+                continue
+            u = mul(h.uv[0].at(on), inp(k))
+            vv = h.uv[1].at(on)
+            if rules.tile_add_first:
+                u, vv = add(u, exact(oracle.OFF)), add(vv, exact(oracle.OFF))
+            x, y = div(u, inp(size[0])), div(vv, inp(size[1]))
+            raised[lane[on]] |= (inp(size[0]).v == 0.0) | (inp(size[1]).v == 0.0) | \
+                ~np.isfinite(x.v) | ~np.isfinite(y.v)
+            off = oracle.OFF * 2.0 ** -53
+            mx, my = _int_margin(x, off), _int_margin(y, off)
+            out["tile"][lane[on]] = pmin(out["tile"][lane[on]], mx, my)
+            note((b, "tile", 0), mx, lane[on])
+            note((b, "tile", 1), my, lane[on])
+            uu = h.uv[0].v[on] * k
+            w, hh = size
+            if rules.tile_add_first:
+                relx, rely = np.floor((oracle.OFF + uu) / w), np.floor((oracle.OFF + h.uv[1].v[on]) / hh)
+            else:
+                relx, rely = np.floor(oracle.OFF + uu / w), np.floor(oracle.OFF + h.uv[1].v[on] / hh)
+            raised[lane[on]] |= ~np.isfinite(relx) | ~np.isfinite(rely)
+            fg[on] = (relx + rely) % 2 == 1
+        mat = _gather(tabs, fg, ids)
+        I = list(mat["ambient"])
+        for l, (centre, emis, spot) in enumerate(lights):
+            D = diff3(centre, H)
+            dist = length3(D)
+            L, zero = unit3z(D)
+            raised[lane] |= zero
+            cl = dot3(L, N)
+            lit = ~(cl.v <= 0)
+            if spot is not None:
+                axis, cos_t = spot
+                if axis is None:
+                    raised[lane[lit]] = True
+                    axis = (exact(0.0),) * 3
+                s = sub(dot3(scale3(exact(-1.0), L), axis), cos_t)
+                ms = _margin(s.v, s.e)
+                at = np.flatnonzero(lit)
+                out["shadow"][lane[at]] = pmin(out["shadow"][lane[at]], ms[at])
+                note((b, "spot", l), ms[at], lane[at])
+                lit = lit & (s.v > 0)
+            at = np.flatnonzero(lit)
+            if not len(at):
+                continue
+            Ha, La = [x.at(at) for x in H], [x.at(at) for x in L]
+            sh = trace(obs, Ha, La, rules, ids[at])
+            raised[lane[at]] |= sh.raised
+            m = _hit_margin(scene, obs, sh, Ha, La, ids[at], False, dist.v[at])
+            m = np.where(sh.hit, pmin(m, _margin(sh.t.v - dist.v[at], sh.t.e + dist.e[at])), m)
+            out["shadow"][lane[at]] = pmin(out["shadow"][lane[at]], m)
+            note((b, "shadow", l), m, lane[at])
+            blocked = sh.hit & (sh.t.v < dist.v[at])
+            on = at[~blocked]
+            cla, dista = cl.at(on), dist.at(on)
+            for i in range(3):
+                term = div(mul(mul(mat["diffuse"][i].at(on), emis[i]), cla), dista)
+                I[i] = _put(I[i], on, add(I[i].at(on), term))
+        seg = h.t if rules.reflect == "segment" else total
+        raised[lane] |= seg.v == 0.0
+        I = [div(a, seg) for a in I]
+        # a path ends at a surface that does not reflect, or past the cut-off
+        mm = _margin(total.v - max_dist, total.e)
+        shiny = mat["shiny"]
+        on = np.flatnonzero(shiny)
+        out["maxdist"][lane[on]] = pmin(out["maxdist"][lane[on]], mm[on])
+        note((b, "maxdist", 0), mm[on], lane[on])
+        going = shiny & (total.v < max_dist)
+        stop = np.flatnonzero(~going)
+        out["I"][lane[stop]] = np.stack([a.v[stop] for a in I], -1)
+        out["err"][lane[stop]] = np.stack([a.e[stop] for a in I], -1)
+        on = np.flatnonzero(going)
+        out["bounces"][lane[on]] += 1
+        stack.append((lane[on], [a.at(on) for a in I], [a.at(on) for a in mat["specular"]]))
+        Nn, dn, Hn = [x.at(on) for x in N], [x.at(on) for x in d], [x.at(on) for x in H]
+        R, zero = unit3z(diff3(dn, scale3(mul(dot3(dn, Nn), exact(2.0)), Nn)))
+        raised[lane[on]] |= zero
+        lane, base, d, skip, total = lane[on], Hn, R, ids[on], total.at(on)
+        b += 1
+    # the sums from the last bounce back: I = local + specular · I
+    for at, local, spec in reversed(stack):
+        for i in range(3):
+            got = add(local[i], mul(spec[i], V(out["I"][at, i], out["err"][at, i])))
+            out["I"][at, i], out["err"][at, i] = got.v, got.e
+    out["seen"] = [tuple(dict.fromkeys(s)) for s in seen]
+    out["raised"] = raised
+    return out
+
+
+def _put(a: V, idx, b: V) -> V:
+    """``a`` with lanes ``idx`` replaced by ``b``'s values (a constant becomes an array)."""
+    v, e = np.array(a.v, float, copy=True), np.array(a.e, float, copy=True)
+    v[idx], e[idx] = b.v, b.e
+    return V(v, e)
+
+
+def _take(h: _Hit, keep) -> _Hit:
+    g = _Hit()
+    g.hit, g.id, g.t = h.hit[keep], h.id[keep], h.t.at(keep)
+    g.position = [x.at(keep) for x in h.position]
+    g.normal = [x.at(keep) for x in h.normal]
+    g.uv = [x.at(keep) for x in h.uv]
+    return g
+
+
+def rays(scene, columns: int, rows: int, pixels, sampling: str, rules) -> tuple:
+    """shade_oracle.pixel_ray of every pixel (image order, row 0 the top) on lanes."""
+    with np.errstate(all="ignore"):
+        return _rays(scene, columns, rows, pixels, sampling, rules)
+
+
+def _rays(scene, columns: int, rows: int, pixels, sampling: str, rules) -> tuple:
+    r, x = np.divmod(np.asarray(pixels, np.int64), columns)
+    y = rows - 1 - r + (1 if rules.rows == "shifted" else 0)
+    ww, wh = inp(scene.window[0]), inp(scene.window[1])
+    xs, ys = V(x.astype(float), 0.0), V(y.astype(float), 0.0)
+    if sampling == "corners":
+        wx = sub(mul(div(xs, exact(columns - 1)), ww), div(ww, exact(2.0)))
+        wy = sub(mul(div(ys, exact(rows - 1)), wh), div(wh, exact(2.0)))
+    else:
+        wx = sub(mul(div(add(xs, exact(0.5)), exact(columns)), ww), div(ww, exact(2.0)))
+        wy = sub(mul(div(add(ys, exact(0.5)), exact(rows)), wh), div(wh, exact(2.0)))
+    base = tuple(inp(a) for a in scene.viewpoint)
+    d = unit3(diff3((wx, wy, exact(0.0)), base))
+    n = len(x)
+    base = tuple(V(np.full(n, a.v), np.full(n, a.e)) for a in base)
+    return base, d
+
+
+def colours(I: np.ndarray) -> list:
+    """shade_oracle._colour of each row."""
+    return [tuple(int(c) for c in q) for q in quantize(I)]
+
+
+def usable(out: dict) -> np.ndarray:
+    """Lanes whose numbers the per-pixel oracle gives too: those where it does not raise
+    (``shade``'s 'raised': a division by zero, a rounding of infinity) and, to be safe, whose
+    intensity is not NaN (where the per-pixel oracle may give NaN too, only slower).  Bounds
+    that overflow (a long mirror corridor's) and the margins they make are its own numbers:
+    Python's min and max are followed where they meet a NaN."""
+    return ~out["raised"] & ~np.isnan(out["I"]).any(-1)

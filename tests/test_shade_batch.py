@@ -1,0 +1,189 @@
+"""mitsuba_ref.shade_batch: the shading oracle's first pass on arrays gives the per-pixel
+oracle's numbers, bit for bit.
+
+* every pixel of every scene shade_batch covers (bundled and course scenes, 12 columns): the
+  intensities, their bounds, the bounces, the five margins, the colours and the set of near
+  decisions equal shade_oracle.ray_trace's (the per-pixel oracle, run with shade_pixels'
+  BATCH_MIN out of reach);
+* the same under every rule variant, on the bundled scenes (all course scenes: ``slow``);
+* shade_pixels runs the batch from BATCH_MIN pixels on, and leaves to the per-pixel oracle what
+  the batch does not cover (a cylinder, a texture) and a pixel whose numbers are not all
+  numbers (a light on the surface: the per-pixel oracle's division by zero, raised as always).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mitsuba_ref import shade_batch, shade_oracle
+from rt_core.parser import parse_text
+from rt_core.rules import Rules
+from tools.harness.validate import default_scene_paths, load_supported
+
+REPO = Path(__file__).resolve().parents[1]
+OUT = ("I", "err", "bounces", *shade_oracle.MARGINS)
+VARIANTS = [Rules(ties="last", edges="open"), Rules(screen_clip=">=", clip_spheres=True),
+            Rules(screen_clip="off", reflect="segment"),
+            Rules(tile_add_first=True, tile_project=False, rows="shifted", t_min=0.01)]
+
+
+def _scenes(bundled_only: bool = False):
+    paths = [p for p in default_scene_paths()
+             if not bundled_only or p.parent == REPO / "scenes"]
+    scenes, _ = load_supported(paths, False)
+    return [s for s in scenes if shade_batch.supported(s)]
+
+
+def _per_pixel(scene, W, H, pixels, rules, md, monkeypatch):
+    with monkeypatch.context() as m:
+        m.setattr(shade_oracle, "BATCH_MIN", 10 ** 9)
+        return shade_oracle.shade_pixels(scene, W, H, pixels, "corners", rules, md)
+
+
+def _same(scene, columns, rules, md, monkeypatch, sampling="corners"):
+    W = columns
+    H = scene.default_rows(W)
+    px = np.arange(W * H)
+    base, d = shade_batch.rays(scene, W, H, px, sampling, rules)
+    got = shade_batch.shade(scene, base, d, rules, md)
+    ref = _per_pixel(scene, W, H, px, rules, md, monkeypatch)
+    ok = shade_batch.usable(got)
+    assert ok.all(), f"{scene.path}: {int((~ok).sum())} pixels left to the per-pixel oracle"
+    for k in OUT:
+        bad = np.flatnonzero((got[k] != ref[k]).reshape(len(px), -1).any(-1))
+        assert not len(bad), (f"{scene.path} {rules.describe()}: '{k}' differs at "
+                              f"{len(bad)} pixels, first {bad[0]}: {got[k][bad[0]]} against "
+                              f"{ref[k][bad[0]]}")
+    colours = shade_batch.colours(got["I"])
+    for p, (seen, (colour, near, _)) in enumerate(zip(got["seen"], ref["paths"])):
+        assert colours[p] == colour
+        assert set(seen) == set(near), (scene.path, p, seen, near)
+    return got
+
+
+SCENES = _scenes()
+CYLINDER = ("8 6\n0 3 5\n10\n4 3 2\n5 1 -1\n"          # numeric dialect: a light, a cylinder
+            "22\n0.5 1 0.5\n2 6 2\n0 0 0\n2.5 -0.9 -5\n-0.4 0.3 1\n0.9 2.2\n")
+
+
+def test01_covers_most_scenes():
+    """The kinds shade_batch takes are those of most scenes: without them it would speed
+    nothing up (and the equality tests below would test little)."""
+    assert len(SCENES) >= 100
+    assert not shade_batch.supported(parse_text(CYLINDER))
+
+
+@pytest.mark.parametrize("scene", SCENES, ids=lambda s: Path(s.path).stem)
+def test02_every_pixel_the_same_numbers(scene, monkeypatch):
+    got = _same(scene, 12, Rules(), 1000.0, monkeypatch)
+    assert np.isfinite(got["I"]).all()
+
+
+@pytest.mark.parametrize("rules", VARIANTS, ids=lambda r: r.describe().replace(",", " "))
+@pytest.mark.parametrize("scene", _scenes(bundled_only=True), ids=lambda s: Path(s.path).stem)
+def test03_rule_variants_and_cut_off(scene, rules, monkeypatch):
+    _same(scene, 10, rules, 1000.0, monkeypatch)
+    _same(scene, 10, rules, 25.0, monkeypatch)
+
+
+def test04_near_decisions_found():
+    """The equality above is not of empty sets: at 12 columns the scenes have pixels with
+    near decisions (within float64's bound) of each kind: a primary and a reflection ray's
+    hit, a shadow test at a primary and at a reflection's hit, a tile's parity, the cut-off."""
+    kinds = set()
+    for scene in SCENES:
+        W = 12
+        H = scene.default_rows(W)
+        base, d = shade_batch.rays(scene, W, H, np.arange(W * H), "corners", Rules())
+        for seen in shade_batch.shade(scene, base, d, Rules(), 1000.0)["seen"]:
+            kinds |= {(b > 0, what) for b, what, _ in seen}
+    assert {(False, "geo"), (True, "geo"), (False, "shadow"), (True, "shadow"),
+            (False, "tile"), (True, "maxdist")} <= kinds
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("rules", VARIANTS, ids=lambda r: r.describe().replace(",", " "))
+def test05_course_scenes_under_variants(rules, monkeypatch):
+    for scene in SCENES:
+        _same(scene, 16, rules, 1000.0, monkeypatch)
+
+
+def test06_centre_sampling(monkeypatch):
+    for scene in _scenes(bundled_only=True)[:6]:
+        W = 11
+        H = scene.default_rows(W)
+        px = np.arange(W * H)
+        base, d = shade_batch.rays(scene, W, H, px, "centers", Rules())
+        got = shade_batch.shade(scene, base, d, Rules(), 1000.0)
+        with monkeypatch.context() as m:
+            m.setattr(shade_oracle, "BATCH_MIN", 10 ** 9)
+            ref = shade_oracle.shade_pixels(scene, W, H, px, "centers")
+        for k in OUT:
+            assert np.array_equal(got[k], ref[k]), (scene.path, k)
+
+
+def test07_shade_pixels_uses_the_batch(monkeypatch):
+    """From BATCH_MIN pixels on, shade_pixels' answer is the batch's (the per-pixel code is
+    not run), below it the per-pixel oracle's; the two are equal."""
+    scene = SCENES[0]
+    W, H = 16, SCENES[0].default_rows(16)
+    px = np.arange(0, W * H, 2)
+    calls = []
+    real = shade_oracle.ray_trace
+    monkeypatch.setattr(shade_oracle, "ray_trace", lambda *a, **k: calls.append(1) or real(*a, **k))
+    got = shade_oracle.shade_pixels(scene, W, H, px)
+    assert calls == []
+    small = shade_oracle.shade_pixels(scene, W, H, px[:shade_oracle.BATCH_MIN - 1])
+    assert len(calls) == shade_oracle.BATCH_MIN - 1
+    for k in OUT:
+        assert np.array_equal(got[k][:len(small[k])], small[k])
+    assert [p[1] and set(p[1]) for p in got["paths"][:len(small["paths"])]] == \
+        [p[1] and set(p[1]) for p in small["paths"]]
+
+
+def test08_left_to_the_per_pixel_oracle(monkeypatch):
+    """A scene the batch does not cover runs per pixel; a pixel whose light lies on the point
+    it lights divides by zero in the per-pixel oracle, and so does shade_pixels still."""
+    cyl = parse_text(CYLINDER)
+    calls = []
+    real = shade_oracle.ray_trace
+    monkeypatch.setattr(shade_oracle, "ray_trace", lambda *a, **k: calls.append(1) or real(*a, **k))
+    shade_oracle.shade_pixels(cyl, 8, 6, np.arange(48))
+    assert len(calls) == 48
+    # the middle pixel of 3 x 3 looks straight down -z, at the light on the plane z = −1
+    on = parse_text("2 2\n0 0 1\nplane\n1 1 1\n1 1 1\n0 0 0\n0 0 1\n0 0 -1\n"
+                    "pointlight\n1 1 1\n0 0 -1\n")
+    px = np.arange(9)
+    base, d = shade_batch.rays(on, 3, 3, px, "corners", Rules())
+    got = shade_batch.shade(on, base, d, Rules(), 1000.0)
+    assert list(np.flatnonzero(got["raised"])) == [4]
+    assert list(np.flatnonzero(~shade_batch.usable(got))) == [4]
+    with pytest.raises(ZeroDivisionError):
+        shade_oracle.shade_pixels(on, 3, 3, px)
+    rest = [p for p in px if p != 4]
+    ref = _per_pixel(on, 3, 3, rest, Rules(), 1000.0, monkeypatch)
+    assert np.array_equal(shade_oracle.shade_pixels(on, 3, 3, rest)["I"], ref["I"])
+
+
+def test09_at_risk_ties_and_nan():
+    """oracle._at_risk's choice among equal margins (by diagnostic name) and past NaN margins
+    (Python's tuple min and max, in the tests' order), lane by lane, against the scalar
+    function on made-up tests: scenes almost never tie two diagnostics exactly."""
+    from mitsuba_ref import oracle
+    rng = np.random.default_rng(5)
+    names = ["tmin_margin", "graze", "clip_margin", "edge_margin"]
+    values = np.array([0.5, 0.5, 2.0, np.inf, np.nan, 0.0])
+    n = 400
+    for order in (names, names[::-1], names[1:] + names[:1]):
+        m = values[rng.integers(0, len(values), (len(order), n))]
+        passed = rng.random((len(order), n)) < 0.5
+        valid = passed.all(0)
+        tests = [(k, passed[i], m[i], True) for i, k in enumerate(order)]
+        idx, got = shade_batch._at_risk(tests, valid, n)
+        for j in range(n):
+            key, want = oracle._at_risk([(k, bool(passed[i, j]), m[i, j])
+                                         for i, k in enumerate(order)], bool(valid[j]))
+            assert order[idx[j]] == key and (got[j] == want or np.isnan(got[j]) and
+                                             np.isnan(want)), (j, order, m[:, j], passed[:, j])
