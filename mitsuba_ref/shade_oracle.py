@@ -3,7 +3,9 @@
 The notes' recursion written out literally (shared/notes/course-format.md, "Shading"), one
 pixel at a time, on top of the per-ray geometry oracle (``mitsuba_ref/oracle.py``: its hit functions,
 its closest-hit ``trace`` with the ``skip`` of the surface a ray leaves, its error-carrying
-``EF`` numbers).  Nothing here is vectorized or shares code with ``rt_core.shading``.
+``EF`` numbers).  Nothing here is vectorized or shares code with ``rt_core.shading``
+(``shade_batch`` runs the first pass of many pixels on arrays, with these same numbers:
+``shade_pixels``).
 
 Beside the intensity I (with a first-order bound on its rounding error, in units of u) every
 pixel carries the *margins* of the discontinuous decisions that made it, each the distance of
