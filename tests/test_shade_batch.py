@@ -187,3 +187,19 @@ def test09_at_risk_ties_and_nan():
                                          for i, k in enumerate(order)], bool(valid[j]))
             assert order[idx[j]] == key and (got[j] == want or np.isnan(got[j]) and
                                              np.isnan(want)), (j, order, m[:, j], passed[:, j])
+
+
+@pytest.mark.parametrize("seed", range(24))
+def test10_random_scenes(seed, monkeypatch):
+    """Seeded random scenes (tests/scenegen.py: planes that copy an earlier plane's equation
+    and tie exactly, tilted finite and tiled planes, spheres, mirrors), a spotlight added to
+    every third, under the rules of the seed: the per-pixel oracle's numbers."""
+    import dataclasses
+    from rt_core.scene import SpotLight
+    from tests.scenegen import random_scene
+    scene = random_scene(seed, n_objects=6 + seed % 5, tie_prob=0.4)
+    if seed % 3 == 0:
+        spot = SpotLight((5.0, 5.0, 5.0), (0.5, 4.0, 1.0), (0.0, -1.0, -8.0), 25.0)
+        scene = dataclasses.replace(scene, lights=scene.lights + (spot,))
+    rules = (VARIANTS + [Rules()])[seed % (len(VARIANTS) + 1)]
+    _same(scene, 12, rules, 1000.0 if seed % 2 else 40.0, monkeypatch)
