@@ -212,11 +212,57 @@ def _vec(p) -> tuple:
     return tuple(c(x) for x in p)
 
 
-# --- oracle.trace on lanes ------------------------------------------------------------------
+# --- oracle.trace on lanes, the objects of a kind stacked ----------------------------------------
+
+class _Group:
+    """The objects of one kind ('sphere', or 'plane' for plane, fplane and tplane), their
+    numbers stacked (k, 1): an operation with the lanes (n,) gives (k, n), one row an
+    object, so a trace costs numpy's calls once a kind, not once an object."""
+
+    def __init__(self, kind, obs):
+        self.kind, self.obs = kind, obs
+        self.rows = [ob.idx for ob in obs]
+        self.idx = np.array(self.rows)[:, None]
+
+        def col(efs):
+            return V(np.array([[x.v] for x in efs]), np.array([[x.e] for x in efs]))
+
+        zero3 = (EF(0.0, 0.0),) * 3
+        if kind == "sphere":
+            self.center = tuple(col([ob.center[i] for ob in obs]) for i in range(3))
+            self.radius = col([ob.radius for ob in obs])
+            return
+        self.normal = tuple(col([ob.normal[i] for ob in obs]) for i in range(3))
+        self.point = tuple(col([ob.point[i] for ob in obs]) for i in range(3))
+        self.rotmat = tuple(tuple(col([(ob.rotmat[r] if ob.rotmat else zero3)[i] for ob in obs])
+                                  for i in range(3)) for r in range(3))
+        self.size = tuple(col([ob.size[i] if ob.size else EF(0.0, 0.0) for ob in obs])
+                          for i in range(2))
+        self.finite = np.array([[ob.kind == "fplane"] for ob in obs])
+        self.framed = np.array([ob.kind in ("fplane", "tplane") for ob in obs])
+
+
+class Groups(list):
+    """The scene's objects by kind (``_Group``), spheres first, with ``nobj``, ``order``
+    ((group, row) of every object in the scene's order: trace's and _diagnose's loops) and
+    ``other`` (nobj, nobj): whether two objects' surfaces differ (oracle._Obj.key: the same
+    surface ties exactly, and the tie rule decides)."""
+
+    def __init__(self, obs):
+        super().__init__()
+        for kind, kinds in (("sphere", ("sphere",)), ("plane", oracle.PLANE_KINDS)):
+            mine = [ob for ob in obs if ob.kind in kinds]
+            if mine:
+                self.append(_Group(kind, mine))
+        self.nobj = len(obs)
+        self.order = sorted(((k, r) for k, g in enumerate(self) for r in range(len(g.rows))),
+                            key=lambda kr: self[kr[0]].rows[kr[1]])
+        self.other = np.array([[a.key != b.key for b in obs] for a in obs]).reshape(
+            len(obs), len(obs))
+
 
 class _Cand:
-    """One object's verdict on every lane (oracle.Cand): ``t`` None where the object has no
-    t anywhere (a plane parallel on no lane still has one: ``par`` marks the lanes)."""
+    """A kind's verdicts (oracle.Cand), (k, n): ``par`` where a plane's n·d is 0 (no t)."""
 
     def __init__(self, ok, t, hitloc, par=None, ndotd=None, disc=None, newhit=()):
         self.ok, self.t, self.hitloc, self.par = ok, t, hitloc, par
@@ -231,36 +277,36 @@ def _clipped(z, rules):
     return np.zeros(np.shape(z), bool)
 
 
-def _plane(ob, base, d, rules) -> _Cand:
+def _inside(g, newhit, rules):
+    """oracle._inside on every row and lane."""
+    u, v = newhit[0].v, newhit[1].v
+    w, h = g.size[0].v, g.size[1].v
+    if rules.edges == "closed":
+        return (0.0 <= u) & (u <= w) & (0.0 <= v) & (v <= h)
+    return (0.0 < u) & (u < w) & (0.0 < v) & (v < h)
+
+
+def _plane(g, base, d, rules) -> _Cand:
     """oracle.plane_hits, fplane_hits, tplane_hits."""
-    n = _vec(ob.normal)
-    ndotd = dot3(n, d)
+    ndotd = dot3(g.normal, d)
     par = ndotd.v == 0.0
-    t = div(sub(dot3(n, _vec(ob.point)), dot3(n, base)), ndotd)
+    t = div(sub(dot3(g.normal, g.point), dot3(g.normal, base)), ndotd)
     hitloc = sum3(base, scale3(t, d))
     ok = ~par & (t.v > rules.t_min) & ~_clipped(hitloc[2].v, rules)
     cand = _Cand(ok, t, hitloc, par=par, ndotd=ndotd)
-    if ob.kind in ("fplane", "tplane"):
-        cand.newhit = xform3([_vec(r) for r in ob.rotmat], diff3(hitloc, _vec(ob.point)))
-    if ob.kind == "fplane":
-        u, v = cand.newhit[0].v, cand.newhit[1].v
-        w, h = ob.size[0].v, ob.size[1].v
-        if rules.edges == "closed":
-            inside = (0.0 <= u) & (u <= w) & (0.0 <= v) & (v <= h)
-        else:
-            inside = (0.0 < u) & (u < w) & (0.0 < v) & (v < h)
-        cand.ok = ok & inside
+    if g.framed.any():
+        cand.newhit = xform3(g.rotmat, diff3(hitloc, g.point))
+        cand.ok = ok & (_inside(g, cand.newhit, rules) | ~g.finite)
     return cand
 
 
-def _sphere(ob, base, d, rules) -> _Cand:
+def _sphere(g, base, d, rules) -> _Cand:
     """oracle.sphere_hits: the near root where the discriminant is positive, else the root
     where it would vanish."""
-    oc = diff3(base, _vec(ob.center))
+    oc = diff3(base, g.center)
     a = dot3(d, d)
     b = mul(dot3(d, oc), exact(2.0))
-    r = c(ob.radius)
-    cc = sub(dot3(oc, oc), mul(r, r))
+    cc = sub(dot3(oc, oc), mul(g.radius, g.radius))
     disc = sub(mul(b, b), mul(mul(a, exact(4.0)), cc))
     pos = disc.v > 0.0
     two_a = mul(a, exact(2.0))
@@ -279,14 +325,14 @@ class _Hit:
     and ``risk`` (lanes, objects): each object's smallest margin among ``risks``."""
 
 
-def _edge_margin(ob, cand, base, d, rules):
-    """oracle._edge_margin on every lane."""
+def _edge_margin(g, cand, base, d, rules):
+    """oracle._edge_margin on every row and lane."""
     u, v = cand.newhit[0], cand.newhit[1]
-    w, h = c(ob.size[0]), c(ob.size[1])
+    w, h = g.size
     nd = cand.ndotd
-    qxd = cross3(diff3(_vec(ob.point), base), d)
-    su = dot3(_vec(ob.rotmat[1]), qxd)
-    sv = neg(dot3(_vec(ob.rotmat[0]), qxd))
+    qxd = cross3(diff3(g.point, base), d)
+    su = dot3(g.rotmat[1], qxd)
+    sv = neg(dot3(g.rotmat[0], qxd))
     swu, shv = sub(mul(w, nd), su), sub(mul(h, nd), sv)
     slacks = ((u.v, u.e, su), (w.v - u.v, u.e + w.e, swu),
               (v.v, v.e, sv), (h.v - v.v, v.e + h.e, shv))
@@ -302,11 +348,11 @@ def _edge_margin(ob, cand, base, d, rules):
     return np.where(inside, low, high)
 
 
-def _tests(ob, cand, base, d, rules) -> list:
-    """oracle._tests on every lane: (diagnostic, passed, margin, present)."""
+def _tests(g, cand, base, d, rules) -> list:
+    """oracle._tests on every row and lane: (diagnostic, passed, margin, present)."""
     out = []
-    clip = rules.screen_clip != "off" and (ob.kind in oracle.PLANE_KINDS or rules.clip_spheres)
-    if ob.kind == "sphere":
+    clip = rules.screen_clip != "off" and (g.kind == "plane" or rules.clip_spheres)
+    if g.kind == "sphere":
         t = cand.t
         out.append(("disc_margin", cand.disc.v > 0.0, _margin(cand.disc.v, cand.disc.e), True))
         out.append(("tmin_margin", t.v > 0.0, _margin(t.v, t.e), True))
@@ -321,14 +367,9 @@ def _tests(ob, cand, base, d, rules) -> list:
     if clip:
         z = cand.hitloc[2]
         out.append(("clip_margin", ~_clipped(z.v, rules), _margin(z.v, z.e), has_t))
-    if ob.kind == "fplane":
-        u, v = cand.newhit[0].v, cand.newhit[1].v
-        w, h = ob.size[0].v, ob.size[1].v
-        if rules.edges == "closed":
-            inside = (0.0 <= u) & (u <= w) & (0.0 <= v) & (v <= h)
-        else:
-            inside = (0.0 < u) & (u < w) & (0.0 < v) & (v < h)
-        out.append(("edge_margin", inside, _edge_margin(ob, cand, base, d, rules), has_t))
+    if g.kind == "plane" and g.finite.any():
+        out.append(("edge_margin", _inside(g, cand.newhit, rules),
+                    _edge_margin(g, cand, base, d, rules), has_t & g.finite))
     return out
 
 
@@ -338,15 +379,16 @@ def _at_risk(tests, valid, shape):
     tie, the first diagnostic by name), an invalid one's largest failed margin (on a tie,
     the last by name)."""
     rank = {name: r for r, name in enumerate(sorted(t[0] for t in tests))}
+    # each test's name's rank, by index + 1 (0: none yet)
+    by = np.array([-1] + [rank[t[0]] for t in tests])
     lo, lo_k = np.full(shape, np.nan), np.full(shape, -1)
     hi, hi_k = np.full(shape, np.nan), np.full(shape, -1)
     for k, (name, passed, m, present) in enumerate(tests):
         m, r = np.broadcast_to(m, shape), rank[name]
-        rk_lo = np.array([rank[tests[j][0]] if j >= 0 else -1 for j in range(-1, len(tests))])
-        less = (m < lo) | ((m == lo) & (r < rk_lo[lo_k + 1]))
+        less = (m < lo) | ((m == lo) & (r < by[lo_k + 1]))
         take = present & ((lo_k < 0) | less)
         lo, lo_k = np.where(take, m, lo), np.where(take, k, lo_k)
-        more = (m > hi) | ((m == hi) & (r > rk_lo[hi_k + 1]))
+        more = (m > hi) | ((m == hi) & (r > by[hi_k + 1]))
         take = present & ~passed & ((hi_k < 0) | more)
         hi, hi_k = np.where(take, m, hi), np.where(take, k, hi_k)
     return np.where(valid, lo_k, hi_k), np.where(valid, lo, hi)
@@ -355,91 +397,114 @@ def _at_risk(tests, valid, shape):
 _KEYS = ("edge_margin", "tie_gap", "clip_margin", "tmin_margin", "graze", "disc_margin")
 
 
-def trace(obs, base, d, rules, skip) -> _Hit:
+def _pick(g, cand_rows, pos):
+    """Per lane, row ``pos`` (0 where −1) of a (k, n) V."""
+    lanes = np.arange(pos.shape[0])
+    at = np.maximum(pos, 0)
+    return V(np.broadcast_to(cand_rows.v, (len(g.rows), len(lanes)))[at, lanes],
+             np.broadcast_to(cand_rows.e, (len(g.rows), len(lanes)))[at, lanes])
+
+
+def trace(gs: Groups, base, d, rules, skip) -> _Hit:
     """oracle.trace on lanes: ``skip`` the object each lane ignores (−1: none)."""
     n = len(skip)
-    cands = []
-    win = np.full(n, -1)
-    wt = np.zeros(n)
-    raised = np.zeros(n, bool)
-    for ob in obs:
-        cand = (_sphere if ob.kind == "sphere" else _plane)(ob, base, d, rules)
-        if ob.kind == "sphere":
-            raised |= cand.zero & (skip != ob.idx)
-        cand.ok = cand.ok & (skip != ob.idx)
+    cands, raised = [], np.zeros(n, bool)
+    for g in gs:
+        cand = (_sphere if g.kind == "sphere" else _plane)(g, base, d, rules)
+        live = skip != g.idx
+        if g.kind == "sphere":
+            raised |= (cand.zero & live).any(0)
+        cand.ok = cand.ok & live
         cands.append(cand)
-        t = cand.t.v
-        take = cand.ok & ((win < 0) | (t < wt) | ((t == wt) & (rules.ties == "last")))
-        win = np.where(take, ob.idx, win)
+    # the closest valid hit, object by object in the scene's order (ties: rules.ties)
+    win, wt = np.full(n, -1), np.zeros(n)
+    last = rules.ties == "last"
+    for k, r in gs.order:
+        g, cand = gs[k], cands[k]
+        t = cand.t.v[r]
+        take = cand.ok[r] & ((win < 0) | (t < wt) | ((t == wt) & last))
+        win = np.where(take, g.rows[r], win)
         wt = np.where(take, t, wt)
     h = _Hit()
-    h.hit, h.id, h.raised = win >= 0, win, raised
+    h.hit, h.id = win >= 0, win
     z = np.zeros(n)
-    h.t = V(z.copy(), z.copy())
-    h.position = [V(z.copy(), z.copy()) for _ in range(3)]
-    h.normal = [V(z.copy(), z.copy()) for _ in range(3)]
-    h.uv = [V(z.copy(), z.copy()) for _ in range(2)]
-    for ob, cand in zip(obs, cands):
-        w = win == ob.idx
+    h.t = V(z, z)
+    h.position = [V(z, z)] * 3
+    h.normal = [V(z, z)] * 3
+    h.uv = [V(z, z)] * 2
+    lut = np.full(gs.nobj + 1, -1)
+    for g, cand in zip(gs, cands):
+        lut[:] = -1
+        lut[g.rows] = np.arange(len(g.rows))
+        pos = lut[win]                          # (win −1: lut's last entry, −1)
+        w = pos >= 0
         if not w.any():
             continue
-        h.t = where(w, cand.t, h.t)
-        h.position = [where(w, a, b) for a, b in zip(cand.hitloc, h.position)]
-        if ob.kind == "sphere":
-            nrm, zero = unit3z(diff3(cand.hitloc, _vec(ob.center)))
-            h.raised |= w & zero
+        h.t = where(w, _pick(g, cand.t, pos), h.t)
+        hit = [_pick(g, x, pos) for x in cand.hitloc]
+        h.position = [where(w, a, b) for a, b in zip(hit, h.position)]
+        if g.kind == "sphere":
+            nrm, zero = unit3z(diff3(hit, [_pick(g, x, pos) for x in g.center]))
+            raised |= w & zero
         else:
-            nrm = _vec(ob.normal)
+            nrm = [_pick(g, x, pos) for x in g.normal]
         h.normal = [where(w, a, b) for a, b in zip(nrm, h.normal)]
-        if ob.kind in ("fplane", "tplane"):
-            h.uv = [where(w, a, b) for a, b in zip(cand.newhit[:2], h.uv)]
-    _diagnose(h, obs, cands, base, d, rules, skip)
+        if g.kind == "plane" and len(cand.newhit):
+            framed = w & g.framed[np.maximum(pos, 0)]
+            h.uv = [where(framed, _pick(g, a, pos), b) for a, b in zip(cand.newhit[:2], h.uv)]
+    h.raised = raised
+    _diagnose(h, gs, cands, base, d, rules, skip)
     return h
 
 
-def _diagnose(h, obs, cands, base, d, rules, skip) -> None:
+def _diagnose(h, gs: Groups, cands, base, d, rules, skip) -> None:
     """oracle._diagnose on lanes."""
     n = len(skip)
-    for k in _KEYS:
-        setattr(h, k, np.full(n, INF))
-    h.risk = np.full((n, len(obs)), INF)
+    for key in _KEYS:
+        setattr(h, key, np.full(n, INF))
+    h.risk = np.full((n, gs.nobj), INF)
     win, has = h.id, h.hit
     lanes = np.arange(n)
     tw = h.t
-    keys = [ob.key for ob in obs]
-    for ob, cand in zip(obs, cands):
-        live = skip != ob.idx
-        behind = live & cand.ok & (win != ob.idx)
+    # each kind's tests, cheapest flips and tie margins on every row at once
+    risk = []
+    for g, cand in zip(gs, cands):
+        tests = _tests(g, cand, base, d, rules)
+        k, m = _at_risk(tests, cand.ok, cand.ok.shape)
+        risk.append((tests, k, m, _margin(cand.t.v - tw.v, cand.t.e + tw.e)))
+    other = gs.other
+    for gk, r in gs.order:
+        g, cand = gs[gk], cands[gk]
+        tests, k, m, mt = risk[gk]
+        idx = g.rows[r]
+        live = skip != idx
+        behind = live & cand.ok[r] & (win != idx)
         if behind.any():
             # a valid hit behind the winner: a near tie (not of an identical surface)
-            other = np.array([keys[j] != ob.key for j in range(len(obs))])[np.maximum(win, 0)]
-            tie = behind & has & other
-            m = _margin(cand.t.v - tw.v, cand.t.e + tw.e)
-            h.tie_gap = np.where(tie, pmin(h.tie_gap, m), h.tie_gap)
             j = np.maximum(win, 0)
-            h.risk[lanes, j] = np.fmin(h.risk[lanes, j], np.where(tie, m, INF))
+            tie = behind & has & other[idx][j]
+            h.tie_gap = np.where(tie, pmin(h.tie_gap, mt[r]), h.tie_gap)
+            h.risk[lanes, j] = np.fmin(h.risk[lanes, j], np.where(tie, mt[r], INF))
         go = live & ~behind
-        mine = win == ob.idx
-        if ob.kind == "sphere":
-            far = np.abs(cand.t.v) > tw.v + 1e-4 * (tw.v + tw.e + cand.t.e)
+        mine = win == idx
+        t = cand.t.v[r]
+        far = np.abs(t) > tw.v + 1e-4 * (tw.v + tw.e + cand.t.e[r])
+        if g.kind == "sphere":
             go = go & (mine | ~(has & far))
         else:
-            par = cand.par
-            gone = par & (has | (ob.kind == "fplane"))
-            far = ~par & has & (np.abs(cand.t.v) > tw.v + 1e-4 * (tw.v + tw.e + cand.t.e))
-            go = go & (mine | ~(gone | far))
+            par = cand.par[r]
+            gone = par & (has | (g.obs[r].kind == "fplane"))
+            go = go & (mine | ~(gone | (~par & has & far)))
         if not go.any():
             continue
-        tests = _tests(ob, cand, base, d, rules)
-        k, m = _at_risk(tests, cand.ok, n)
         for i, (name, *_rest) in enumerate(tests):
-            sel = go & (k == i)
-            setattr(h, name, np.where(sel, pmin(getattr(h, name), m), getattr(h, name)))
+            sel = go & (k[r] == i)
+            setattr(h, name, np.where(sel, pmin(getattr(h, name), m[r]), getattr(h, name)))
         # (risks: a key is near where any of its margins is: NaN margins are never near)
-        h.risk[:, ob.idx] = np.fmin(h.risk[:, ob.idx], np.where(go, m, INF))
+        h.risk[:, idx] = np.fmin(h.risk[:, idx], np.where(go, m[r], INF))
 
 
-def _hit_margin(scene, obs, h, base, d, skip, ties, tmax, near=None):
+def _hit_margin(gs: Groups, h, base, d, skip, ties, tmax, near=None):
     """shade_oracle._hit_margin on lanes; ``near`` (lanes, objects) gets each sphere's margin
     of the ray passing inside or outside it."""
     m = pmin(h.edge_margin, h.clip_margin, h.tmin_margin, h.graze)
@@ -448,22 +513,23 @@ def _hit_margin(scene, obs, h, base, d, skip, ties, tmax, near=None):
     tw = np.where(h.hit, h.t.v, INF)
     top = np.minimum(tw, tmax)
     bv, dv = [x.v for x in base], [x.v for x in d]
-    for ob in obs:
-        if ob.kind != "sphere":
+    for g in gs:
+        if g.kind != "sphere":
             continue
-        cen, r = ob.center, ob.radius
+        cen, r = g.center, g.radius
         along_v = ((cen[0].v - bv[0]) * dv[0] + (cen[1].v - bv[1]) * dv[1]) + \
             (cen[2].v - bv[2]) * dv[2]
-        go = (skip != ob.idx) & ~((along_v + r.v < 0) | (along_v - r.v > top))
+        go = (skip != g.idx) & ~((along_v + r.v < 0) | (along_v - r.v > top))
         if not go.any():
             continue
-        q = diff3(_vec(cen), base)
+        q = diff3(cen, base)
         along = dot3(q, d)
         p = length3(diff3(q, scale3(along, d)))
-        mm = _margin(p.v - r.v, p.e + c(r).e)
-        m = np.where(go, pmin(m, mm), m)
-        if near is not None:
-            near[:, ob.idx] = np.fmin(near[:, ob.idx], np.where(go, mm, INF))
+        mm = _margin(p.v - r.v, p.e + r.e)
+        for row, idx in enumerate(g.rows):
+            m = np.where(go[row], pmin(m, mm[row]), m)
+            if near is not None:
+                near[:, idx] = np.fmin(near[:, idx], np.where(go[row], mm[row], INF))
     return m
 
 
@@ -509,6 +575,7 @@ def shade(scene, base, d, rules, max_dist: float) -> dict:
 
 def _shade(scene, base, d, rules, max_dist: float) -> dict:
     obs = oracle.prepared(scene)
+    gs = Groups(obs)
     n = len(base[0].v)
     nobj = len(obs)
     tabs = _materials(scene)
@@ -546,11 +613,11 @@ def _shade(scene, base, d, rules, max_dist: float) -> dict:
             seen[at[i]].append(key)
 
     while len(lane):
-        h = trace(obs, base, d, rules, skip)
+        h = trace(gs, base, d, rules, skip)
         raised[lane] |= h.raised
         near = np.full((len(lane), nobj), INF)
         out["geo"][lane] = pmin(out["geo"][lane],
-                                _hit_margin(scene, obs, h, base, d, skip, True, INF, near))
+                                _hit_margin(gs, h, base, d, skip, True, INF, near))
         risk = np.fmin(near, h.risk)
         for j in range(nobj):
             note((b, "geo", j), risk[:, j], lane)
@@ -613,9 +680,9 @@ def _shade(scene, base, d, rules, max_dist: float) -> dict:
             if not len(at):
                 continue
             Ha, La = [x.at(at) for x in H], [x.at(at) for x in L]
-            sh = trace(obs, Ha, La, rules, ids[at])
+            sh = trace(gs, Ha, La, rules, ids[at])
             raised[lane[at]] |= sh.raised
-            m = _hit_margin(scene, obs, sh, Ha, La, ids[at], False, dist.v[at])
+            m = _hit_margin(gs, sh, Ha, La, ids[at], False, dist.v[at])
             m = np.where(sh.hit, pmin(m, _margin(sh.t.v - dist.v[at], sh.t.e + dist.e[at])), m)
             out["shadow"][lane[at]] = pmin(out["shadow"][lane[at]], m)
             note((b, "shadow", l), m, lane[at])
