@@ -15,9 +15,11 @@ planes, point lights and spotlights, no texture.  The per-pixel oracle does the 
 every pixel whose numbers come out NaN or infinite here: that is a division by zero or a
 square root of a negative number, on which the per-pixel oracle raises as it always has.
 
-The per-pixel oracle stays the specification (and ``other_sides``, which takes decisions
-the other way, uses it alone).  The near decisions of a path (``paths``' second entry) are
-the same set, listed by bounce; their order means nothing to ``other_sides``.
+Decisions can be taken the other way (``flips``, as ``shade_oracle._Alt`` takes them):
+``shade_oracle.other_sides_of`` traces the paths of many pixels' near decisions, in every
+combination, a round at a time here.  The per-pixel oracle stays the specification.  The
+near decisions of a path (``paths``' second entry) are the same set, listed by bounce;
+their order means nothing to ``other_sides``.
 """
 from __future__ import annotations
 
@@ -405,10 +407,12 @@ def _pick(g, cand_rows, pos):
              np.broadcast_to(cand_rows.e, (len(g.rows), len(lanes)))[at, lanes])
 
 
-def trace(gs: Groups, base, d, rules, skip) -> _Hit:
-    """oracle.trace on lanes: ``skip`` the object each lane ignores (−1: none)."""
+def trace(gs: Groups, base, d, rules, skip, flip=None) -> _Hit:
+    """oracle.trace on lanes: ``skip`` the object each lane ignores (−1: none); ``flip``
+    (lanes, objects): the verdicts taken the other way (oracle.trace's ``flip``: where one
+    has no hit to take, it raises ValueError, and 'raised' says so)."""
     n = len(skip)
-    cands, raised = [], np.zeros(n, bool)
+    cands, raised, valid = [], np.zeros(n, bool), []
     for g in gs:
         cand = (_sphere if g.kind == "sphere" else _plane)(g, base, d, rules)
         live = skip != g.idx
@@ -416,13 +420,20 @@ def trace(gs: Groups, base, d, rules, skip) -> _Hit:
             raised |= (cand.zero & live).any(0)
         cand.ok = cand.ok & live
         cands.append(cand)
+        ok = cand.ok
+        if flip is not None:
+            fl = flip[:, g.rows].T & live
+            none = ~(cand.disc.v > 0.0) if g.kind == "sphere" else cand.par
+            raised |= (fl & ~ok & none).any(0)
+            ok = ok ^ fl
+        valid.append(ok)
     # the closest valid hit, object by object in the scene's order (ties: rules.ties)
     win, wt = np.full(n, -1), np.zeros(n)
     last = rules.ties == "last"
     for k, r in gs.order:
         g, cand = gs[k], cands[k]
         t = cand.t.v[r]
-        take = cand.ok[r] & ((win < 0) | (t < wt) | ((t == wt) & last))
+        take = valid[k][r] & ((win < 0) | (t < wt) | ((t == wt) & last))
         win = np.where(take, g.rows[r], win)
         wt = np.where(take, t, wt)
     h = _Hit()
@@ -564,16 +575,18 @@ def _int_margin(x: V, extra: float):
     return np.where(dist <= 0, 0.0, _margin(dist, x.e))
 
 
-def shade(scene, base, d, rules, max_dist: float) -> dict:
-    """shade_oracle.ray_trace of every lane's ray (base, d: EF triples of arrays), no decision
-    flipped: 'I', 'err' (n, 3), 'bounces', the MARGINS (n,), 'seen' (each lane's near
-    decisions, _Alt's keys).  (numpy's warnings are off: the lanes a branch does not take
-    compute whatever they compute, and are not used.)"""
+def shade(scene, base, d, rules, max_dist: float, flips=None, limit=None) -> dict:
+    """shade_oracle.ray_trace of every lane's ray (base, d: EF triples of arrays): 'I',
+    'err' (n, 3), 'bounces', the MARGINS (n,), 'seen' (each lane's near decisions, _Alt's
+    keys), 'raised' (where the per-pixel code raises).  ``flips``: per lane, the near
+    decisions taken the other way (_Alt's keys; default none), ``limit``: below what margin
+    a decision is near (_Alt's).  (numpy's warnings are off: the lanes a branch does not
+    take compute whatever they compute, and are not used.)"""
     with np.errstate(all="ignore"):
-        return _shade(scene, base, d, rules, max_dist)
+        return _shade(scene, base, d, rules, max_dist, flips, limit)
 
 
-def _shade(scene, base, d, rules, max_dist: float) -> dict:
+def _shade(scene, base, d, rules, max_dist: float, flips, limit) -> dict:
     obs = oracle.prepared(scene)
     gs = Groups(obs)
     n = len(base[0].v)
@@ -608,9 +621,24 @@ def _shade(scene, base, d, rules, max_dist: float) -> dict:
     stack = []                                    # per bounce: (lanes, local I, specular)
     b = 0
 
+    near_at = LIMIT if limit is None else limit
+    # each key taken the other way somewhere: on which lanes
+    flipped = {}
+    for i, keys in enumerate(flips or ()):
+        for key in keys:
+            flipped.setdefault(key, np.zeros(n, bool))[i] = True
+
     def note(key, m, at):
-        for i in np.flatnonzero(m < LIMIT):
+        for i in np.flatnonzero(m < near_at):
             seen[at[i]].append(key)
+
+    def choose(key, m, at, outcome):
+        """_Alt.choose: ``outcome``, negated where the decision is near and flipped (the
+        key noted where it is near)."""
+        note(key, m, at)
+        if key not in flipped:
+            return outcome
+        return outcome ^ ((m < near_at) & flipped[key][at])
 
     while len(lane):
         h = trace(gs, base, d, rules, skip)
@@ -621,6 +649,9 @@ def _shade(scene, base, d, rules, max_dist: float) -> dict:
         risk = np.fmin(near, h.risk)
         for j in range(nobj):
             note((b, "geo", j), risk[:, j], lane)
+        if any((b, "geo", j) in flipped for j in range(nobj)):
+            h = _flip_geo(gs, h, risk, base, d, rules, skip, lane, b, flipped, near_at, note,
+                          raised)
         # a miss ends the path, black
         gone = ~h.hit
         out["I"][lane[gone]] = 0.0
@@ -646,8 +677,6 @@ def _shade(scene, base, d, rules, max_dist: float) -> dict:
             off = oracle.OFF * 2.0 ** -53
             mx, my = _int_margin(x, off), _int_margin(y, off)
             out["tile"][lane[on]] = pmin(out["tile"][lane[on]], mx, my)
-            note((b, "tile", 0), mx, lane[on])
-            note((b, "tile", 1), my, lane[on])
             uu = h.uv[0].v[on] * k
             w, hh = size
             if rules.tile_add_first:
@@ -655,7 +684,8 @@ def _shade(scene, base, d, rules, max_dist: float) -> dict:
             else:
                 relx, rely = np.floor(oracle.OFF + uu / w), np.floor(oracle.OFF + h.uv[1].v[on] / hh)
             raised[lane[on]] |= ~np.isfinite(relx) | ~np.isfinite(rely)
-            fg[on] = (relx + rely) % 2 == 1
+            fg[on] = choose((b, "tile", 1), my, lane[on],
+                            choose((b, "tile", 0), mx, lane[on], (relx + rely) % 2 == 1))
         mat = _gather(tabs, fg, ids)
         I = list(mat["ambient"])
         for l, (centre, emis, spot) in enumerate(lights):
@@ -674,8 +704,8 @@ def _shade(scene, base, d, rules, max_dist: float) -> dict:
                 ms = _margin(s.v, s.e)
                 at = np.flatnonzero(lit)
                 out["shadow"][lane[at]] = pmin(out["shadow"][lane[at]], ms[at])
-                note((b, "spot", l), ms[at], lane[at])
-                lit = lit & (s.v > 0)
+                inside = choose((b, "spot", l), ms[at], lane[at], s.v[at] > 0)
+                lit[at] = inside
             at = np.flatnonzero(lit)
             if not len(at):
                 continue
@@ -685,8 +715,7 @@ def _shade(scene, base, d, rules, max_dist: float) -> dict:
             m = _hit_margin(gs, sh, Ha, La, ids[at], False, dist.v[at])
             m = np.where(sh.hit, pmin(m, _margin(sh.t.v - dist.v[at], sh.t.e + dist.e[at])), m)
             out["shadow"][lane[at]] = pmin(out["shadow"][lane[at]], m)
-            note((b, "shadow", l), m, lane[at])
-            blocked = sh.hit & (sh.t.v < dist.v[at])
+            blocked = choose((b, "shadow", l), m, lane[at], sh.hit & (sh.t.v < dist.v[at]))
             on = at[~blocked]
             cla, dista = cl.at(on), dist.at(on)
             for i in range(3):
@@ -700,8 +729,8 @@ def _shade(scene, base, d, rules, max_dist: float) -> dict:
         shiny = mat["shiny"]
         on = np.flatnonzero(shiny)
         out["maxdist"][lane[on]] = pmin(out["maxdist"][lane[on]], mm[on])
-        note((b, "maxdist", 0), mm[on], lane[on])
-        going = shiny & (total.v < max_dist)
+        going = np.zeros(len(lane), bool)
+        going[on] = choose((b, "maxdist", 0), mm[on], lane[on], total.v[on] < max_dist)
         stop = np.flatnonzero(~going)
         out["I"][lane[stop]] = np.stack([a.v[stop] for a in I], -1)
         out["err"][lane[stop]] = np.stack([a.e[stop] for a in I], -1)
@@ -720,6 +749,47 @@ def _shade(scene, base, d, rules, max_dist: float) -> dict:
             out["I"][at, i], out["err"][at, i] = got.v, got.e
     out["seen"] = [tuple(dict.fromkeys(s)) for s in seen]
     out["raised"] = raised
+    return out
+
+
+def _flip_geo(gs, h, risk, base, d, rules, skip, lane, b, flipped, near_at, note, raised):
+    """shade_oracle.ray_trace's closest hit with decisions taken the other way: the objects
+    whose verdict is near and flipped are taken the other way, and the near verdicts of the
+    hit that gives join them, up to four traces a lane; returns the hits."""
+    nobj = gs.nobj
+    want = np.zeros((len(lane), nobj), bool)
+    for j in range(nobj):
+        if (b, "geo", j) in flipped:
+            want[:, j] = flipped[(b, "geo", j)][lane]
+    cur = np.zeros_like(want)
+    going = np.ones(len(lane), bool)
+    for it in range(4):
+        if it:          # (the choices made again over the risks so far: the keys noted)
+            for j in range(nobj):
+                note((b, "geo", j), np.where(going, risk[:, j], INF), lane)
+        now = (risk < near_at) & want
+        going &= (now != cur).any(1)
+        at = np.flatnonzero(going)
+        if not len(at):
+            break
+        cur[at] = now[at]
+        h2 = trace(gs, [x.at(at) for x in base], [x.at(at) for x in d], rules, skip[at],
+                   cur[at])
+        raised[lane[at]] |= h2.raised
+        risk[at] = np.fmin(risk[at], h2.risk)
+        h = _put_hit(h, at, h2)
+    return h
+
+
+def _put_hit(h: _Hit, at, g: _Hit) -> _Hit:
+    """``h`` with lanes ``at`` from ``g`` (the fields ray_trace reads)."""
+    out = _Hit()
+    out.hit, out.id = h.hit.copy(), h.id.copy()
+    out.hit[at], out.id[at] = g.hit, g.id
+    out.t = _put(h.t, at, g.t)
+    out.position = [_put(a, at, x) for a, x in zip(h.position, g.position)]
+    out.normal = [_put(a, at, x) for a, x in zip(h.normal, g.normal)]
+    out.uv = [_put(a, at, x) for a, x in zip(h.uv, g.uv)]
     return out
 
 

@@ -307,6 +307,99 @@ def other_sides(scene, columns: int, rows: int, pixel: int, sampling: str = "cor
     return colours
 
 
+def _path(scene, columns: int, rows: int, pixel: int, sampling: str, rules: Rules,
+          max_dist: float, flips, limit):
+    """(colour, near decisions, bounces) of a pixel's path with ``flips`` taken the other way
+    (``other_sides``), or None where it raises (no hit to take, a division by zero)."""
+    base, d = pixel_ray(scene, columns, rows, pixel, sampling, rules)
+    alt, px = _Alt(flips, limit), _Pixel()
+    try:
+        I = ray_trace(scene, base, d, EF(0.0, 0.0), None, rules, max_dist, px, alt)
+    except (ValueError, ArithmeticError):
+        return None
+    return _colour(I), tuple(dict.fromkeys(alt.seen)), px.bounces
+
+
+def other_sides_of(scene, columns: int, rows: int, pixels, sampling: str = "corners",
+                   rules: Rules = Rules(), max_dist: float = 1000.0, runs: int = 32,
+                   bounces: int = 64, firsts=None, limit: float | None = None) -> list:
+    """``other_sides`` of each of ``pixels`` (``firsts``: their unflipped paths or None), the
+    same answers.  Where shade_batch covers the scene, the pixels' paths are traced
+    together, a round at a time: each round, every pixel's paths not traced yet (its near
+    decisions taken the other way, in every combination found so far).  A pixel's answer
+    depends only on the set of its paths, which every order reaches whole: the colours, or
+    None where one path raises, there are more than ``runs``, their bounces exceed
+    ``bounces`` or one has more than 8 near decisions."""
+    from mitsuba_ref import shade_batch
+    pixels = [int(p) for p in pixels]
+    firsts = list(firsts) if firsts is not None else [None] * len(pixels)
+    if len(pixels) < BATCH_MIN or not shade_batch.supported(scene):
+        return [other_sides(scene, columns, rows, p, sampling, rules, max_dist, runs, bounces,
+                            f, limit) for p, f in zip(pixels, firsts)]
+    todo = [[frozenset()] for _ in pixels]
+    done = [set() for _ in pixels]
+    left = [bounces] * len(pixels)
+    colours = [set() for _ in pixels]
+    answer = [False] * len(pixels)          # False: not known yet
+    while True:
+        lanes = []                          # (pixel's position, flips) to trace this round
+        for k in range(len(pixels)):
+            if answer[k] is not False:
+                continue
+            new = [f for f in dict.fromkeys(todo[k]) if f not in done[k]]
+            todo[k] = []
+            if not new:
+                answer[k] = colours[k]
+            elif len(done[k]) + len(new) > runs:
+                answer[k] = None
+            else:
+                done[k].update(new)
+                lanes += [(k, f) for f in new]
+        if not lanes:
+            return answer
+        for (k, flips), got in zip(lanes, _paths(scene, columns, rows, pixels, sampling, rules,
+                                                  max_dist, lanes, firsts, limit)):
+            if answer[k] is not False:
+                continue
+            if got is None:
+                answer[k] = None
+                continue
+            colour, near, went = got
+            left[k] -= went + 1
+            new = [key for key in near if key not in flips]
+            if left[k] < 0 or len(flips) + len(new) > 8:
+                answer[k] = None
+                continue
+            colours[k].add(colour)
+            todo[k] += [flips | {key} for key in new]
+
+
+def _paths(scene, columns, rows, pixels, sampling, rules, max_dist, lanes, firsts, limit):
+    """``_path`` of each (pixel's position, flips) of ``lanes``: a pixel's unflipped path
+    from ``firsts`` where known, the rest on arrays (shade_batch) where they are
+    BATCH_MIN or more, each lane the per-pixel code raises on by that code."""
+    from mitsuba_ref import shade_batch
+    out = [firsts[k] if not flips and limit is None and firsts[k] is not None else False
+           for k, flips in lanes]
+    todo = [i for i, got in enumerate(out) if got is False]
+    if len(todo) >= BATCH_MIN:
+        px = np.array([pixels[lanes[i][0]] for i in todo])
+        base, d = shade_batch.rays(scene, columns, rows, px, sampling, rules)
+        got = shade_batch.shade(scene, base, d, rules, max_dist,
+                                [lanes[i][1] for i in todo], limit)
+        ok = shade_batch.usable(got)
+        cols = shade_batch.colours(np.where(ok[:, None], got["I"], 0.0))
+        for j, i in enumerate(todo):
+            if ok[j]:
+                out[i] = (cols[j], got["seen"][j], int(got["bounces"][j]))
+    for i, got in enumerate(out):
+        if got is False:
+            k, flips = lanes[i]
+            out[i] = _path(scene, columns, rows, pixels[k], sampling, rules, max_dist, flips,
+                           limit)
+    return out
+
+
 def _colour(I) -> tuple:
     """The 8-bit colour of an intensity (3 EF)."""
     return tuple(int(c) for c in quantize(np.array([c.v for c in I])))

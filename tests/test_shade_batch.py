@@ -8,7 +8,11 @@ oracle's numbers, bit for bit.
 * the same under every rule variant, on the bundled scenes (all course scenes: ``slow``);
 * shade_pixels runs the batch from BATCH_MIN pixels on, and leaves to the per-pixel oracle what
   the batch does not cover (a cylinder, a texture) and a pixel whose numbers are not all
-  numbers (a light on the surface: the per-pixel oracle's division by zero, raised as always).
+  numbers (a light on the surface: the per-pixel oracle's division by zero, raised as always);
+* seeded random scenes, and _at_risk's ties and NaNs against the scalar function;
+* decisions taken the other way (flips, at float64's and at the float hint's limit): each
+  path as the per-pixel code traces it, and other_sides_of's answers other_sides', also at
+  the edges of its ``runs`` and ``bounces``.
 """
 from __future__ import annotations
 
@@ -203,3 +207,86 @@ def test10_random_scenes(seed, monkeypatch):
         scene = dataclasses.replace(scene, lights=scene.lights + (spot,))
     rules = (VARIANTS + [Rules()])[seed % (len(VARIANTS) + 1)]
     _same(scene, 12, rules, 1000.0 if seed % 2 else 40.0, monkeypatch)
+
+
+F32_LIMIT = shade_oracle.K_DECISION * 4 * 2.0 ** -24     # check.py's float hint asks this
+
+
+def _near_pixels(scene, W, H, rules, limit):
+    base, d = shade_batch.rays(scene, W, H, np.arange(W * H), "corners", rules)
+    got = shade_batch.shade(scene, base, d, rules, 1000.0, limit=limit)
+    return [p for p in range(W * H) if got["seen"][p]], got
+
+
+@pytest.mark.parametrize("limit", [None, F32_LIMIT], ids=["f64", "f32"])
+def test11_paths_with_decisions_flipped(limit):
+    """Each near decision of a pixel taken the other way, alone and all together: the batch's
+    path (colour, near decisions, bounces) is the per-pixel code's, and where that raises
+    (no hit to take: a sphere's discriminant, a plane parallel to the ray) the batch says so
+    ('raised')."""
+    lanes, want, raised = [], [], 0
+    for scene in SCENES[::3]:
+        W = 12
+        H = scene.default_rows(W)
+        pick, got = _near_pixels(scene, W, H, Rules(), limit)
+        if not pick:
+            continue
+        todo = [(p, frozenset([k])) for p in pick for k in got["seen"][p]] + \
+            [(p, frozenset(got["seen"][p])) for p in pick]
+        px = np.array([p for p, _ in todo])
+        base, d = shade_batch.rays(scene, W, H, px, "corners", Rules())
+        out = shade_batch.shade(scene, base, d, Rules(), 1000.0, [f for _, f in todo], limit)
+        ok = shade_batch.usable(out)
+        cols = shade_batch.colours(np.where(ok[:, None], out["I"], 0.0))
+        for j, (p, flips) in enumerate(todo):
+            ref = shade_oracle._path(scene, W, H, p, "corners", Rules(), 1000.0, flips, limit)
+            if not ok[j]:
+                raised += 1
+                continue            # (shade_pixels and other_sides_of ask the per-pixel code)
+            assert ref is not None, (scene.path, p, flips)
+            assert (cols[j], set(out["seen"][j]), int(out["bounces"][j])) == \
+                (ref[0], set(ref[1]), ref[2]), (scene.path, p, flips)
+            lanes.append(j)
+    assert len(lanes) > 300 and (raised > 0 or limit is None)
+
+
+@pytest.mark.parametrize("limit,rules", [(None, Rules()), (F32_LIMIT, VARIANTS[0]),
+                                         (F32_LIMIT, VARIANTS[3])], ids=["f64", "f32-a", "f32-b"])
+def test12_other_sides_of(limit, rules):
+    """other_sides_of (the paths of many pixels traced together, a round at a time) gives
+    other_sides' answer for each pixel: its colours, or None."""
+    answers = set()
+    for scene in SCENES[1::2]:
+        W = 12
+        H = scene.default_rows(W)
+        pick, got = _near_pixels(scene, W, H, rules, limit)
+        if len(pick) < shade_oracle.BATCH_MIN:
+            continue
+        firsts = None
+        if limit is None:
+            firsts = shade_oracle.shade_pixels(scene, W, H, pick, "corners", rules)["paths"]
+        many = shade_oracle.other_sides_of(scene, W, H, pick, "corners", rules, 1000.0,
+                                           firsts=firsts, limit=limit)
+        for p, a in zip(pick, many):
+            assert a == shade_oracle.other_sides(scene, W, H, p, "corners", rules, 1000.0,
+                                                 limit=limit), (scene.path, p)
+            answers.add("none" if a is None else "several" if len(a) > 1 else "one")
+    assert answers == {"none", "several", "one"}
+
+
+def test13_other_sides_of_limits():
+    """other_sides' limits, at their edges: as many paths as ``runs`` and no more, as many
+    bounces as ``bounces``: other_sides_of answers as other_sides does at each."""
+    scene = next(s for s in SCENES if Path(s.path).stem == "nw__spec3")
+    W, H = 12, scene.default_rows(12)
+    pick, _ = _near_pixels(scene, W, H, Rules(), F32_LIMIT)
+    kinds = set()
+    for runs in (1, 2, 3, 4):
+        for bounces in (0, 1, 2, 3, 5):
+            many = shade_oracle.other_sides_of(scene, W, H, pick, runs=runs, bounces=bounces,
+                                               limit=F32_LIMIT)
+            for p, a in zip(pick, many):
+                assert a == shade_oracle.other_sides(scene, W, H, p, runs=runs,
+                                                     bounces=bounces, limit=F32_LIMIT)
+                kinds.add(a is None)
+    assert kinds == {True, False}

@@ -323,16 +323,18 @@ class Boundary:
         float64 bound give taken either way, in some combination (the shading oracle's
         ``other_sides``); where those cannot all be enumerated, any colour (README "What
         boundary excuses")."""
-        from mitsuba_ref.shade_oracle import other_sides
+        from mitsuba_ref.shade_oracle import other_sides_of
         cam = self.r.cam
+        pixels = np.asarray(pixels, np.int64).tolist()
+        todo = [p for p in dict.fromkeys(pixels) if (rules, md, p) not in self.colours]
+        if todo:
+            got = other_sides_of(self.r.scene, cam.columns, cam.rows, todo, cam.sampling,
+                                 rules, md, firsts=[self.paths.get((rules, md, p))
+                                                    for p in todo])
+            self.colours.update({(rules, md, p): g for p, g in zip(todo, got)})
         out = []
-        for p in np.asarray(pixels, np.int64).tolist():
-            key = (rules, md, p)
-            if key not in self.colours:
-                self.colours[key] = other_sides(self.r.scene, cam.columns, cam.rows, p,
-                                                cam.sampling, rules, md,
-                                                first=self.paths.get(key))
-            got = self.colours[key]
+        for p in pixels:
+            got = self.colours[(rules, md, p)]
             out.append(got is None or any(np.abs(self.theirs[p] - np.array(c)).max() <= 1
                                           for c in got))
         return np.array(out, bool)
@@ -343,26 +345,25 @@ class Boundary:
         level) that the decisions within float32's rounding give taken either way,
         F32_U standing for float32's unit roundoff (a pixel whose sides cannot all be
         enumerated is not explained).  For a hint, never the verdict."""
-        from mitsuba_ref.shade_oracle import K_DECISION, flags, other_sides, shade_pixels
+        from mitsuba_ref.shade_oracle import K_DECISION, flags, other_sides_of, shade_pixels
         cam = self.r.cam
         pixels = np.asarray(pixels, np.int64)
         orc = shade_pixels(self.r.scene, cam.columns, cam.rows, pixels, cam.sampling, rules,
                            md)
-        level = flags(orc, "f32", u=F32_U)["quant"]
+        quant = flags(orc, "f32", u=F32_U)["quant"]
         ours = self.r.image(rules, md).reshape(-1, 3).astype(np.int16)
-        out = []
-        for k, p in enumerate(pixels.tolist()):
-            apart = np.abs(self.theirs[p] - ours[p]).max()
-            if apart == 1 and level[k]:
-                out.append(True)
-                continue
-            got = other_sides(self.r.scene, cam.columns, cam.rows, p, cam.sampling, rules, md,
-                              limit=K_DECISION * F32_U)
-            # (where the sides cannot all be enumerated, not explained: a hint that may
-            # send a student after the wrong cause had better say nothing)
-            out.append(got is not None and any(
-                np.abs(self.theirs[p] - np.array(c)).max() <= 1 for c in got))
-        return np.array(out, bool)
+        pixels = pixels.tolist()
+        level = [np.abs(self.theirs[p] - ours[p]).max() == 1 and quant[k]
+                 for k, p in enumerate(pixels)]
+        ask = [p for p, lv in zip(pixels, level) if not lv]
+        sides = dict(zip(ask, other_sides_of(self.r.scene, cam.columns, cam.rows, ask,
+                                             cam.sampling, rules, md,
+                                             limit=K_DECISION * F32_U)))
+        # (where the sides cannot all be enumerated, not explained: a hint that may send a
+        # student after the wrong cause had better say nothing)
+        return np.array([lv or (sides[p] is not None and any(
+            np.abs(self.theirs[p] - np.array(c)).max() <= 1 for c in sides[p]))
+            for p, lv in zip(pixels, level)], bool)
 
     def levels(self, pixels, rules, md: float) -> tuple:
         """(jump, quant) of ``pixels`` under exactly (rules, md): a decision within its bound,
