@@ -12,8 +12,9 @@ end).
 
 Covers what most course scenes hold (``supported``): spheres, planes, finite and tiled
 planes, point lights and spotlights, no texture.  The per-pixel oracle does the rest, and
-every pixel whose numbers come out NaN or infinite here: that is a division by zero or a
-square root of a negative number, on which the per-pixel oracle raises as it always has.
+every pixel where it raises (``shade``'s 'raised': a division by zero, a rounding of
+infinity, a flipped verdict with no hit to take), as it always has, and, to be safe, every
+pixel whose intensity comes out NaN.
 
 Decisions can be taken the other way (``flips``, as ``shade_oracle._Alt`` takes them):
 ``shade_oracle.other_sides_of`` traces the paths of many pixels' near decisions, in every
@@ -522,7 +523,7 @@ def _hit_margin(gs: Groups, h, base, d, skip, ties, tmax, near=None):
     if ties:
         m = pmin(m, h.tie_gap)
     tw = np.where(h.hit, h.t.v, INF)
-    top = np.minimum(tw, tmax)
+    top = pmin(tw, tmax)
     bv, dv = [x.v for x in base], [x.v for x in d]
     for g in gs:
         if g.kind != "sphere":
@@ -553,7 +554,7 @@ def _materials(scene):
         return {f: [V(np.array([inp(getattr(m, f)[i]).v for m in mats]),
                       np.array([inp(getattr(m, f)[i]).e for m in mats])) for i in range(3)]
                 for f in ("ambient", "diffuse", "specular")} | \
-            {"shiny": np.array([any(m.specular) for m in mats])}
+            {"shiny": np.array([any(m.specular) for m in mats], bool)}
     objs = scene.objects
     return table([o.material for o in objs]), \
         table([getattr(o, "background", None) or o.material for o in objs])
@@ -605,12 +606,13 @@ def _shade(scene, base, d, rules, max_dist: float, flips, limit) -> dict:
     for light in scene.lights:
         spot = None
         if light.kind == "spotlight":
-            cos_t = math.cos(math.radians(light.theta))
             try:
+                cos_t = math.cos(math.radians(light.theta))
                 axis = oracle.unit3(oracle.diff3(oracle.vec(light.aim),
                                                  oracle.vec(light.center)))
-            except ZeroDivisionError:           # aimed at itself: raised where it is asked
-                axis = None
+            except (ValueError, ZeroDivisionError):
+                # aimed at itself, or an infinite angle: raised where the light is asked
+                cos_t, axis = 0.0, None
             spot = (axis and tuple(c(a) for a in axis), V(cos_t, 4.0 * abs(cos_t)))
         lights.append((_vec(oracle.vec(light.center)),
                        [inp(x) for x in light.emissivity], spot))
@@ -684,8 +686,11 @@ def _shade(scene, base, d, rules, max_dist: float, flips, limit) -> dict:
             else:
                 relx, rely = np.floor(oracle.OFF + uu / w), np.floor(oracle.OFF + h.uv[1].v[on] / hh)
             raised[lane[on]] |= ~np.isfinite(relx) | ~np.isfinite(rely)
+            # (floor + floor odd: the parities differ.  Not their float sum, which past 2^52
+            # rounds to an even number where Python's integers keep the odd one)
+            odd = (np.fmod(relx, 2.0) != 0.0) != (np.fmod(rely, 2.0) != 0.0)
             fg[on] = choose((b, "tile", 1), my, lane[on],
-                            choose((b, "tile", 0), mx, lane[on], (relx + rely) % 2 == 1))
+                            choose((b, "tile", 0), mx, lane[on], odd))
         mat = _gather(tabs, fg, ids)
         I = list(mat["ambient"])
         for l, (centre, emis, spot) in enumerate(lights):
@@ -816,7 +821,7 @@ def rays(scene, columns: int, rows: int, pixels, sampling: str, rules) -> tuple:
 
 
 def _rays(scene, columns: int, rows: int, pixels, sampling: str, rules) -> tuple:
-    r, x = np.divmod(np.asarray(pixels, np.int64), columns)
+    r, x = np.divmod(np.asarray(pixels, np.int64), max(columns, 1))
     y = rows - 1 - r + (1 if rules.rows == "shifted" else 0)
     ww, wh = inp(scene.window[0]), inp(scene.window[1])
     xs, ys = V(x.astype(float), 0.0), V(y.astype(float), 0.0)
@@ -827,10 +832,13 @@ def _rays(scene, columns: int, rows: int, pixels, sampling: str, rules) -> tuple
         wx = sub(mul(div(add(xs, exact(0.5)), exact(columns)), ww), div(ww, exact(2.0)))
         wy = sub(mul(div(add(ys, exact(0.5)), exact(rows)), wh), div(wh, exact(2.0)))
     base = tuple(inp(a) for a in scene.viewpoint)
-    d = unit3(diff3((wx, wy, exact(0.0)), base))
+    d, zero = unit3z(diff3((wx, wy, exact(0.0)), base))
     n = len(x)
     base = tuple(V(np.full(n, a.v), np.full(n, a.e)) for a in base)
-    return base, d
+    # where pixel_ray divides by zero (a direction of no length; one column or row with
+    # corner sampling, or none), every component NaN: ``shade`` says 'raised' there
+    bad = zero | (min(columns, rows) <= (1 if sampling == "corners" else 0))
+    return base, tuple(V(np.where(bad, np.nan, a.v), np.where(bad, np.nan, a.e)) for a in d)
 
 
 def colours(I: np.ndarray) -> list:

@@ -46,9 +46,9 @@ def _per_pixel(scene, W, H, pixels, rules, md, monkeypatch):
         return shade_oracle.shade_pixels(scene, W, H, pixels, "corners", rules, md)
 
 
-def _same(scene, columns, rules, md, monkeypatch, sampling="corners"):
+def _same(scene, columns, rules, md, monkeypatch, sampling="corners", rows=None):
     W = columns
-    H = scene.default_rows(W)
+    H = scene.default_rows(W) if rows is None else rows
     px = np.arange(W * H)
     base, d = shade_batch.rays(scene, W, H, px, sampling, rules)
     got = shade_batch.shade(scene, base, d, rules, md)
@@ -290,3 +290,47 @@ def test13_other_sides_of_limits():
                                                      bounces=bounces, limit=F32_LIMIT)
                 kinds.add(a is None)
     assert kinds == {True, False}
+
+
+TILE_GRAZE = """8 6
+0 0 5
+pointlight
+2 10 5
+0 1 2
+tplane
+0 0.25 1
+0 6 2
+0 0 0
+2 1 1
+0 -2 -4
+1 0 0
+0.5 3
+1 0.5 1
+1 4 6
+0 0 0
+"""
+
+
+def test14_review_cases(monkeypatch):
+    """What a review found: a tile index past 2^52 (a ray all but parallel to a tilted tiled
+    plane, a plane far off, tiles of 1e-16), where the float sum of the two floors rounds
+    to even; a scene without objects; pixel_ray's divisions by zero that numpy makes NaN or
+    inf (a viewpoint a hair from the window plane, one row of pixels): the per-pixel
+    oracle's numbers, or its exception."""
+    _same(parse_text(TILE_GRAZE), 9, Rules(), 1000.0, monkeypatch, rows=7)
+    far = (REPO / "scenes" / "tplane.txt").read_text().replace(
+        "0 -3.2 0        # a point", "1e17 -3.2 0     # a point").replace(
+        "0 0 0           # background specular", "1 1 1           # background specular")
+    _same(parse_text(far), 16, Rules(), 1000.0, monkeypatch, rows=12)
+    tiny = (REPO / "scenes" / "tplane.txt").read_text().replace("1 1.5           # tile",
+                                                                 "1e-16 1.5       # tile")
+    _same(parse_text(tiny), 8, Rules(), 1000.0, monkeypatch, rows=8)
+    empty = parse_text("8 6\n0 0 4\n")
+    got = shade_oracle.shade_pixels(empty, 8, 8, np.arange(64))
+    assert not got["I"].any() and got["paths"][0] == ((0, 0, 0), (), 0)
+    near = parse_text((REPO / "scenes" / "shade_spot.txt").read_text().replace(
+        "0 0 4\n", "0 0 1e-170\n", 1))
+    with pytest.raises(ZeroDivisionError):
+        shade_oracle.shade_pixels(near, 9, 9, np.arange(81))
+    with pytest.raises(ZeroDivisionError):
+        shade_oracle.shade_pixels(SCENES[0], 64, 1, np.arange(64), rules=Rules(rows="shifted"))
