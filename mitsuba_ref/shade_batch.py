@@ -34,6 +34,13 @@ from mitsuba_ref.shade_oracle import K_DECISION, U, _Alt, quantize
 
 INF = math.inf
 KINDS = ("sphere", "plane", "fplane", "tplane")
+# fewer lanes than this still going after a bounce go on in the per-pixel code, from where
+# they are: a mirror corridor's few long paths cost the arrays a few milliseconds a bounce
+# whatever the lanes, the per-pixel code a tenth of a millisecond a lane.  Measured on 100
+# pixels of scenes/shade_mirrors.txt at 97 columns, cut-off 50000 (up to 2,900 bounces):
+# per pixel 10.6 s; the arrays handing over below 1, 4, 8, 16, 32 or 64 lanes 9.6, 8.9,
+# 8.3, 7.5, 7.9 and 10.4 s
+TAIL_LANES = 16
 LIMIT = _Alt.LIMIT                      # a decision is near below this margin
 
 
@@ -643,6 +650,10 @@ def _shade(scene, base, d, rules, max_dist: float, flips, limit) -> dict:
         return outcome ^ ((m < near_at) & flipped[key][at])
 
     while len(lane):
+        if b and len(lane) < TAIL_LANES:
+            _hand_over(scene, lane, base, d, skip, total, b, rules, max_dist, flips, limit,
+                       out, seen, raised)
+            break
         h = trace(gs, base, d, rules, skip)
         raised[lane] |= h.raised
         near = np.full((len(lane), nobj), INF)
@@ -755,6 +766,34 @@ def _shade(scene, base, d, rules, max_dist: float, flips, limit) -> dict:
     out["seen"] = [tuple(dict.fromkeys(s)) for s in seen]
     out["raised"] = raised
     return out
+
+
+def _hand_over(scene, lane, base, d, skip, total, b, rules, max_dist, flips, limit, out,
+               seen, raised):
+    """The rest of the paths of ``lane`` from bounce ``b`` on, by the per-pixel code
+    (shade_oracle.ray_trace from the lanes' state, as EF numbers of the same values): their
+    intensity from there into ``out`` (the bounces before add theirs as ever), margins and
+    bounces on from the arrays', near decisions noted."""
+    from mitsuba_ref import shade_oracle
+    for i, p in enumerate(lane.tolist()):
+        px = shade_oracle._Pixel()
+        for k in shade_oracle.MARGINS:
+            setattr(px, k, float(out[k][p]))
+        alt = shade_oracle._Alt(flips[p] if flips else frozenset(), limit)
+        ef = lambda x: EF(float(x.v[i]), float(x.e[i]))
+        try:
+            I = shade_oracle.ray_trace(scene, tuple(ef(x) for x in base),
+                                       tuple(ef(x) for x in d), ef(total), int(skip[i]), rules,
+                                       max_dist, px, alt, bounce=b)
+        except (ValueError, ArithmeticError):
+            raised[p] = True
+            continue
+        out["I"][p] = [x.v for x in I]
+        out["err"][p] = [x.e for x in I]
+        out["bounces"][p] += px.bounces
+        for k in shade_oracle.MARGINS:
+            out[k][p] = getattr(px, k)
+        seen[p] += alt.seen
 
 
 def _flip_geo(gs, h, risk, base, d, rules, skip, lane, b, flipped, near_at, note, raised):

@@ -156,7 +156,7 @@ def pixel_ray(scene, columns: int, rows: int, pixel: int, sampling: str, rules: 
 
 
 def ray_trace(scene, base, d, total_dist, skip, rules: Rules, max_dist: float, px: _Pixel,
-              alt: _Alt | None = None):
+              alt: _Alt | None = None, bounce: int = 0):
     """The notes' trace(): intensity (3 EF) of the ray base + t·d, path length so far
     ``total_dist`` (EF), ignoring object ``skip``; margins go into ``px``.
 
@@ -165,10 +165,11 @@ def ray_trace(scene, base, d, total_dist, skip, rules: Rules, max_dist: float, p
     the last bounce back: the same operations in the same order, without Python's recursion
     limit (a corridor of mirrors reaches thousands of bounces before a long MAX_DIST).
     ``alt``: the decisions within their bound are recorded there, and those it names taken
-    the other way (``other_sides``)."""
+    the other way (``other_sides``).  ``bounce``: the ray's bounce in its path (alt's keys;
+    shade_batch hands a path's last bounces over here)."""
     alt = _Alt() if alt is None else alt
     stack = []                          # (local intensity, specular) of the bounces so far
-    b = 0                               # the bounce (alt's keys)
+    b = bounce                          # the bounce (alt's keys)
     while True:
         h = trace(scene, base, d, rules, skip)
         near = []

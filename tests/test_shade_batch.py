@@ -334,3 +334,25 @@ def test14_review_cases(monkeypatch):
         shade_oracle.shade_pixels(near, 9, 9, np.arange(81))
     with pytest.raises(ZeroDivisionError):
         shade_oracle.shade_pixels(SCENES[0], 64, 1, np.arange(64), rules=Rules(rows="shifted"))
+
+
+@pytest.mark.parametrize("tail", [0, 10 ** 6], ids=["arrays", "handed-over"])
+def test15_long_paths_handed_over(tail, monkeypatch):
+    """The last few lanes of long paths go on in the per-pixel code from where they are
+    (TAIL_LANES): the same numbers and near decisions whether every path is handed over
+    after its first bounce or none is, with decisions flipped too."""
+    monkeypatch.setattr(shade_batch, "TAIL_LANES", tail)
+    calls = []
+    real = shade_oracle.ray_trace
+    monkeypatch.setattr(shade_oracle, "ray_trace",
+                        lambda *a, **k: calls.append(k.get("bounce", 0)) or real(*a, **k))
+    mirrors = next(s for s in _scenes(bundled_only=True) if Path(s.path).stem == "shade_mirrors")
+    _same(mirrors, 12, Rules(), 200.0, monkeypatch)
+    assert (max(calls) > 0) == bool(tail)
+    spec = next(s for s in SCENES if Path(s.path).stem == "nw__spec3")
+    W, H = 12, spec.default_rows(12)
+    pick, _ = _near_pixels(spec, W, H, Rules(), F32_LIMIT)
+    many = shade_oracle.other_sides_of(spec, W, H, pick, limit=F32_LIMIT)
+    with monkeypatch.context() as m:
+        m.setattr(shade_oracle, "BATCH_MIN", 10 ** 9)
+        assert many == [shade_oracle.other_sides(spec, W, H, p, limit=F32_LIMIT) for p in pick]
