@@ -49,8 +49,9 @@ K_VALUE = 8.0
 MARGINS = ("geo", "shadow", "tile", "maxdist", "texel")
 # from this many pixels on, shade_pixels runs shade_batch (where it covers the scene): below,
 # numpy's per-call cost outweighs the per-pixel loop's.  Measured on the differing pixels of
-# rtval validate's 149 shaded comparisons (48 columns): the per-pixel oracle took 1.08 s;
-# with the batch from 8, 16, 32 or 64 pixels on, 0.37, 0.34, 0.39 and 0.53 s
+# rtval validate's 149 shaded comparisons (48 columns, a test run beside it): the
+# per-pixel oracle took 1.08 s; with the batch from 8, 16, 32 or 64 pixels on, 0.37, 0.34,
+# 0.39 and 0.53 s
 BATCH_MIN = 16
 
 
