@@ -1,4 +1,5 @@
-"""The shading oracle's first pass (``shade_oracle.shade_pixels``) over many pixels at once.
+"""The shading oracle's paths (``shade_oracle.shade_pixels``, ``other_sides_of``) of many
+pixels at once.
 
 ``shade_oracle.ray_trace`` follows one pixel's path in Python floats, which costs about a
 millisecond a bounce: 4,000 differing pixels of a validation run take a second, and a mirror
@@ -30,7 +31,7 @@ import numpy as np
 
 from mitsuba_ref import oracle
 from mitsuba_ref.oracle import EF, _f32_exact
-from mitsuba_ref.shade_oracle import K_DECISION, U, _Alt, quantize
+from mitsuba_ref.shade_oracle import _Alt, quantize
 
 INF = math.inf
 KINDS = ("sphere", "plane", "fplane", "tplane")
@@ -306,7 +307,8 @@ def _plane(g, base, d, rules) -> _Cand:
     cand = _Cand(ok, t, hitloc, par=par, ndotd=ndotd)
     if g.framed.any():
         cand.newhit = xform3(g.rotmat, diff3(hitloc, g.point))
-        cand.ok = ok & (_inside(g, cand.newhit, rules) | ~g.finite)
+        cand.inside = _inside(g, cand.newhit, rules)
+        cand.ok = ok & (cand.inside | ~g.finite)
     return cand
 
 
@@ -378,8 +380,8 @@ def _tests(g, cand, base, d, rules) -> list:
         z = cand.hitloc[2]
         out.append(("clip_margin", ~_clipped(z.v, rules), _margin(z.v, z.e), has_t))
     if g.kind == "plane" and g.finite.any():
-        out.append(("edge_margin", _inside(g, cand.newhit, rules),
-                    _edge_margin(g, cand, base, d, rules), has_t & g.finite))
+        out.append(("edge_margin", cand.inside, _edge_margin(g, cand, base, d, rules),
+                    has_t & g.finite))
     return out
 
 
@@ -557,9 +559,12 @@ def _hit_margin(gs: Groups, h, base, d, skip, ties, tmax, near=None):
 def _materials(scene):
     """Per object, as arrays indexed by object: ambient, diffuse, specular (3 V each, EF of
     the numbers as written), of the material and of a tiled plane's background."""
+    def column(mats, f, i):
+        efs = [inp(getattr(m, f)[i]) for m in mats]
+        return V(np.array([x.v for x in efs]), np.array([x.e for x in efs]))
+
     def table(mats):
-        return {f: [V(np.array([inp(getattr(m, f)[i]).v for m in mats]),
-                      np.array([inp(getattr(m, f)[i]).e for m in mats])) for i in range(3)]
+        return {f: [column(mats, f, i) for i in range(3)]
                 for f in ("ambient", "diffuse", "specular")} | \
             {"shiny": np.array([any(m.specular) for m in mats], bool)}
     objs = scene.objects
@@ -883,6 +888,15 @@ def _rays(scene, columns: int, rows: int, pixels, sampling: str, rules) -> tuple
 def colours(I: np.ndarray) -> list:
     """shade_oracle._colour of each row."""
     return [tuple(int(c) for c in q) for q in quantize(I)]
+
+
+def paths(out: dict) -> list:
+    """Each lane's (colour, near decisions, bounces), as shade_oracle's paths are, or None
+    where the per-pixel code is to trace it (not ``usable``)."""
+    ok = usable(out)
+    cols = colours(np.where(ok[:, None], out["I"], 0.0))
+    return [(col, seen, int(b)) if good else None
+            for col, seen, b, good in zip(cols, out["seen"], out["bounces"], ok)]
 
 
 def usable(out: dict) -> np.ndarray:

@@ -4,8 +4,8 @@ The notes' recursion written out literally (shared/notes/course-format.md, "Shad
 pixel at a time, on top of the per-ray geometry oracle (``mitsuba_ref/oracle.py``: its hit functions,
 its closest-hit ``trace`` with the ``skip`` of the surface a ray leaves, its error-carrying
 ``EF`` numbers).  Nothing here is vectorized or shares code with ``rt_core.shading``
-(``shade_batch`` runs the first pass of many pixels on arrays, with these same numbers:
-``shade_pixels``).
+(``shade_batch`` runs many pixels' paths on arrays, with these same numbers:
+``shade_pixels``, ``other_sides_of``).
 
 Beside the intensity I (with a first-order bound on its rounding error, in units of u) every
 pixel carries the *margins* of the discontinuous decisions that made it, each the distance of
@@ -276,16 +276,6 @@ def other_sides(scene, columns: int, rows: int, pixel: int, sampling: str = "cor
     (its 'paths' entry), not traced again.  ``limit``: a decision is near below this
     margin (default float64's, ``_Alt.LIMIT``; a wider one asks what a tracer computing
     in lower precision may take either way)."""
-    base, d = pixel_ray(scene, columns, rows, pixel, sampling, rules)
-
-    def path(flips):
-        """(colour, near decisions, bounces) of the path with ``flips`` taken the other way."""
-        if not flips and first is not None and limit is None:
-            return first
-        alt, px = _Alt(flips, limit), _Pixel()
-        I = ray_trace(scene, base, d, EF(0.0, 0.0), None, rules, max_dist, px, alt)
-        return _colour(I), tuple(dict.fromkeys(alt.seen)), px.bounces
-
     colours, todo, done = set(), [frozenset()], set()
     while todo:
         flips = todo.pop()
@@ -294,12 +284,13 @@ def other_sides(scene, columns: int, rows: int, pixel: int, sampling: str = "cor
         if len(done) >= runs:
             return None
         done.add(flips)
-        try:
-            colour, near, went = path(flips)
-        except (ValueError, ArithmeticError):
+        got = first if not flips and first is not None and limit is None else \
+            _path(scene, columns, rows, pixel, sampling, rules, max_dist, flips, limit)
+        if got is None:
             # no hit to take, or a hit taken at t = 0 that the intensity divides by (a
             # course program's inf or NaN: not a colour to name)
             return None
+        colour, near, went = got
         bounces -= went + 1
         new = [k for k in near if k not in flips]
         if bounces < 0 or len(flips) + len(new) > 8:
@@ -389,11 +380,9 @@ def _paths(scene, columns, rows, pixels, sampling, rules, max_dist, lanes, first
         base, d = shade_batch.rays(scene, columns, rows, px, sampling, rules)
         got = shade_batch.shade(scene, base, d, rules, max_dist,
                                 [lanes[i][1] for i in todo], limit)
-        ok = shade_batch.usable(got)
-        cols = shade_batch.colours(np.where(ok[:, None], got["I"], 0.0))
-        for j, i in enumerate(todo):
-            if ok[j]:
-                out[i] = (cols[j], got["seen"][j], int(got["bounces"][j]))
+        for i, path in zip(todo, shade_batch.paths(got)):
+            if path is not None:
+                out[i] = path
     for i, got in enumerate(out):
         if got is False:
             k, flips = lanes[i]
@@ -517,12 +506,10 @@ def shade_pixels(scene, columns: int, rows: int, pixels, sampling: str = "corner
         if shade_batch.supported(scene):
             base, d = shade_batch.rays(scene, columns, rows, pixels, sampling, rules)
             got = shade_batch.shade(scene, base, d, rules, max_dist)
-            ok = shade_batch.usable(got)
             for key in ("I", "err", "bounces", *MARGINS):
                 out[key][:] = got[key]
-            out["paths"] = list(zip(shade_batch.colours(np.where(ok[:, None], got["I"], 0.0)),
-                                    got["seen"], got["bounces"].tolist()))
-            todo = np.flatnonzero(~ok).tolist()
+            out["paths"] = shade_batch.paths(got)
+            todo = [k for k, path in enumerate(out["paths"]) if path is None]
     for k in todo:
         i = int(pixels[k])
         px, alt = _Pixel(), _Alt()

@@ -224,7 +224,7 @@ def test11_paths_with_decisions_flipped(limit):
     path (colour, near decisions, bounces) is the per-pixel code's, and where that raises
     (no hit to take: a sphere's discriminant, a plane parallel to the ray) the batch says so
     ('raised')."""
-    lanes, want, raised = [], [], 0
+    lanes, raised = [], 0
     for scene in SCENES[::3]:
         W = 12
         H = scene.default_rows(W)
@@ -236,16 +236,14 @@ def test11_paths_with_decisions_flipped(limit):
         px = np.array([p for p, _ in todo])
         base, d = shade_batch.rays(scene, W, H, px, "corners", Rules())
         out = shade_batch.shade(scene, base, d, Rules(), 1000.0, [f for _, f in todo], limit)
-        ok = shade_batch.usable(out)
-        cols = shade_batch.colours(np.where(ok[:, None], out["I"], 0.0))
-        for j, (p, flips) in enumerate(todo):
+        for j, ((p, flips), path) in enumerate(zip(todo, shade_batch.paths(out))):
             ref = shade_oracle._path(scene, W, H, p, "corners", Rules(), 1000.0, flips, limit)
-            if not ok[j]:
+            assert bool(out["raised"][j]) == (ref is None), (scene.path, p, flips)
+            if path is None:
                 raised += 1
                 continue            # (shade_pixels and other_sides_of ask the per-pixel code)
-            assert ref is not None, (scene.path, p, flips)
-            assert (cols[j], set(out["seen"][j]), int(out["bounces"][j])) == \
-                (ref[0], set(ref[1]), ref[2]), (scene.path, p, flips)
+            assert (path[0], set(path[1]), path[2]) == (ref[0], set(ref[1]), ref[2]), \
+                (scene.path, p, flips)
             lanes.append(j)
     assert len(lanes) > 300 and (raised > 0 or limit is None)
 
