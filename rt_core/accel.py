@@ -2,7 +2,8 @@
 
 ``tracer.closest_hit`` unrolls one block of code per object while a scene has at most
 ``UNROLL_MAX`` bounded objects (spheres and finite planes together; infinite planes count per
-kind): the fastest kernel for a few objects, but its size, compile time and run time grow with
+kind; float32 camera rays, ``CAMERA_FACTOR`` times that): the fastest kernel
+for a few objects, but its size, compile time and run time grow with
 the count (7 s to compile and 7 Mrays/s at 256 finite planes).  Above that, a kind is traced
 here, by one Dr.Jit symbolic loop (``dr.while_loop``) whose body is that kind's hit function,
 with the object's constants gathered per iteration from a table: the kernel no longer depends
@@ -54,6 +55,15 @@ UNROLL_MAX = 8
 # costing about three unrolled hit tests (measured: unrolled is faster up to ~24 finite
 # planes, ~48 spheres).
 SECONDARY_FACTOR = 3
+# Camera rays in float32 loop over bounded objects only above CAMERA_FACTOR times UNROLL_MAX:
+# their unrolled tests are the cheap ones (a sphere behind one dot product,
+# shapes.sphere_cone; a finite plane without bounds).  Measured (bench scenes, 1920 columns,
+# median of 11 interleaved calls), unrolled time over binned: spheres 9 0.59, 12 0.66, 16
+# 0.90, 20 0.98, 24 1.06; finite planes 10 0.76, 12 0.84, 14 0.83, 16 1.02; mixed 10 0.58,
+# 14 0.71, 16 0.86, 20 0.99.  Not in float64: certified, unrolled is the slower (finite
+# planes 12: 1.35, spheres 16: 1.50), and without exact decisions too (finite planes 12:
+# 1.43, 16: 1.81; spheres 16: 1.04).
+CAMERA_FACTOR = 2
 # Bins per looped object (bounded kinds), at most one per RAYS_PER_BIN rays of the first
 # batch traced, and at most MAX_BINS.  Finer bins list fewer rows a ray misses (spheres, 16
 # objects: 1.41 rows a ray at 32 bins per object, 1.20 at 512; 64: 2.54, 2.16) and were
@@ -137,16 +147,20 @@ def use_bvh(ks, kind: str, o) -> bool:
             and ks.__dict__.get("_accel_opts", {}).get("bvh", True))
 
 
-def looped(ks, kind: str, reflections: bool = False) -> bool:
+def looped(ks, kind: str, reflections: bool = False, camera: bool = False) -> bool:
     """Is ``kind`` traced by a loop rather than unrolled?  Bounded kinds (spheres, finite
     planes) loop when there are more than UNROLL_MAX of them together; the unbounded ones
     (planes, tiled planes: every bin lists them) when there are more than UNROLL_MAX of the
     kind.  ``reflections``: for the closest hits of rays with an origin, above
-    SECONDARY_FACTOR times that."""
+    SECONDARY_FACTOR times that.  ``camera``: for the closest hits of camera rays, where
+    bounded kinds loop above CAMERA_FACTOR times that in float32 (every kind looped here is
+    looped without ``camera`` too)."""
     limit = ks.__dict__.get("_accel_opts", {}).get("unroll_max", UNROLL_MAX)
     if reflections:
         limit *= SECONDARY_FACTOR
     if kind in BOUNDED:
+        if camera and ks.T.precision == "f32":
+            limit *= CAMERA_FACTOR
         return sum(len(ks.by_kind.get(k, ())) for k in BOUNDED) > limit
     return len(ks.by_kind.get(kind, ())) > limit
 
@@ -407,7 +421,7 @@ def binned(ks, rays: int = 1 << 21):
     cache = ks.__dict__.setdefault("_accel", {})
     if "binned" not in cache:
         cache["binned"] = None
-        kinds = list(tables(ks))
+        kinds = [k for k in tables(ks) if looped(ks, k, camera=True)]
         if kinds and ks.scene.viewpoint[2] != 0:
             n = sum(len(ks.by_kind[k]) for k in kinds if k in BOUNDED)
             grid = make_grid(ks.scene, max(n, 1), rays)

@@ -2,7 +2,8 @@
 
 The kernel holds code only for the object kinds present; objects are grouped by kind and
 every number enters as opaque data, so scenes with the same kinds and counts share one
-compiled kernel.  Up to accel.UNROLL_MAX objects each gets its own unrolled block; above, a
+compiled kernel.  Up to accel.UNROLL_MAX objects each gets its own unrolled block (float32
+camera rays: up to twice that, accel.CAMERA_FACTOR); above, a
 kind is one symbolic loop over a table of its objects (with screen-space bins for rays from
 the viewpoint; rt_core/accel.py), whose kernel does not depend on the count either.
 Surface data (normal, uv) is computed once, for the closest hit only, from
@@ -186,7 +187,8 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, c
     single_kind = len(ks.kinds) == 1
     near = cone_a = None
     for kind in ks.kinds:
-        if accel.looped(ks, kind, o is not None):   # many objects: one loop, constants as data
+        # many objects: one loop, constants as data
+        if accel.looped(ks, kind, o is not None, camera=o is None):
             st = accel.closest_kind(ks, kind, d, o, rules, skip, st, scale)
             continue
         for obj in ks.by_kind[kind]:

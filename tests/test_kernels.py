@@ -207,11 +207,13 @@ def jit_launches(fn):
         return [e for e in dr.kernel_history() if e["type"] == dr.KernelType.JIT]
 
 
-def hit_kernel(scene, T):
-    """The one kernel of closest_hit (t, id) on evaluated camera directions."""
+def hit_kernel(scene, T, exact: bool = True):
+    """The one kernel of closest_hit (t, id) on evaluated camera directions (``exact``:
+    float64's exact decisions, as the KernelScene says; the call itself certifies nothing)."""
     d = primary_directions(scene, make_camera(scene, 64), T)
     dr.eval(d)
     ks = prepare(scene, T)
+    ks.exact_decisions = exact
 
     def run():
         t, oid, _ = closest_hit(ks, d)
@@ -323,6 +325,27 @@ def test10_unrolled_spheres_branch_past_certain_misses(precision, monkeypatch):
     monkeypatch.setattr(accel, "UNROLL_MAX", LOOPED)
     ir = hit_kernel(scene_of(spheres(n)), T)["ir"].getvalue()
     assert "sphere_object" not in ir and "closest_sphere" in ir
+
+
+@pytest.mark.parametrize("precision,exact", [("f32", True), ("f64", True), ("f64", False)])
+def test10b_float32_camera_rays_unroll_more(precision, exact):
+    """float32 camera rays unroll up to CAMERA_FACTOR × UNROLL_MAX bounded objects, each
+    sphere behind its branch; float64, with exact decisions or without, loops above
+    UNROLL_MAX.  (That both give the same hits is test01's.)"""
+    T = types(precision)
+    n = accel.UNROLL_MAX * accel.CAMERA_FACTOR
+    for objs in (spheres(n), spheres(n // 2) + fplanes(n - n // 2)):
+        ir = hit_kernel(scene_of(objs), T, exact)["ir"].getvalue()
+        if precision == "f64":
+            assert "closest_sphere" in ir and "sphere_object" not in ir
+        else:
+            assert "closest_" not in ir
+            assert ir.count("Symbolic conditional: sphere_object") == len(
+                [o for o in objs if o.kind == "sphere"])
+    ir = hit_kernel(scene_of(spheres(n + 1)), T, exact)["ir"].getvalue()
+    assert "closest_sphere" in ir and "sphere_object" not in ir
+    ir = hit_kernel(scene_of(spheres(accel.UNROLL_MAX)), T, exact)["ir"].getvalue()
+    assert "closest_sphere" not in ir
 
 
 def test11_certified_cull_keeps_unsure_rays():
