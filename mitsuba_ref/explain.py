@@ -213,49 +213,110 @@ def classify(scene: Scene, d: np.ndarray, ours: dict, ref: dict, rules: Rules,
     return out
 
 
+# no depth bound is below this: a planar object's is K·ε·(S + t)/(cos θ·t) >= K·ε/cos θ, and
+# cos θ <= 1 up to d's rounding; a quadric's is at least its planar form with cos θ = 1; a
+# sphere's K·ε·S/(t·√x) with x <= 1, and S >= |q| + r >= t where the hit lies on the sphere
+# (over_bound checks that last one ray by ray)
+DEPTH_FLOOR = K_ROUNDING * EPS32 / 2
+
+
+def over_bound(scene: Scene, d: np.ndarray, rays: np.ndarray, ids: np.ndarray, t: np.ndarray,
+               rel: np.ndarray, extent: float, rules: Rules) -> int:
+    """How many of the rays ``rays`` (rows of ``d``), hitting object ``ids`` at distance
+    ``t`` with relative depth error ``rel``, exceed their depth_bound.  The bound is computed
+    only where rel > DEPTH_FLOOR, or on a sphere where t > S/2 (its floor's argument needs
+    t <= S): no other ray can exceed it."""
+    terms = _bound_terms(scene, extent)
+    i = np.where((ids >= 0) & (ids < len(scene.objects)), ids, 0)
+    with np.errstate(invalid="ignore"):
+        may = (rel > DEPTH_FLOOR) | ((terms.code[i] == 1) & (t > terms.scale[i] / 2))
+    k = np.flatnonzero(may)
+    if not len(k):
+        return 0
+    b = depth_bound(scene, d[rays[k]], ids[k], t[k], extent, rules)
+    return int(np.count_nonzero(rel[k] > b))
+
+
 def depth_bound(scene: Scene, d: np.ndarray, ids: np.ndarray, t: np.ndarray, extent: float,
                 rules: Rules) -> np.ndarray:
     """Relative depth error bound per ray hitting object ``ids`` at distance ``t``: the
     position bound along the ray, over t.  For a sphere the bound grows as the ray nears
     the outline (t is ill-conditioned there): ε·S/√(relative discriminant)."""
     out = np.full(len(d), np.inf)
-    V = np.asarray(scene.viewpoint, np.float64)
-    origin = 2 * np.sqrt(V @ V)              # |O| + |V| of ObjectEval, O = V
-    # the rays of each object hit, by one sort (not a pass over every ray per object)
-    order = np.argsort(ids, kind="stable")
-    present, start = np.unique(ids[order], return_index=True)
-    for i, sel in zip(present.tolist(), np.split(order, start[1:])):
-        if not 0 <= i < len(scene.objects):
-            continue
-        o = scene.objects[i]
-        ds, ts = d[sel], t[sel]
-        if o.kind == "sphere":
-            out[sel] = _sphere_depth_bound(o, V, ds) / np.maximum(ts, 1e-300)
-            continue
-        if o.kind not in quadric.KINDS:
-            # ObjectEval's bound at the given t, from the terms it needs only (the plane's
-            # normal, anchor and size): its hit, extent and edge tests are not needed here
-            nrm, anchor, size = plane_terms(o, extent)
-            scale = origin + np.sqrt((anchor - V) @ (anchor - V)) + size
-            out[sel] = position_bound(scale, ts, np.abs(ds @ nrm)) / np.maximum(ts, 1e-300)
-            continue
-        # a quadric: as the sphere's, the root's condition near the outline or the rim,
-        # the margin relative to the object's size
-        ev = ObjectEval(scene, o, ds, rules, extent)
+    if not len(d):
+        return out
+    terms = _bound_terms(scene, extent)
+    known = (ids >= 0) & (ids < len(scene.objects))
+    i = np.where(known, ids, 0)
+    code = np.where(known, terms.code[i], -1)
+    ts = np.maximum(t, 1e-300)
+    # planar objects: ObjectEval's bound at the given t, from the terms it needs only (the
+    # plane's normal, and its scale from the anchor and size): its hit, extent and edge
+    # tests are not needed here
+    sel = np.flatnonzero(code == 0)
+    if len(sel):
+        j = i[sel]
+        cos = np.abs(np.einsum("ij,ij->i", d[sel], terms.nrm[j]))
+        out[sel] = position_bound(terms.scale[j], t[sel], cos) / ts[sel]
+    # spheres: ε·S/√(relative discriminant), the discriminant relative to r² taken as
+    # 2r·(distance of the ray from the outline) / r² (ObjectEval's margin and scale, of
+    # which only these are needed)
+    sel = np.flatnonzero(code == 1)
+    if len(sel):
+        j, ds = i[sel], d[sel]
+        q, r = terms.q[j], terms.radius[j]
+        a = np.einsum("ij,ij->i", ds, ds)
+        pn = _norm(q - ds * (np.einsum("ij,ij->i", ds, q) / a)[:, None])
+        rel_disc = np.clip(np.abs(pn - r) * (2 * r) / (r ** 2), 1e-300, None)
+        out[sel] = (K_ROUNDING * EPS32 * terms.scale[j] / np.sqrt(np.minimum(rel_disc, 1.0))
+                    / ts[sel])
+    # a quadric: as the sphere's, the root's condition near the outline or the rim, the
+    # margin relative to the object's size
+    for k in np.unique(i[code == 2]).tolist():
+        sel = np.flatnonzero(known & (ids == k))
+        ev = ObjectEval(scene, scene.objects[k], d[sel], rules, extent)
         rel_disc = np.clip(2 * ev.margin / max(ev.size, 1e-300), 1e-300, None)
-        b = np.maximum(ev.bound(ts),
+        b = np.maximum(ev.bound(t[sel]),
                        K_ROUNDING * EPS32 * ev.scale / np.sqrt(np.minimum(rel_disc, 1.0)))
-        out[sel] = b / np.maximum(ts, 1e-300)
+        out[sel] = b / ts[sel]
     return out
 
 
-def _sphere_depth_bound(o, V, d):
-    """A sphere's position bound for rays from V along d: ε·S/√(relative discriminant), the
-    discriminant relative to r² taken as 2r·(distance of the ray from the outline) / r²
-    (ObjectEval's margin and scale, of which only these are needed)."""
-    q = np.asarray(o.center, np.float64) - V
-    a = np.sum(d * d, 1)
-    pn = _norm(q - d * ((d @ q) / a)[:, None])
-    scale = 2 * np.sqrt(V @ V) + np.sqrt(q @ q) + o.radius
-    rel_disc = np.clip(np.abs(pn - o.radius) * (2 * o.radius) / (o.radius ** 2), 1e-300, None)
-    return K_ROUNDING * EPS32 * scale / np.sqrt(np.minimum(rel_disc, 1.0))
+class _BoundTerms:
+    """Per object of a scene, what depth_bound needs: ``code`` (0 planar, 1 sphere, 2
+    quadric), a planar object's unit normal, a sphere's centre − V and radius, and the
+    scale S of either (ObjectEval's, with O = V)."""
+
+    def __init__(self, scene: Scene, extent: float):
+        V = np.asarray(scene.viewpoint, np.float64)
+        origin = 2 * np.sqrt(V @ V)              # |O| + |V| of ObjectEval, O = V
+        n = len(scene.objects)
+        self.code = np.zeros(n, np.int8)
+        self.nrm, self.q = np.zeros((n, 3)), np.zeros((n, 3))
+        self.radius, self.scale = np.ones(n), np.zeros(n)
+        for k, o in enumerate(scene.objects):
+            if o.kind == "sphere":
+                q = np.asarray(o.center, np.float64) - V
+                self.code[k], self.q[k], self.radius[k] = 1, q, o.radius
+                self.scale[k] = origin + np.sqrt(q @ q) + o.radius
+            elif o.kind in quadric.KINDS:
+                self.code[k] = 2
+            else:
+                nrm, anchor, size = plane_terms(o, extent)
+                self.nrm[k] = nrm
+                self.scale[k] = origin + np.sqrt((anchor - V) @ (anchor - V)) + size
+
+
+# the terms of the last few scenes' objects: validate compares one scene four times (two
+# modes, two precisions; the camera mode's copy has another window, the same objects)
+_TERMS: dict = {}
+
+
+def _bound_terms(scene: Scene, extent: float) -> _BoundTerms:
+    key = (id(scene.objects), tuple(scene.viewpoint), extent)
+    hit = _TERMS.get(key)
+    if hit is None:                     # (an entry holds its objects: their id is not reused)
+        if len(_TERMS) > 8:
+            _TERMS.clear()
+        hit = _TERMS[key] = (scene.objects, _BoundTerms(scene, extent))
+    return hit[1]

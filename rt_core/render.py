@@ -23,6 +23,7 @@ from .tracer import closest_hit, position, prepare, surface
 
 GEOMETRY_CHANNELS = ("hit.mask", "depth.Z", "object.id", "normal.X", "normal.Y", "normal.Z",
                      "position.X", "position.Y", "position.Z", "uv.U", "uv.V")
+DIRECTION_CHANNELS = ("direction.X", "direction.Y", "direction.Z")
 MISS_CONVENTION = ("miss: hit.mask=0, depth.Z=0, object.id=-1, normal/position/uv=0; "
                    "depth.Z = Euclidean distance from the viewpoint")
 
@@ -45,15 +46,20 @@ def _empty_geometry(T, n: int) -> dict:
 
 
 def trace_geometry(scene: Scene, cam: Camera, T: backends.Types, rules: Rules = Rules(),
-                   log=None):
-    """Dr.Jit arrays (flat, image order) of the primary-ray geometry AOVs, evaluated."""
+                   log=None, directions: bool = False):
+    """Dr.Jit arrays (flat, image order) of the primary-ray geometry AOVs, evaluated.
+    ``directions``: also the rays' unit directions as traced (DIRECTION_CHANNELS), from the
+    same kernel."""
     ks = prepare(scene, T)
     d = primary_directions(scene, cam, T)
     if not scene.objects:
-        return _empty_geometry(T, cam.size)
-    t, oid, hit = closest_hit(ks, d, None, rules, cam=cam)
-    normal, u, v = surface(ks, d, t, oid, hit)
-    out = geometry_channels(ks, d, t, oid, hit, normal, u, v)
+        out = _empty_geometry(T, cam.size)
+    else:
+        t, oid, hit = closest_hit(ks, d, None, rules, cam=cam)
+        normal, u, v = surface(ks, d, t, oid, hit)
+        out = geometry_channels(ks, d, t, oid, hit, normal, u, v)
+    if directions:
+        out.update(zip(DIRECTION_CHANNELS, (d.x, d.y, d.z)))
     dr.eval(*out.values())
     if log is not None:
         log.mark("hit", "primary", 0, cam.size)

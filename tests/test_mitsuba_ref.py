@@ -258,6 +258,39 @@ def test21b_depth_bound_is_object_evals(name):
         np.testing.assert_allclose(got[sel], want / t[sel], rtol=1e-9, err_msg=o.kind)
 
 
+@pytest.mark.parametrize("name", ["sphere.txt", "mixed.txt", "tplane.txt", "planar.txt",
+                                  "fplane_tilted.txt", "cylinders.txt"])
+def test21d_over_bound_counts_what_the_bounds_do(name):
+    """over_bound, which computes bounds only above DEPTH_FLOOR (or on a sphere beyond half
+    its scale), counts the rays that depth_bound's own comparison counts: on unit rays with
+    errors spread around the floor and the bounds, and distances far past a sphere."""
+    from mitsuba_ref.explain import DEPTH_FLOOR, depth_bound, over_bound
+    scene = parse_scene(REPO / "scenes" / name)
+    rng = np.random.default_rng(5)
+    n = 4000
+    d = rng.normal(size=(n, 3)) + [0, 0, -3]
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    ids = rng.integers(-1, len(scene.objects) + 1, n)
+    t = np.where(rng.random(n) < 0.1, rng.uniform(1e3, 1e6, n), rng.uniform(0.01, 50, n))
+    extent = plane_extent(scene)
+    full = depth_bound(scene, d, ids, t, extent, Rules())
+    # no bound below the floor; on a sphere, where t is no farther than its far side
+    V = np.asarray(scene.viewpoint, np.float64)
+    reach = np.array([np.inf if o.kind != "sphere" else
+                      np.linalg.norm(np.asarray(o.center) - V) + o.radius
+                      for o in scene.objects] + [np.inf])
+    near = (ids >= 0) & (ids < len(scene.objects)) & (t <= reach[ids])
+    assert near.sum() > 200 and (full[near] >= DEPTH_FLOOR).all(), full[near].min()
+    rel = np.where(rng.random(n) < 0.5, full, DEPTH_FLOOR) * rng.uniform(0.25, 4, n)
+    rel[:10] = np.nan
+    rays = rng.permutation(n)
+    dd = np.empty_like(d)
+    dd[rays] = d
+    got = over_bound(scene, dd, rays, ids, t, rel, extent, Rules())
+    want = int(np.count_nonzero(rel > full))
+    assert got == want and 0 < want < n
+
+
 def test21c_constants_shared_by_window_copies(monkeypatch):
     """A copy of a scene with another window (compare's camera mode) reuses its constants;
     a copy with other objects or another viewpoint does not."""

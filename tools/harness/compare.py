@@ -13,13 +13,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from rt_core import backend
-from rt_core.camera import make_camera, primary_directions
+from rt_core.camera import make_camera
 from rt_core.memory import compare_bytes, guard
-from rt_core.render import provenance, to_images, trace_geometry, write_images
+from rt_core.render import (DIRECTION_CHANNELS, provenance, to_images, trace_geometry,
+                            write_images)
 from rt_core.rules import Rules
 from rt_core.scene import Scene
 from mitsuba_ref.convert import mitsuba_subset, plane_extent, sensor_setup
-from mitsuba_ref.explain import CLASS_CODE, CLASSES, classify, depth_bound
+from mitsuba_ref.explain import CLASS_CODE, CLASSES, classify, over_bound
 from mitsuba_ref.reference import MitsubaScene, render_camera, trace_rays
 from .timing import Stopwatch
 
@@ -70,10 +71,6 @@ class Comparison:
                 "timed": self.timed, "seconds": self.seconds, "ok": self.ok, "note": self.note}
 
 
-def _numpy3(v) -> np.ndarray:
-    return np.stack([np.asarray(c.numpy(), np.float64) for c in (v.x, v.y, v.z)], 1)
-
-
 def compare(scene: Scene, columns: int, rows: int | None = None, precision: str = "f32",
             mode: str = "rays", sampling: str = "corners", rules: Rules = Rules(),
             backend_name: str = "llvm", cache: dict | None = None,
@@ -115,11 +112,14 @@ def compare(scene: Scene, columns: int, rows: int | None = None, precision: str 
         with sw("rt_core"):
             for _ in range(calls):
                 t0 = time.perf_counter()
-                flat = trace_geometry(scene, cam, T, rules)
+                # (the directions as traced, by the same kernel: Mitsuba's rays and the
+                # classifier's)
+                flat = trace_geometry(scene, cam, T, rules, directions=True)
                 ms_ours = (time.perf_counter() - t0) * 1e3
+            dirs = [flat.pop(c) for c in DIRECTION_CHANNELS]
             ours = to_images(flat, cam)
         with sw("other"):
-            d = _numpy3(primary_directions(scene, cam, T))
+            d = np.stack([np.asarray(c.numpy(), np.float64) for c in dirs], 1)
         cache[("ours", *key)] = (ours, ms_ours, d, scene)   # (the scene keeps its id alive)
     ours, ms_ours, d, _ = cache[("ours", *key)]
     with sw("mitsuba"):
@@ -141,18 +141,19 @@ def compare(scene: Scene, columns: int, rows: int | None = None, precision: str 
         extent = plane_extent(scene)
         classes = classify(scene, d, flat_o, flat_r, rules, extent).reshape(cam.rows, cam.columns)
         # depth error where both hit the same object
-        same = (flat_o["hit.mask"] > 0) & (flat_r["hit.mask"] > 0) & \
-               (flat_o["object.id"] == flat_r["object.id"]) & (classes.ravel() == 0)
+        same = np.flatnonzero((flat_o["hit.mask"] > 0) & (flat_r["hit.mask"] > 0) &
+                              (flat_o["object.id"] == flat_r["object.id"]) &
+                              (classes.ravel() == 0))
         t_o = flat_o["depth.Z"][same].astype(np.float64)
         t_r = flat_r["depth.Z"][same].astype(np.float64)
         rel = np.abs(t_o - t_r) / np.maximum(np.abs(t_r), 1e-300)
-        bound = depth_bound(scene, d[same], flat_o["object.id"][same].astype(np.int64), t_r,
-                            extent, rules)
-    depth = {"pixels": int(same.sum()),
+        over = over_bound(scene, d, same, flat_o["object.id"][same].astype(np.int64), t_r,
+                          rel, extent, rules)
+    depth = {"pixels": len(same),
              "max_rel": float(rel.max()) if len(rel) else 0.0,
              "p99_rel": float(np.percentile(rel, 99)) if len(rel) else 0.0,
              "mean_rel": float(rel.mean()) if len(rel) else 0.0,
-             "over_bound": int(np.count_nonzero(rel > bound))}
+             "over_bound": over}
     counts = {c: int(np.count_nonzero(classes == i)) for i, c in enumerate(CLASSES)}
     note = "; ".join(n for n in (note, subset_note) if n)
     return Comparison(scene, mode, precision, cam.columns, cam.rows, classes, ours, ref, depth,
