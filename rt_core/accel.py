@@ -64,6 +64,9 @@ SECONDARY_FACTOR = 3
 # planes 12: 1.35, spheres 16: 1.50), and without exact decisions too (finite planes 12:
 # 1.43, 16: 1.81; spheres 16: 1.04).
 CAMERA_FACTOR = 2
+# ... where every bounded object is of these kinds (measured on them; 12 tori unrolled took
+# 7 times the binned loop's time)
+CAMERA_KINDS = ("sphere", "fplane")
 # Bins per looped object (bounded kinds), at most one per RAYS_PER_BIN rays of the first
 # batch traced, and at most MAX_BINS.  Finer bins list fewer rows a ray misses (spheres, 16
 # objects: 1.41 rows a ray at 32 bins per object, 1.20 at 512; 64: 2.54, 2.16) and were
@@ -153,13 +156,14 @@ def looped(ks, kind: str, reflections: bool = False, camera: bool = False) -> bo
     (planes, tiled planes: every bin lists them) when there are more than UNROLL_MAX of the
     kind.  ``reflections``: for the closest hits of rays with an origin, above
     SECONDARY_FACTOR times that.  ``camera``: for the closest hits of camera rays, where
-    bounded kinds loop above CAMERA_FACTOR times that in float32 (every kind looped here is
-    looped without ``camera`` too)."""
+    in float32 bounded kinds loop above CAMERA_FACTOR times that if all are CAMERA_KINDS
+    (every kind looped here is looped without ``camera`` too, not the other way round)."""
     limit = ks.__dict__.get("_accel_opts", {}).get("unroll_max", UNROLL_MAX)
     if reflections:
         limit *= SECONDARY_FACTOR
     if kind in BOUNDED:
-        if camera and ks.T.precision == "f32":
+        if camera and ks.T.precision == "f32" and all(
+                k in CAMERA_KINDS for k in BOUNDED if ks.by_kind.get(k)):
             limit *= CAMERA_FACTOR
         return sum(len(ks.by_kind.get(k, ())) for k in BOUNDED) > limit
     return len(ks.by_kind.get(kind, ())) > limit
@@ -463,12 +467,13 @@ def _range(ks, kind: str, d, o):
     I = ks.T.Int32
     use = o is None and ks.__dict__.get("_accel_opts", {}).get("bins", True)
     b = binned(ks, dr.width(d)) if use else None
-    if b is None:
+    # (no bins either for a kind that shadow rays from the viewpoint loop over and camera
+    # rays do not: looped's ``camera``)
+    tab = b[1].get(kind) if b is not None else None
+    if tab is None:
         tab = tables(ks)[kind]
         return tab, dr.zeros(I, dr.width(d)), dr.opaque(I, tab.count, dr.width(d))
-    grid, tabs = b
-    tab = tabs[kind]
-    se = dr.gather(ks.T.module.ArrayXu, tab.offsets, ray_bins(ks, grid, d),
+    se = dr.gather(ks.T.module.ArrayXu, tab.offsets, ray_bins(ks, b[0], d),
                    shape=(4, dr.width(d)))
     return tab, I(se[0]), I(se[1])
 

@@ -22,6 +22,7 @@ from rt_core.camera import make_camera, primary_directions
 from rt_core.jitlog import KernelLog
 from rt_core.render import render_geometry
 from rt_core.rules import Rules
+from rt_core.planar import make_disk
 from rt_core.scene import Material, Scene, make_fplane, make_plane, make_sphere, make_tplane
 from rt_core.tracer import closest_hit, occluded, prepare
 from tests.scenegen import random_scene
@@ -166,8 +167,12 @@ def test04_mixed_loop_and_unrolled_kinds(monkeypatch):
     objs.insert(3, make_plane(GREY, (0, 0, 1), (0, 0, -2.3)))         # ties with fplane 3
     objs.append(make_sphere(GREY, (0, 0, -4), 1.0))
     scene = Scene((8.0, 6.0), (0.0, 0.0, 3.0), (), tuple(objs))
+    # (float32 camera rays loop over the 13 bounded objects above CAMERA_FACTOR × 6)
+    monkeypatch.setattr(accel, "UNROLL_MAX", 6)
+    ks = prepare(scene, T)
+    assert accel.looped(ks, "fplane", camera=True) and not accel.looped(ks, "plane", camera=True)
     for ties in ("first", "last"):
-        a = hits(scene, T, 8, monkeypatch, rules=Rules(ties=ties))
+        a = hits(scene, T, 6, monkeypatch, rules=Rules(ties=ties))
         b = hits(scene, T, UNROLLED, monkeypatch, rules=Rules(ties=ties))
         assert_same(a, b, f"ties={ties}")
 
@@ -346,6 +351,29 @@ def test10b_float32_camera_rays_unroll_more(precision, exact):
     assert "closest_sphere" in ir and "sphere_object" not in ir
     ir = hit_kernel(scene_of(spheres(accel.UNROLL_MAX)), T, exact)["ir"].getvalue()
     assert "closest_sphere" not in ir
+    # another bounded kind among them (not measured unrolled): the loop above UNROLL_MAX
+    disk = make_disk(GREY, (0, 0, -6), 1.0, (0, 0, 1))
+    ir = hit_kernel(scene_of(spheres(accel.UNROLL_MAX) + [disk]), T, exact)["ir"].getvalue()
+    assert "closest_sphere" in ir and "closest_disk" in ir
+
+
+def test10c_shadow_rays_from_the_viewpoint_loop_without_bins(monkeypatch):
+    """Shadow rays from the viewpoint loop over a kind that camera rays unroll (float32, 10
+    spheres beside 9 looped planes, whose bins list only the planes): the kind's whole
+    table, with the unrolled code's answers."""
+    T = types("f32")
+    objs = spheres(10) + [make_plane(GREY, (0.1 * i, 1, 0), (0, -3 - 0.1 * i, 0))
+                          for i in range(9)]
+    scene = scene_of(objs)
+    ks = prepare(scene, T)
+    assert accel.looped(ks, "sphere") and not accel.looped(ks, "sphere", camera=True)
+    assert accel.looped(ks, "plane", camera=True)
+    d = primary_directions(scene, make_camera(scene, 64), T)
+    maxt = T.Float(np.linspace(1, 12, dr.width(d)))
+    got = occluded(ks, d, None, maxt)
+    monkeypatch.setattr(accel, "UNROLL_MAX", UNROLLED)
+    want = occluded(prepare(scene, T), d, None, maxt)
+    assert np.array_equal(bits(got), bits(want)) and 0 < bits(got).mean() < 1
 
 
 def test11_certified_cull_keeps_unsure_rays():
