@@ -223,7 +223,8 @@ def rt_tracer(name, scene, precision, d32, unroll_max=None, bins=None,
     t0 = time.perf_counter()
     ks = accel.configure(prepare(scene, T), unroll_max, bins)
     ks.exact_decisions = exact
-    if bins is not False and any(accel.looped(ks, k) for k in ks.kinds):
+    # (the bins of the kinds camera rays loop over: what the timed calls read)
+    if bins is not False and any(accel.looped(ks, k, camera=True) for k in ks.kinds):
         accel.binned(ks, dr.width(d))
     prep = (time.perf_counter() - t0) * 1e3
     state = {}
