@@ -178,7 +178,14 @@ def classify(scene: Scene, d: np.ndarray, ours: dict, ref: dict, rules: Rules,
     if not len(bad):
         return out
     dd = d[bad]
-    evals = [ObjectEval(scene, o, dd, rules, extent) for o in scene.objects]
+    # every test below reads only the objects that one side or the other hits on a
+    # disagreeing ray: those alone are evaluated, row j for object used[j]
+    n = len(scene.objects)
+    used = np.unique(np.r_[a_id[bad], b_id[bad]])
+    used = used[(used >= 0) & (used < n)]
+    evals = [ObjectEval(scene, scene.objects[i], dd, rules, extent) for i in used.tolist()]
+    row = np.full(max(n, 1), -1, np.int64)  # object id -> row (−1: the NaN row below)
+    row[used] = np.arange(len(used))
     reason = np.full(len(bad), CLASS_CODE["unexplained"], np.int8)
 
     def mark(mask, name):
@@ -186,26 +193,28 @@ def classify(scene: Scene, d: np.ndarray, ours: dict, ref: dict, rules: Rules,
         reason[sel] = CLASS_CODE[name]
 
     # per object along each disagreeing ray: distance t and its position error bound
-    t_all = np.stack([ev.t for ev in evals])
-    b_all = np.stack([ev.bound(ev.t) for ev in evals])
+    # (a last row of NaN for "no object": a miss on one side, never compared)
+    t_all = np.stack([ev.t for ev in evals] + [np.full(len(bad), np.nan)])
+    b_all = np.stack([ev.bound(ev.t) for ev in evals] + [np.full(len(bad), np.nan)])
     for side_ids in (a_id[bad], b_id[bad]):
-        for i, ev in enumerate(evals):
-            involved = side_ids == i
+        for j, ev in enumerate(evals):
+            involved = side_ids == used[j]
             if not involved.any():
                 continue
             if ev.kind in ("fplane", "triangle", "disk"):
-                mark(involved & (np.abs(ev.margin) <= b_all[i]), "edge")
+                mark(involved & (np.abs(ev.margin) <= b_all[j]), "edge")
             if ev.kind == "sphere" or ev.kind in quadric.KINDS:
-                mark(involved & (ev.margin <= b_all[i]), "silhouette")
+                mark(involved & (ev.margin <= b_all[j]), "silhouette")
             else:
-                mark(involved & (ev.clip_margin <= b_all[i]), "clip")
+                mark(involved & (ev.clip_margin <= b_all[j]), "clip")
                 mark(involved & (ev.cos <= K_ROUNDING * EPS32), "graze")
                 mark(involved & ev.beyond, "extent")
     # ties: both hit, different objects, at the same depth within the bounds
     a, b = a_id[bad], b_id[bad]
     both = (a >= 0) & (b >= 0)
     cols = np.arange(len(bad))
-    ia, ib = np.maximum(a, 0), np.maximum(b, 0)
+    ia, ib = (np.where((x >= 0) & (x < n), row[np.clip(x, 0, max(n - 1, 0))], -1)
+              for x in (a, b))
     with np.errstate(invalid="ignore"):
         gap = np.abs(t_all[ia, cols] - t_all[ib, cols])
         mark(both & (gap <= b_all[ia, cols] + b_all[ib, cols]), "tie")

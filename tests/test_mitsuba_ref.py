@@ -291,6 +291,94 @@ def test21d_over_bound_counts_what_the_bounds_do(name):
     assert got == want and 0 < want < n
 
 
+def _classify_every_object(scene, d, ours, ref, rules, extent):
+    """The classifier as it was: every object evaluated on every disagreeing ray."""
+    from mitsuba_ref.explain import EPS32, K_ROUNDING, ObjectEval
+    a_id = np.where(ours["hit.mask"] > 0, ours["object.id"], -1).astype(np.int64)
+    b_id = np.where(ref["hit.mask"] > 0, ref["object.id"], -1).astype(np.int64)
+    out = np.zeros(len(d), np.int8)
+    bad = np.nonzero(a_id != b_id)[0]
+    evals = [ObjectEval(scene, o, d[bad], rules, extent) for o in scene.objects]
+    reason = np.full(len(bad), CLASS_CODE["unexplained"], np.int8)
+
+    def mark(mask, name):
+        reason[mask & (reason == CLASS_CODE["unexplained"])] = CLASS_CODE[name]
+    t_all = np.stack([ev.t for ev in evals])
+    b_all = np.stack([ev.bound(ev.t) for ev in evals])
+    for side in (a_id[bad], b_id[bad]):
+        for i, ev in enumerate(evals):
+            inv = side == i
+            if ev.kind in ("fplane", "triangle", "disk"):
+                mark(inv & (np.abs(ev.margin) <= b_all[i]), "edge")
+            if ev.kind == "sphere" or ev.kind in quadric.KINDS:
+                mark(inv & (ev.margin <= b_all[i]), "silhouette")
+            else:
+                mark(inv & (ev.clip_margin <= b_all[i]), "clip")
+                mark(inv & (ev.cos <= K_ROUNDING * EPS32), "graze")
+                mark(inv & ev.beyond, "extent")
+    a, b = a_id[bad], b_id[bad]
+    cols, ia, ib = np.arange(len(bad)), np.maximum(a, 0), np.maximum(b, 0)
+    with np.errstate(invalid="ignore"):
+        gap = np.abs(t_all[ia, cols] - t_all[ib, cols])
+        mark((a >= 0) & (b >= 0) & (gap <= b_all[ia, cols] + b_all[ib, cols]), "tie")
+    out[bad] = reason
+    return out
+
+
+@pytest.mark.parametrize("name", ["mixed.txt", "planar_many.txt", "shade_tiles.txt",
+                                  "cylinders.txt"])
+def test21e_classify_evaluates_only_named_objects(name, monkeypatch):
+    """classify evaluates only the objects that either side hits on a disagreeing ray, and
+    classes every ray as evaluating every object did: rt_core's own hits against Mitsuba's
+    whose ids are changed on some rays (to other objects, to misses, to a duplicate of the
+    object hit, a tie at every ray, and on outlines to the neighbour's object)."""
+    import mitsuba_ref.explain as X
+    scene = parse_scene(REPO / "scenes" / name)
+    # (reversed: the object of the explained pixels is no longer the first)
+    objs = scene.objects[::-1]
+    k = max(range(len(objs)), key=lambda i: objs[i].kind == "sphere")
+    scene = dataclasses.replace(scene, objects=objs + (objs[k],))
+    n = len(scene.objects)
+    cam = make_camera(scene, 120)
+    ours = {c: v.ravel() for c, v in render_geometry(scene, 120).items()}
+    d = _dirs(scene, cam)
+    rng = np.random.default_rng(7)
+    # (Mitsuba's hits: on the scenes with infinite planes they differ from ours beyond its
+    # stand-in's extent)
+    mits = trace_rays(MitsubaScene(scene, cam.columns, cam.rows), d)
+    ids = np.where(mits["hit.mask"] > 0, mits["object.id"], -1).astype(np.int64)
+    # (on rays that hit few objects, changed to few others: most objects are never named)
+    odd = np.arange(1, n - 1, 2)[: max(1, n // 4)]          # (not a prefix of the ids)
+    few = np.r_[-1, 0, k, odd]
+    pick = (rng.random(len(ids)) < 0.3) & np.isin(ids, few)
+    other = np.where(rng.random(len(ids)) < 0.2, -1, rng.choice(odd, len(ids)))
+    other = np.where(ids == k, n - 1, other)              # the duplicate: a tie
+    new = np.where(pick, other, ids)
+    # and on outlines, the neighbour's object (what a tracer off by a little would hit)
+    grid = ids.reshape(cam.rows, cam.columns)
+    edge = np.zeros_like(grid, bool)
+    edge[:, :-1] = grid[:, :-1] != grid[:, 1:]
+    nb = np.zeros_like(grid)
+    nb[:, :-1] = grid[:, 1:]
+    edge = edge.ravel() & np.isin(ids, few) & np.isin(nb.ravel(), few)
+    new = np.where(edge, nb.ravel(), new)
+    ref = {"hit.mask": (new >= 0).astype(np.float32), "object.id": new.astype(np.float32)}
+    made = []
+    real = X.ObjectEval
+    monkeypatch.setattr(X, "ObjectEval", lambda sc, o, *a, **kw: made.append(o) or
+                        real(sc, o, *a, **kw))
+    extent = plane_extent(scene)
+    got = classify(scene, d, ours, ref, Rules(), extent)
+    own = np.where(ours["hit.mask"] > 0, ours["object.id"], -1).astype(np.int64)
+    bad = own != new
+    named = sorted({int(i) for i in np.r_[own[bad], new[bad]] if i >= 0})
+    assert len(named) < n and [id(o) for o in made] == [id(scene.objects[i]) for i in named]
+    want = _classify_every_object(scene, d, ours, ref, Rules(), extent)
+    assert (got == want).all(), np.flatnonzero(got != want)[:10]
+    for c in ("tie", "unexplained") + (("extent",) if name == "planar_many.txt" else ()):
+        assert np.count_nonzero(got == CLASS_CODE[c]) > 0, c
+
+
 def test21c_constants_shared_by_window_copies(monkeypatch):
     """A copy of a scene with another window (compare's camera mode) reuses its constants;
     a copy with other objects or another viewpoint does not."""
