@@ -6,17 +6,19 @@ pixel centres, ``((x+½)/W·ww - ww/2, ...)``.  Image row 0 is the top (y = H-1)
 """
 from __future__ import annotations
 
-import math
 import dataclasses
+import functools
+import math
 from dataclasses import dataclass
 from fractions import Fraction
+from types import SimpleNamespace
 
 import drjit as dr
 import numpy as np
 
 from .backend import Types
 from .errors import InputError
-from .scene import Scene, exact
+from .scene import Num, Scene, exact
 
 SAMPLINGS = ("corners", "centers")
 
@@ -112,9 +114,45 @@ def primary_offsets(scene: Scene, cam: Camera, T):
     the course's formula is exact, are the exact values rounded once.  Scene numbers enter as
     opaque values, so scenes that differ only in numbers share the compiled kernel."""
     F = T.Float
+    k = _offset_constants(_key(scene.window), _key(scene.viewpoint), cam, T.precision)
     i = dr.arange(T.UInt32, cam.size)
     r = i // cam.columns                    # image row − row0; course row y = rows − 1 − row
     x = i - r * cam.columns
+
+    def axis(ix, c):
+        # (ix)·s + c with s = hi + lo: the lo product first, then one fma
+        hi, lo, c0, edges = c
+        w = dr.fma(ix, dr.opaque(F, hi), dr.fma(ix, dr.opaque(F, lo), dr.opaque(F, c0)))
+        for at, value in edges:             # corner sampling: the window's edge samples
+            w = dr.select(ix == dr.opaque(F, at), dr.opaque(F, value), w)
+        return w
+
+    # x − c = (x − c_hi) − c_lo and y − c = ((rows − 1 − c_hi) − r) − c_lo: integers first
+    ix = F(x) - dr.opaque(F, k.hx)
+    iy = dr.opaque(F, k.y0) - F(r)
+    wx, wy = axis(ix, k.x), axis(iy, k.y)
+    # (with row_shift the row above the window, y = rows, is no edge: its fma value stays)
+    wz = dr.opaque(F, k.z) + dr.zeros(F, cam.size)
+    return T.Array3(wx, wy, wz)
+
+
+def _key(v):
+    """Scene numbers as a cache key: their values and, for Num, the text they were read
+    from (``exact`` takes that)."""
+    return tuple((float(c), getattr(c, "text", None)) for c in v)
+
+
+def _numbers(key) -> tuple:
+    """A ``_key`` back to numbers that ``exact`` reads as the scene's."""
+    return tuple(v if t is None else Num(t) for v, t in key)
+
+
+@functools.lru_cache(maxsize=256)
+def _offset_constants(window, viewpoint, cam: Camera, precision: str) -> SimpleNamespace:
+    """primary_offsets' host numbers (exact arithmetic on the scene's numbers as written,
+    ~0.1 ms), kept for the cameras and scenes traced last: each comparison and render of a
+    scene asks again."""
+    scene = SimpleNamespace(window=_numbers(window), viewpoint=_numbers(viewpoint))
     sx, hx, cx = _axis_offsets(cam, scene, 0)
     sy, hy, cy = _axis_offsets(cam, scene, 1)
     vz = exact(scene.viewpoint[2])
@@ -123,27 +161,21 @@ def primary_offsets(scene: Scene, cam: Camera, T):
               abs(hy * sy) + abs(cy) + sy * cam.rows)
     k = -math.frexp(float(big))[1] if big else 0
     sc = Fraction(2) ** k
-    op = lambda v: dr.opaque(F, float(v * sc))
 
-    def axis(ix, s, c, edge0, edge1):
-        # (ix)·s + c with s = hi + lo: the lo product first, then one fma
-        hi, lo = _split(s * sc, T.precision)
-        w = dr.fma(ix, dr.opaque(F, hi), dr.fma(ix, dr.opaque(F, lo), op(c)))
+    def axis(s, c, edge0, edge1):
+        hi, lo = _split(s * sc, precision)
+        edges = ()
         if cam.sampling == "corners":
-            w = dr.select(ix == dr.opaque(F, float(edge0[0])), op(edge0[1]), w)
-            w = dr.select(ix == dr.opaque(F, float(edge1[0])), op(edge1[1]), w)
-        return w
+            edges = tuple((float(at), float(v * sc)) for at, v in (edge0, edge1))
+        return hi, lo, float(c * sc), edges
 
     ww, wh = (exact(c) for c in scene.window)
     vx, vy = exact(scene.viewpoint[0]), exact(scene.viewpoint[1])
-    # x − c = (x − c_hi) − c_lo and y − c = ((rows − 1 − c_hi) − r) − c_lo: integers first
-    ix = F(x) - dr.opaque(F, float(hx))
-    iy = dr.opaque(F, float(cam.rows - 1 + cam.row_shift - hy - cam.row0)) - F(r)
-    wx = axis(ix, sx, cx, (-hx, -ww / 2 - vx), (cam.columns - 1 - hx, ww / 2 - vx))
-    wy = axis(iy, sy, cy, (-hy, -wh / 2 - vy), (cam.rows - 1 - hy, wh / 2 - vy))
-    # (with row_shift the row above the window, y = rows, is no edge: its fma value stays)
-    wz = op(-vz) + dr.zeros(F, cam.size)
-    return T.Array3(wx, wy, wz)
+    return SimpleNamespace(
+        hx=float(hx), y0=float(cam.rows - 1 + cam.row_shift - hy - cam.row0),
+        x=axis(sx, cx, (-hx, -ww / 2 - vx), (cam.columns - 1 - hx, ww / 2 - vx)),
+        y=axis(sy, cy, (-hy, -wh / 2 - vy), (cam.rows - 1 - hy, wh / 2 - vy)),
+        z=float(-vz * sc))
 
 
 def primary_directions(scene: Scene, cam: Camera, T: Types):

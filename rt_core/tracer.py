@@ -80,15 +80,14 @@ def prepare(scene: Scene, T: Types) -> KernelScene:
     not fit the kernel's precision: a float32 kernel would turn it into inf and silently
     lose the object."""
     try:
-        consts = scene_constants(scene)
+        consts, bigs = _checked_constants(scene)
     except OverflowError:
-        consts = None
-    if consts is None or any(not _finite(c) for c in consts):
+        consts = bigs = None
+    if bigs is None:
         bad = next((o for o in scene.objects if not _finite_obj(scene, o)), scene.objects[0])
         raise _overflow(scene, bad)
     limit = FLOAT_MAX[T.precision]
-    for c in consts:
-        big = max(_magnitudes(c))
+    for c, big in zip(consts, bigs):
         if big > limit:
             o = scene.objects[c.id]
             raise SceneError(f"{o.kind}: a constant of its intersection test ({big:.3g}) "
@@ -110,15 +109,48 @@ _CONSTS: dict = {}
 def scene_constants(scene: Scene) -> list:
     """``shapes.object_constants(scene)``, computed once for the scenes prepared last (an
     entry holds its objects' tuple, so its id stays that tuple's)."""
+    return _checked_constants(scene)[0]
+
+
+def _checked_constants(scene: Scene) -> tuple[list, tuple | None]:
+    """scene_constants and, per object, the largest magnitude its kernel receives (None
+    when any is not finite): prepare's checks, kept with the constants."""
     if not isinstance(scene.objects, tuple):        # (a list could change under the key)
-        return object_constants(scene)
+        consts = object_constants(scene)
+        return consts, _largest(consts)
     key = (id(scene.objects), tuple(scene.viewpoint))
     hit = _CONSTS.get(key)
     if hit is None:
         if len(_CONSTS) >= 16:
             _CONSTS.clear()
-        hit = _CONSTS[key] = (scene.objects, tuple(object_constants(scene)))
-    return list(hit[1])
+        consts = tuple(object_constants(scene))
+        hit = _CONSTS[key] = (scene.objects, consts, _largest(consts))
+    return list(hit[1]), hit[2]
+
+
+def _largest(consts) -> tuple | None:
+    """max(_magnitudes(c)) per constants c, or None when a magnitude is not finite."""
+    if not all(_finite(c) for c in consts):
+        return None
+    return tuple(max(_magnitudes(c)) for c in consts)
+
+
+# decide.prepare's exact objects of the scenes decided last, kept as _CONSTS keeps the
+# constants: each precision, comparison and render of a scene prepares a KernelScene of its
+# own (~0.5 ms a scene in GMP rationals)
+_EXACT: dict = {}
+
+
+def _exact_objects(scene: Scene):
+    if not isinstance(scene.objects, tuple):
+        return prepare_exact(scene)
+    key = (id(scene.objects), tuple(scene.viewpoint))
+    hit = _EXACT.get(key)
+    if hit is None:
+        if len(_EXACT) >= 16:
+            _EXACT.clear()
+        hit = _EXACT[key] = (scene.objects, prepare_exact(scene))
+    return hit[1]
 
 
 def _overflow(scene: Scene, obj) -> SceneError:
@@ -410,7 +442,7 @@ def _decide_flagged(ks: KernelScene, cam, rules: Rules, st: Best, d):
     else:
         objs = ks.__dict__.get("_exact_objects")
         if objs is None:
-            objs = ks.__dict__["_exact_objects"] = prepare_exact(ks.scene)
+            objs = ks.__dict__["_exact_objects"] = _exact_objects(ks.scene)
         if isinstance(cam, str):             # the traced directions are the exact rays
             g = dr.gather(T.Array3, d, T.UInt32(pix.astype(np.uint32).tolist()))
             E = np.stack([np.asarray(c.numpy(), np.float64) for c in (g.x, g.y, g.z)], 1)

@@ -94,6 +94,27 @@ def test03_edge_samples_are_exact(text, W, H, precision):
     assert (wy[0, :] == rnd(wh / 2 - vy) * scale).all()
 
 
+def test03b_offsets_cache_keys_numbers_as_written():
+    """primary_offsets' host numbers are kept per scene numbers *as written*: two windows
+    that are the same float64 but different decimals give the offsets each gives with
+    nothing kept (and those differ, in the step's low part)."""
+    from rt_core import camera as C
+    from rt_core.parser import parse_text
+    T = backend.types("f64")
+    got = {}
+    for text in ("4.1 3.3  1.37 0.21 2.9", "4.10000000000000000001 3.3  1.37 0.21 2.9"):
+        sc = parse_text(text)
+        cam = make_camera(sc, 37, 23)
+        kept = np.array(primary_offsets(sc, cam, T).x)
+        C._offset_constants.cache_clear()
+        fresh = np.array(primary_offsets(sc, cam, T).x)
+        assert (kept == fresh).all()
+        got[text] = fresh
+    a, b = got.values()
+    assert float(parse_text("4.10000000000000000001 3.3 0 0 1").window[0]) == 4.1
+    assert (a != b).any()
+
+
 # --- every supported scene ------------------------------------------------------------------
 
 def _near(xs, W, H, rel=1e-7):

@@ -401,6 +401,24 @@ def test21c_constants_shared_by_window_copies(monkeypatch):
     assert len(ks2.consts) == len(scene.objects) - 1
 
 
+def test21f_scale_and_exact_objects_kept_per_their_inputs():
+    """scene_scale is kept per objects, viewpoint and window, the exact objects of the
+    float64 decisions per objects and viewpoint: a copy that changes one of those gets its
+    own, one that changes nothing else shares them."""
+    from mitsuba_ref.convert import _scene_scale, scene_scale
+    from rt_core.tracer import _exact_objects
+    scene = parse_scene(REPO / "scenes" / "mixed.txt")
+    wide = dataclasses.replace(scene, window=(scene.window[0] * 40, scene.window[1]))
+    moved = dataclasses.replace(scene, viewpoint=(5.0, 0.0, scene.viewpoint[2]))
+    fewer = dataclasses.replace(scene, objects=scene.objects[1:])
+    for sc in (scene, wide, moved, fewer, scene):
+        assert scene_scale(sc) == _scene_scale(sc)
+    assert len({scene_scale(sc) for sc in (scene, wide, moved)}) == 3
+    assert _exact_objects(wide) is _exact_objects(scene)
+    assert _exact_objects(moved) is not _exact_objects(scene)
+    assert len(_exact_objects(fewer)) == len(scene.objects) - 1
+
+
 def test22_evidence_written(tmp_path):
     cmp = compare(parse_scene(REPO / "scenes" / "sphere.txt"), 32, None, "f32", "rays")
     paths = write_evidence(cmp, str(tmp_path), "s")

@@ -187,6 +187,27 @@ def test10_constants_beyond_float32_are_an_error_not_an_empty_image(tmp_path):
     assert r.returncode == 0 and read_exr(tmp_path / "b.exr")[0]["hit.mask"].sum() > 0
 
 
+def test10b_range_checked_for_each_precision_in_one_process():
+    """The constants' checks are kept with them (tracer._CONSTS), but the range is each
+    precision's: the scene of test10 prepares in float64, is refused in float32, after
+    either, and a scene whose constants overflow float64 is refused every time."""
+    from rt_core import backend
+    from rt_core.parser import parse_text
+    from rt_core.scene import SceneError
+    from rt_core.tracer import prepare
+    sc = parse_text(SPHERE_AT.format(z="-2e20", r="1.5e20"))
+    for precision in ("f64", "f32", "f64", "f32"):
+        if precision == "f64":
+            prepare(sc, backend.types(precision))
+        else:
+            with pytest.raises(SceneError, match="exceeds the f32 range"):
+                prepare(sc, backend.types(precision))
+    huge = parse_text(SPHERE_AT.format(z="-1e200", r="1"))
+    for _ in range(2):
+        with pytest.raises(SceneError, match="overflows float64"):
+            prepare(huge, backend.types("f64"))
+
+
 def test11_float64_overflow_is_one_line(tmp_path):
     scene = tmp_path / "huge.txt"
     scene.write_text(SPHERE_AT.format(z="-1e200", r="1"))          # |q|² overflows float64
