@@ -583,6 +583,35 @@ def test43_validate_runs_each_side_once_compare_twice(monkeypatch):
     assert calls == {"ours": 2, "rays": 2, "camera": 0}
 
 
+def test43b_precisions_of_a_scene_share_mitsubas_scenes(monkeypatch):
+    """A scene's float32 and float64 jobs, which follow each other, load Mitsuba's scenes
+    once between them (Mitsuba traces in float32 either way); the next scene loads its own,
+    and its rows are the same as with nothing shared."""
+    import tools.harness.compare as C
+    import tools.harness.validate as V
+    loads = []
+    real = C.MitsubaScene
+    monkeypatch.setattr(C, "MitsubaScene", lambda sc, *a, **k: loads.append(sc) or
+                        real(sc, *a, **k))
+    monkeypatch.setattr(V, "_LAST", [None, {}])
+    a, b = (parse_scene(REPO / "scenes" / n) for n in ("mixed.txt", "sphere.txt"))
+    rows = {}
+    for sc in (a, b):
+        for precision in ("f32", "f64"):
+            got = V.run_job(V.Job(sc, ("rays", "camera"), precision, 32))
+            rows[sc.path, precision] = [r for r, _ in got]
+    per_scene = {sc.path: sum(1 for x in loads if x.objects is sc.objects) for sc in (a, b)}
+    assert len(loads) == sum(per_scene.values()) and all(1 <= n <= 2 for n in
+                                                          per_scene.values())
+    monkeypatch.setattr(V, "_LAST", [None, {}])
+    for (path, precision), want in rows.items():
+        V._LAST[:] = [None, {}]                     # nothing shared
+        got = [r for r, _ in V.run_job(V.Job(a if path == a.path else b, ("rays", "camera"),
+                                             precision, 32))]
+        for g, w in zip(got, want):
+            assert (g["classes"], g["depth"], g["ok"]) == (w["classes"], w["depth"], w["ok"])
+
+
 def test44_junit_case_time_is_the_comparisons_own():
     """A JUnit case's time is its comparison's wall time over every phase; a camera row that
     reused the rays row's rt_core trace repeats that trace's ms, which must not count again."""

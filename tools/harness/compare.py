@@ -87,6 +87,7 @@ def compare(scene: Scene, columns: int, rows: int | None = None, precision: str 
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}")
     sw = Stopwatch()
+    given = scene                   # (the cache's key: what follows makes copies of it)
     with sw("other"):
         T = backend.types(precision, backend_name)
         # kinds without a Mitsuba shape (cone, ellipsoid, torus) are left out on both sides
@@ -105,7 +106,7 @@ def compare(scene: Scene, columns: int, rows: int | None = None, precision: str 
                 cam = make_camera(scene, columns, cam.rows, sampling)
     # ours (timed: the last of ``calls`` calls); the same scene, camera and precision in
     # another mode reuses it (its row then repeats that time: "rt_core shared")
-    key = (id(scene), scene.window, cam.columns, cam.rows, sampling, rules, precision,
+    key = (id(given), scene.window, cam.columns, cam.rows, sampling, rules, precision,
            backend_name)
     shared = ("ours", *key) in cache
     if not shared:
@@ -120,14 +121,14 @@ def compare(scene: Scene, columns: int, rows: int | None = None, precision: str 
             ours = to_images(flat, cam)
         with sw("other"):
             d = np.stack([np.asarray(c.numpy(), np.float64) for c in dirs], 1)
-        cache[("ours", *key)] = (ours, ms_ours, d, scene)   # (the scene keeps its id alive)
+        cache[("ours", *key)] = (ours, ms_ours, d, given)   # (the scene keeps its id alive)
     ours, ms_ours, d, _ = cache[("ours", *key)]
     with sw("mitsuba"):
         mkey = ("mitsuba", *key[:5], rules.clip_spheres)
         if mkey not in cache:
-            cache[mkey] = MitsubaScene(scene, cam.columns, cam.rows, sampling,
-                                       clip_spheres=rules.clip_spheres)
-        ms = cache[mkey]
+            cache[mkey] = (MitsubaScene(scene, cam.columns, cam.rows, sampling,
+                                        clip_spheres=rules.clip_spheres), given)
+        ms = cache[mkey][0]
         for _ in range(calls):
             t0 = time.perf_counter()
             if mode == "rays":
