@@ -139,7 +139,8 @@ SERIAL_BUSY_CORES = 1.8
 
 # compare's cache of the scene whose jobs ran last in this process: its precisions' jobs
 # (which follow each other, ``jobs``) share Mitsuba's loaded scenes (Mitsuba traces in
-# float32 whatever rt_core's precision); rt_core's entries are keyed by precision
+# float32 whatever rt_core's precision); rt_core's entries are keyed by precision.  Emptied
+# at each validate's start and end
 _LAST: list = [None, {}]
 
 
@@ -206,9 +207,13 @@ def validate(scenes, columns: int, precisions, modes, outdir: str, progress=None
     Evidence of an earlier run in ``outdir/failures`` and ``outdir/exr`` is removed first,
     so what is there belongs to this run; a run stopped (a signal, Ctrl-C, an error)
     removes what it wrote there, and the directories it made."""
-    with evidence_run(outdir):
-        return _validate(scenes, columns, precisions, modes, outdir, progress, evidence,
-                         shaded_columns, pictures, plan)
+    _free()                 # (what an earlier run in this process left is not this run's)
+    try:
+        with evidence_run(outdir):
+            return _validate(scenes, columns, precisions, modes, outdir, progress, evidence,
+                             shaded_columns, pictures, plan)
+    finally:
+        _free()
 
 
 @contextlib.contextmanager
