@@ -28,6 +28,19 @@ def test01_version():
     assert r.returncode == 0 and r.stdout.startswith("rtval ")
 
 
+def test01b_version_looked_up_only_when_asked(monkeypatch, capsys):
+    """Building the parser (every command's start) does not look the version up (the
+    package metadata and a git call: ~24 ms); --version does."""
+    import tools.cli as cli
+    asked = []
+    monkeypatch.setattr(cli, "_version", lambda: asked.append(1) or "9.9")
+    cli.build_parser().parse_args(["exr", "info", "x.exr"])
+    assert asked == []
+    with pytest.raises(SystemExit) as e:
+        cli.build_parser().parse_args(["--version"])
+    assert e.value.code == 0 and asked == [1] and capsys.readouterr().out == "rtval 9.9\n"
+
+
 @pytest.mark.parametrize("args, said", [
     (("rendr", SPHERE), "invalid choice: 'rendr'"),
     (("render", SPHERE, "--colums", 10, "-o", "x.exr"), "unrecognized option --colums"),
