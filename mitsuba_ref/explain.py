@@ -174,15 +174,19 @@ def classify(scene: Scene, d: np.ndarray, ours: dict, ref: dict, rules: Rules,
     a_id = np.where(ours["hit.mask"] > 0, ours["object.id"], -1).astype(np.int64)
     b_id = np.where(ref["hit.mask"] > 0, ref["object.id"], -1).astype(np.int64)
     out = np.zeros(len(d), np.int8)
+    n = len(scene.objects)
+    for side, ids in (("ours", a_id), ("the reference's", b_id)):
+        if (ids >= n).any():
+            raise ValueError(f"{side} object ids go up to {int(ids.max())}; the scene has "
+                             f"{n} objects")
     bad = np.nonzero(a_id != b_id)[0]
     if not len(bad):
         return out
     dd = d[bad]
     # every test below reads only the objects that one side or the other hits on a
     # disagreeing ray: those alone are evaluated, row j for object used[j]
-    n = len(scene.objects)
     used = np.unique(np.r_[a_id[bad], b_id[bad]])
-    used = used[(used >= 0) & (used < n)]
+    used = used[used >= 0]
     evals = [ObjectEval(scene, scene.objects[i], dd, rules, extent) for i in used.tolist()]
     row = np.full(max(n, 1), -1, np.int64)  # object id -> row (−1: the NaN row below)
     row[used] = np.arange(len(used))
@@ -213,8 +217,7 @@ def classify(scene: Scene, d: np.ndarray, ours: dict, ref: dict, rules: Rules,
     a, b = a_id[bad], b_id[bad]
     both = (a >= 0) & (b >= 0)
     cols = np.arange(len(bad))
-    ia, ib = (np.where((x >= 0) & (x < n), row[np.clip(x, 0, max(n - 1, 0))], -1)
-              for x in (a, b))
+    ia, ib = (np.where(x >= 0, row[np.maximum(x, 0)], -1) for x in (a, b))
     with np.errstate(invalid="ignore"):
         gap = np.abs(t_all[ia, cols] - t_all[ib, cols])
         mark(both & (gap <= b_all[ia, cols] + b_all[ib, cols]), "tie")

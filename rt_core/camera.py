@@ -18,7 +18,7 @@ import numpy as np
 
 from .backend import Types
 from .errors import InputError
-from .scene import Num, Scene, exact
+from .scene import Num, Scene, exact, written
 
 SAMPLINGS = ("corners", "centers")
 
@@ -114,7 +114,8 @@ def primary_offsets(scene: Scene, cam: Camera, T):
     the course's formula is exact, are the exact values rounded once.  Scene numbers enter as
     opaque values, so scenes that differ only in numbers share the compiled kernel."""
     F = T.Float
-    k = _offset_constants(_key(scene.window), _key(scene.viewpoint), cam, T.precision)
+    k = _offset_constants(written(scene.window), written(scene.viewpoint), cam,
+                          T.precision)
     i = dr.arange(T.UInt32, cam.size)
     r = i // cam.columns                    # image row − row0; course row y = rows − 1 − row
     x = i - r * cam.columns
@@ -136,14 +137,8 @@ def primary_offsets(scene: Scene, cam: Camera, T):
     return T.Array3(wx, wy, wz)
 
 
-def _key(v):
-    """Scene numbers as a cache key: their values and, for Num, the text they were read
-    from (``exact`` takes that)."""
-    return tuple((float(c), getattr(c, "text", None)) for c in v)
-
-
 def _numbers(key) -> tuple:
-    """A ``_key`` back to numbers that ``exact`` reads as the scene's."""
+    """A ``written`` key back to numbers that ``exact`` reads as the scene's."""
     return tuple(v if t is None else Num(t) for v, t in key)
 
 

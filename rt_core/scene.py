@@ -56,6 +56,13 @@ def exact(x) -> Fraction:
     return Fraction(Decimal(x.text)) if isinstance(x, Num) else Fraction(x)
 
 
+def written(v) -> tuple:
+    """Scene numbers as a cache key: each value and, for a Num, the text it was read from
+    (``exact`` reads that: two texts of one float64 are two numbers); other numbers as they
+    are (a Fraction stays exact)."""
+    return tuple((float(c), c.text) if isinstance(c, Num) else (c, None) for c in v)
+
+
 # --- small float64 vector helpers (host side) ---------------------------------------------
 
 def dot(a: Vec3, b: Vec3) -> float:

@@ -24,7 +24,7 @@ from . import accel, backend, cull
 from .backend import Types
 from .decide import decide, decide_rays, prepare as prepare_exact
 from .rules import Rules
-from .scene import Scene, SceneError, locate
+from .scene import Scene, SceneError, locate, written
 from .kinds import KIND_CODE, PLANE_KINDS
 from .shapes import (ObjectConstants, cone_rays, least, numbers, object_constants, object_t,
                      sphere_cone, sphere_live, sphere_t)
@@ -118,7 +118,7 @@ def _checked_constants(scene: Scene) -> tuple[list, tuple | None]:
     if not isinstance(scene.objects, tuple):        # (a list could change under the key)
         consts = object_constants(scene)
         return consts, _largest(consts)
-    key = (id(scene.objects), tuple(scene.viewpoint))
+    key = (id(scene.objects), written(scene.viewpoint))
     hit = _CONSTS.get(key)
     if hit is None:
         if len(_CONSTS) >= 16:
@@ -144,7 +144,7 @@ _EXACT: dict = {}
 def _exact_objects(scene: Scene):
     if not isinstance(scene.objects, tuple):
         return prepare_exact(scene)
-    key = (id(scene.objects), tuple(scene.viewpoint))
+    key = (id(scene.objects), written(scene.viewpoint))
     hit = _EXACT.get(key)
     if hit is None:
         if len(_EXACT) >= 16:

@@ -377,6 +377,14 @@ def test21e_classify_evaluates_only_named_objects(name, monkeypatch):
     assert (got == want).all(), np.flatnonzero(got != want)[:10]
     for c in ("tie", "unexplained") + (("extent",) if name == "planar_many.txt" else ()):
         assert np.count_nonzero(got == CLASS_CODE[c]) > 0, c
+    # an id the scene does not have is an error, not a class
+    for side in (ours, ref):
+        wrong = dict(side, **{"object.id": np.where(np.arange(len(own)) == 7, n,
+                                                    side["object.id"]).astype(np.float32),
+                              "hit.mask": np.ones(len(own), np.float32)})
+        with pytest.raises(ValueError, match=f"go up to {n}; the scene has {n} objects"):
+            classify(scene, d, wrong if side is ours else ours, wrong if side is ref else ref,
+                     Rules(), extent)
 
 
 def test21c_constants_shared_by_window_copies(monkeypatch):
@@ -417,6 +425,16 @@ def test21f_scale_and_exact_objects_kept_per_their_inputs():
     assert _exact_objects(wide) is _exact_objects(scene)
     assert _exact_objects(moved) is not _exact_objects(scene)
     assert len(_exact_objects(fewer)) == len(scene.objects) - 1
+    # the viewpoint as written: 0.1 and its float64's exact decimal are one float, two numbers
+    from decimal import Decimal
+    from rt_core.scene import Num
+    import rt_core.tracer as TR
+    a, b = (dataclasses.replace(scene, viewpoint=(Num(x), Num("0"), scene.viewpoint[2]))
+            for x in ("0.1", str(Decimal(0.1))))
+    assert a.viewpoint == b.viewpoint and _exact_objects(a) is not _exact_objects(b)
+    TR._CONSTS.clear()
+    TR.scene_constants(a), TR.scene_constants(b)
+    assert len(TR._CONSTS) == 2
 
 
 def test22_evidence_written(tmp_path):
@@ -603,6 +621,12 @@ def test43b_precisions_of_a_scene_share_mitsubas_scenes(monkeypatch):
     per_scene = {sc.path: sum(1 for x in loads if x.objects is sc.objects) for sc in (a, b)}
     assert len(loads) == sum(per_scene.values()) and all(1 <= n <= 2 for n in
                                                           per_scene.values())
+    # on a Dask worker nothing is kept between jobs
+    monkeypatch.setattr(V, "_on_worker", lambda: True)
+    V._LAST[:] = [None, {}]
+    V.run_job(V.Job(a, ("rays",), "f32", 32))
+    assert V._LAST == [None, {}]
+    monkeypatch.setattr(V, "_on_worker", lambda: False)
     monkeypatch.setattr(V, "_LAST", [None, {}])
     for (path, precision), want in rows.items():
         V._LAST[:] = [None, {}]                     # nothing shared

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -155,14 +156,32 @@ def _free() -> dict:
     return {}
 
 
+def _on_worker() -> bool:
+    """Does this run on a Dask worker (a task of tools/harness/parallel.py's clusters)?"""
+    dist = sys.modules.get("distributed")
+    if dist is None:
+        return False
+    try:
+        dist.get_worker()
+    except ValueError:
+        return False
+    return True
+
+
 def run_job(job: Job) -> list:
     """A job's comparisons (in this process or on a Dask worker): for each, its report row,
     and the comparison itself when its evidence is to be written (it failed, or
     ``keep_all``); evidence is written by the caller, never on a worker."""
     # (a shaded job frees them first: with them loaded Mitsuba's course images took 1.7
     # times the time, and compiled new kernels on the first run; likely its virtual calls,
-    # which dispatch over every live instance, the other scene's BSDFs too)
-    out, cache = [], _scene_cache(job.scene) if job.modes != ("shaded",) else _free()
+    # which dispatch over every live instance, the other scene's BSDFs too.  On a Dask
+    # worker nothing is shared: its jobs come pickled, each with a scene of its own, and
+    # what it kept would outlive the run)
+    if _on_worker():
+        cache = {}
+    else:
+        cache = _scene_cache(job.scene) if job.modes != ("shaded",) else _free()
+    out = []
     for mode in job.modes:
         t0 = time.perf_counter()
         if mode == "shaded":
