@@ -577,6 +577,38 @@ def test15c_sigterm_stops_check_runs_queued_and_running(tmp_path):
     assert not tracers()
 
 
+def test15e_sigkill_of_check_takes_the_tracer_with_it():
+    """No handler runs on SIGKILL: the tracer's process group, in a session of its own, used
+    to run on after rtval (to its end, or forever for a hung one).  A watchdog shell kills
+    it when rtval's end of its pipe closes; a run that ends normally leaves no watchdog."""
+    mark = f"rtval-test-kill-{os.getpid()}"
+    p = subprocess.Popen([sys.executable, "-m", "tools.cli", "check", "--run",
+                          f"sleep 30 # {mark} {{scene}} {{out}}", "--columns", "16",
+                          str(REPO / "scenes" / "plane.txt")],
+                         cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+    def running(word):
+        out = subprocess.run(["ps", "-eo", "args"], capture_output=True, text=True).stdout
+        return [ln for ln in out.splitlines() if word in ln and "tools.cli" not in ln]
+    t0 = time.monotonic()
+    while not running(mark):
+        assert p.poll() is None and time.monotonic() - t0 < 60
+        time.sleep(0.05)
+    assert len(running("read _ ; kill -KILL")) >= 1
+    p.kill()
+    p.communicate(timeout=60)
+    t1 = time.monotonic()
+    while running(mark) and time.monotonic() - t1 < 10:
+        time.sleep(0.05)
+    assert not running(mark)
+    # a normal run: its watchdog goes with it
+    before = len(running("read _ ; kill -KILL"))
+    r = rtval("check", "--run", f"true # {mark} {{scene}} {{out}}", "--columns", 16,
+              REPO / "scenes" / "plane.txt")
+    assert r.returncode == 1 and "wrote no image" in r.stdout + r.stderr, r.stdout + r.stderr
+    assert len(running("read _ ; kill -KILL")) <= before
+
+
 def test15d_another_namespaces_temporary_is_left_alone(tmp_path):
     """A PID names a process only within one host and PID namespace: a temporary of a run
     elsewhere (another container writing into a shared directory) is never removed."""

@@ -1142,6 +1142,37 @@ def _stop_running() -> None:
             os.killpg(p.pid, signal.SIGKILL)
 
 
+class _Watchdog:
+    """Kills a tracer's process group if rtval dies without doing it (SIGKILL, a crash: no
+    handler runs).  A shell in a session of its own waits on a pipe whose only writer is
+    rtval; the kernel closes that end when rtval dies, the read ends, and the shell kills
+    the group (``kill -KILL -PGID``: dash takes no ``--``).  ``stop``, when the run ends
+    normally, ends the shell first."""
+
+    def __init__(self, pgid: int):
+        self._p = self._w = None
+        try:
+            r, self._w = os.pipe()          # (not inherited: no other child holds it)
+        except OSError:
+            return                          # (no pipe, no shell: the run goes unguarded)
+        try:
+            self._p = subprocess.Popen(
+                ["/bin/sh", "-c", f"read _ ; kill -KILL -{int(pgid)} 2>/dev/null"], stdin=r,
+                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+        except OSError:
+            pass
+        finally:
+            os.close(r)
+
+    def stop(self) -> None:
+        if self._p is not None:
+            with contextlib.suppress(OSError):
+                self._p.kill()
+            self._p.wait()
+        if self._w is not None:
+            os.close(self._w)
+
+
 PLACEHOLDERS = ("scene", "out", "columns", "rows", "hits")
 
 
@@ -1196,6 +1227,7 @@ def run_tracer(template: str, scene: str, columns: int, rows: int, workdir: str,
     except OSError as exc:
         return None, None, f"cannot run {cmd!r}: {exc.strerror or exc}"
     _RUNNING.add(p)
+    guard = _Watchdog(p.pid)
     said = _Tail(p.stderr)              # what it says, read as it goes: the last lines only
     timed_out = False
     try:
@@ -1211,6 +1243,7 @@ def run_tracer(template: str, scene: str, columns: int, rows: int, workdir: str,
         # too (a background child holding stderr made a finished run time out)
         with contextlib.suppress(OSError):
             os.killpg(p.pid, signal.SIGKILL)
+        guard.stop()                    # (before the group's id can be another's)
         p.wait()
         _RUNNING.discard(p)
         said.stop()
