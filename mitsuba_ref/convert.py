@@ -69,25 +69,32 @@ def course_id(shape_id_str: str) -> int:
     return int(head[3:])
 
 
+def kept(table: dict, scene: Scene, key: tuple, make, size: int = 16):
+    """``make(scene)``, kept in ``table`` for the last ``size`` keys (the scene's objects'
+    tuple, and ``key``: what else ``make`` reads): an entry holds its objects' tuple, so its
+    id stays that tuple's; objects in a list are computed each time.  (The references'
+    own: rt_core's scene model is not theirs to import.)"""
+    if not isinstance(scene.objects, tuple):
+        return make(scene)
+    k = (id(scene.objects), *key)
+    hit = table.get(k)
+    if hit is None:
+        if len(table) >= size:
+            table.clear()
+        hit = table[k] = (scene.objects, make(scene))
+    return hit[1]
+
+
 # scene_scale of the scenes asked last: a comparison asks it a few times for each of its
-# rays' tracers, the converter and the classifier (~0.1 ms each, thousands in a validate).
-# Keyed on the objects' tuple (held in the entry, so its id is not reused), the viewpoint
-# and the window; a scene whose objects are a list is computed each time
+# rays' tracers, the converter and the classifier (~0.1 ms each, thousands in a validate)
 _SCALES: dict = {}
 
 
 def scene_scale(scene: Scene) -> float:
     """The largest distance from the viewpoint to anything bounded in the scene (and the
     window): what a camera ray must reach."""
-    if not isinstance(scene.objects, tuple):
-        return _scene_scale(scene)
-    key = (id(scene.objects), tuple(scene.viewpoint), tuple(scene.window))
-    hit = _SCALES.get(key)
-    if hit is None:
-        if len(_SCALES) >= 64:
-            _SCALES.clear()
-        hit = _SCALES[key] = (scene.objects, _scene_scale(scene))
-    return hit[1]
+    return kept(_SCALES, scene, (tuple(scene.viewpoint), tuple(scene.window)), _scene_scale,
+                64)
 
 
 def _scene_scale(scene: Scene) -> float:

@@ -27,7 +27,7 @@ from rt_core.kinds import kind
 from rt_core.rules import Rules
 
 from . import quadric
-from .convert import stand_in_frame
+from .convert import kept, stand_in_frame
 from .geometry import frame, normal, unit
 from .oracle_planar import points, triangle_normal
 
@@ -325,10 +325,5 @@ _TERMS: dict = {}
 
 
 def _bound_terms(scene: Scene, extent: float) -> _BoundTerms:
-    key = (id(scene.objects), tuple(scene.viewpoint), extent)
-    hit = _TERMS.get(key)
-    if hit is None:                     # (an entry holds its objects: their id is not reused)
-        if len(_TERMS) > 8:
-            _TERMS.clear()
-        hit = _TERMS[key] = (scene.objects, _BoundTerms(scene, extent))
-    return hit[1]
+    return kept(_TERMS, scene, (tuple(scene.viewpoint), extent),
+                lambda sc: _BoundTerms(sc, extent), 9)

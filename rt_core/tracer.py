@@ -112,20 +112,31 @@ def scene_constants(scene: Scene) -> list:
     return _checked_constants(scene)[0]
 
 
+def _kept(table: dict, scene: Scene, make):
+    """``make(scene)``, kept in ``table`` for the last 16 scenes' objects and viewpoint (as
+    written): an entry holds its objects' tuple, so its id stays that tuple's; objects in a
+    list (which could change under the key) are computed each time."""
+    if not isinstance(scene.objects, tuple):
+        return make(scene)
+    key = (id(scene.objects), written(scene.viewpoint))
+    hit = table.get(key)
+    if hit is None:
+        if len(table) >= 16:
+            table.clear()
+        hit = table[key] = (scene.objects, make(scene))
+    return hit[1]
+
+
 def _checked_constants(scene: Scene) -> tuple[list, tuple | None]:
     """scene_constants and, per object, the largest magnitude its kernel receives (None
     when any is not finite): prepare's checks, kept with the constants."""
-    if not isinstance(scene.objects, tuple):        # (a list could change under the key)
-        consts = object_constants(scene)
-        return consts, _largest(consts)
-    key = (id(scene.objects), written(scene.viewpoint))
-    hit = _CONSTS.get(key)
-    if hit is None:
-        if len(_CONSTS) >= 16:
-            _CONSTS.clear()
-        consts = tuple(object_constants(scene))
-        hit = _CONSTS[key] = (scene.objects, consts, _largest(consts))
-    return list(hit[1]), hit[2]
+    consts, bigs = _kept(_CONSTS, scene, _make_constants)
+    return list(consts), bigs
+
+
+def _make_constants(scene: Scene):
+    consts = tuple(object_constants(scene))
+    return consts, _largest(consts)
 
 
 def _largest(consts) -> tuple | None:
@@ -142,15 +153,7 @@ _EXACT: dict = {}
 
 
 def _exact_objects(scene: Scene):
-    if not isinstance(scene.objects, tuple):
-        return prepare_exact(scene)
-    key = (id(scene.objects), written(scene.viewpoint))
-    hit = _EXACT.get(key)
-    if hit is None:
-        if len(_EXACT) >= 16:
-            _EXACT.clear()
-        hit = _EXACT[key] = (scene.objects, prepare_exact(scene))
-    return hit[1]
+    return _kept(_EXACT, scene, prepare_exact)
 
 
 def _overflow(scene: Scene, obj) -> SceneError:
