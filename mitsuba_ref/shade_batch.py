@@ -29,7 +29,9 @@ import math
 
 import numpy as np
 
+from rt_core.kinds import kind
 from mitsuba_ref import oracle
+from mitsuba_ref.convert import stand_in_frame
 from mitsuba_ref.oracle import EF, _f32_exact
 from mitsuba_ref.shade_oracle import _Alt, quantize
 
@@ -556,6 +558,18 @@ def _hit_margin(gs: Groups, h, base, d, skip, ties, tmax, near=None):
 
 # --- shade_oracle.ray_trace on lanes ------------------------------------------------------------
 
+def _reach(frames, ids, P) -> np.ndarray:
+    """shade_oracle.reach on lanes: their hits P (V triple) on objects ``ids``."""
+    out = np.zeros(len(ids))
+    for j, (ax, ay, foot) in frames.items():
+        on = np.flatnonzero(ids == j)
+        if len(on):
+            rel = [P[i].v[on] - foot[i] for i in range(3)]
+            out[on] = np.maximum(np.abs(rel[0] * ax[0] + rel[1] * ax[1] + rel[2] * ax[2]),
+                                 np.abs(rel[0] * ay[0] + rel[1] * ay[1] + rel[2] * ay[2]))
+    return out
+
+
 def _materials(scene):
     """Per object, as arrays indexed by object: ambient, diffuse, specular (3 V each, EF of
     the numbers as written), of the material and of a tiled plane's background."""
@@ -607,9 +621,13 @@ def _shade(scene, base, d, rules, max_dist: float, flips, limit) -> dict:
     tabs = _materials(scene)
     tile = {ob.idx: (oracle.tile_scale(ob.src, rules), ob.src.size) for ob in obs
             if ob.kind == "tplane"}
-    out = {"I": np.zeros((n, 3)), "err": np.zeros((n, 3)), "bounces": np.zeros(n, np.int32)}
+    out = {"I": np.zeros((n, 3)), "err": np.zeros((n, 3)), "bounces": np.zeros(n, np.int32),
+           "reach": np.zeros(n)}
     for k in ("geo", "shadow", "tile", "maxdist", "texel"):
         out[k] = np.full(n, INF)
+    # the stand-in squares' frames of the infinite and tiled planes (shade_oracle.reach)
+    frames = {j: stand_in_frame(o, scene.viewpoint) for j, o in enumerate(scene.objects)
+              if not kind(o.kind).bounded}
     seen = [[] for _ in range(n)]
     # the lanes where the per-pixel oracle raises (a division by zero, a rounding of
     # infinity): a primary direction of no length first
@@ -680,6 +698,7 @@ def _shade(scene, base, d, rules, max_dist: float, flips, limit) -> dict:
         total = add(total.at(keep), h.t)
         ids = h.id
         H, N = h.position, h.normal
+        out["reach"][lane] = np.maximum(out["reach"][lane], _reach(frames, ids, H))
         fg = np.ones(len(lane), bool)
         for j, (k, size) in tile.items():
             on = np.flatnonzero(ids == j)
@@ -736,7 +755,10 @@ def _shade(scene, base, d, rules, max_dist: float, flips, limit) -> dict:
             m = _hit_margin(gs, sh, Ha, La, ids[at], False, dist.v[at])
             m = np.where(sh.hit, pmin(m, _margin(sh.t.v - dist.v[at], sh.t.e + dist.e[at])), m)
             out["shadow"][lane[at]] = pmin(out["shadow"][lane[at]], m)
-            blocked = choose((b, "shadow", l), m, lane[at], sh.hit & (sh.t.v < dist.v[at]))
+            real = sh.hit & (sh.t.v < dist.v[at])
+            out["reach"][lane[at]] = np.maximum(
+                out["reach"][lane[at]], np.where(real, _reach(frames, sh.id, sh.position), 0.0))
+            blocked = choose((b, "shadow", l), m, lane[at], real)
             on = at[~blocked]
             cla, dista = cl.at(on), dist.at(on)
             for i in range(3):
@@ -784,6 +806,7 @@ def _hand_over(scene, lane, base, d, skip, total, b, rules, max_dist, flips, lim
         px = shade_oracle._Pixel()
         for k in shade_oracle.MARGINS:
             setattr(px, k, float(out[k][p]))
+        px.reach = float(out["reach"][p])
         alt = shade_oracle._Alt(flips[p] if flips else frozenset(), limit)
         ef = lambda x: EF(float(x.v[i]), float(x.e[i]))
         try:
@@ -796,6 +819,7 @@ def _hand_over(scene, lane, base, d, skip, total, b, rules, max_dist, flips, lim
         out["I"][p] = [x.v for x in I]
         out["err"][p] = [x.e for x in I]
         out["bounces"][p] += px.bounces
+        out["reach"][p] = px.reach
         for k in shade_oracle.MARGINS:
             out[k][p] = getattr(px, k)
         seen[p] += alt.seen

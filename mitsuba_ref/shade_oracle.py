@@ -19,6 +19,12 @@ the decided quantity from its threshold over that quantity's error bound (as in 
   texel    a textured object's texel: s·W and t·H against the integers where the nearest
            texel changes (README "Textures"; the texture read by mitsuba_ref/ppm.py)
 
+and its ``reach``: how far from the viewpoint's foot point, along the axes of the square
+that stands in for the plane in Mitsuba's scene (``convert.stand_in_frame``), the path's
+farthest hit on an infinite or tiled plane lies (its closest hits, and the nearest blocker
+of a shadow ray that is blocked); 0 if it has none.  Beyond the square's half-size
+(``convert.plane_extent``) Mitsuba's scene has no plane there (tools/harness/shaded.py).
+
 The light test c > 0 is not among them: the diffuse term is c·(...), continuous where c
 changes sign.  ``flags`` turns margins into per-pixel flags for one precision.
 """
@@ -29,8 +35,10 @@ import math
 
 import numpy as np
 
+from rt_core.kinds import kind
 from rt_core.rules import Rules
 from mitsuba_ref import oracle, ppm, quadric
+from mitsuba_ref.convert import stand_in_frame
 from mitsuba_ref.oracle import EF, diff3, dot3, length3, scale3, trace, unit3, vec
 
 INF = math.inf
@@ -113,6 +121,18 @@ class _Pixel:
     def __init__(self):
         self.geo = self.shadow = self.tile = self.maxdist = self.texel = INF
         self.bounces = 0
+        self.reach = 0.0
+
+
+def reach(scene, obj, p) -> float:
+    """How far the hit ``p`` on ``obj`` lies from the viewpoint's foot point along the axes
+    of the stand-in square of an infinite or tiled plane (module docstring); 0 on a bounded
+    object."""
+    if kind(obj.kind).bounded:
+        return 0.0
+    ax, ay, foot = stand_in_frame(obj, scene.viewpoint)
+    rel = [p[i] - foot[i] for i in range(3)]
+    return max(abs(sum(r * a for r, a in zip(rel, ax))), abs(sum(r * a for r, a in zip(rel, ay))))
 
 
 class _Alt:
@@ -190,6 +210,7 @@ def ray_trace(scene, base, d, total_dist, skip, rules: Rules, max_dist: float, p
             I = [EF(0.0, 0.0)] * 3
             break
         obj = scene.objects[h.id]
+        px.reach = max(px.reach, reach(scene, obj, h.position))
         total_dist = total_dist + EF(h.t, h.err_t)
         H = _ef3(h.position, h.err_position)
         N = _ef3(h.normal, h.err_normal)
@@ -237,6 +258,8 @@ def ray_trace(scene, base, d, total_dist, skip, rules: Rules, max_dist: float, p
                 m = min(m, _margin(s.t - dist.v, s.err_t + dist.e))
             px.shadow = min(px.shadow, m)
             # (whichever test is near: the light blocked or not)
+            if s.hit and s.t < dist.v:
+                px.reach = max(px.reach, reach(scene, scene.objects[s.id], s.position))
             blocked = alt.choose((b, "shadow", l), m, s.hit and s.t < dist.v)
             if blocked:
                 continue                                    # shadow
@@ -469,11 +492,11 @@ def render_shade_oracle(scene, columns: int, rows: int | None = None,
                         sampling: str = "corners", rules: Rules = Rules(),
                         max_dist: float = 1000.0) -> dict:
     """Per-pixel oracle images, row 0 = TOP: 'I' and 'err' (rows, columns, 3): intensity and
-    its error bound in units of u; MARGINS (rows, columns); 'bounces'."""
+    its error bound in units of u; MARGINS (rows, columns); 'bounces', 'reach'."""
     W = int(columns)
     H = scene.default_rows(W) if rows is None else int(rows)
     out = {"I": np.zeros((H, W, 3)), "err": np.zeros((H, W, 3)),
-           "bounces": np.zeros((H, W), np.int32)}
+           "bounces": np.zeros((H, W), np.int32), "reach": np.zeros((H, W))}
     out.update({m: np.full((H, W), INF) for m in MARGINS})
     for y in range(H):
         r = H - 1 - y
@@ -484,6 +507,7 @@ def render_shade_oracle(scene, columns: int, rows: int | None = None,
             out["I"][r, x] = [c.v for c in I]
             out["err"][r, x] = [c.e for c in I]
             out["bounces"][r, x] = px.bounces
+            out["reach"][r, x] = px.reach
             for m in MARGINS:
                 out[m][r, x] = getattr(px, m)
     return out
@@ -492,10 +516,11 @@ def render_shade_oracle(scene, columns: int, rows: int | None = None,
 def shade_pixels(scene, columns: int, rows: int, pixels, sampling: str = "corners",
                  rules: Rules = Rules(), max_dist: float = 1000.0) -> dict:
     """``render_shade_oracle`` for some pixels only (indices in image order, row 0 the top):
-    'I', 'err' (n, 3) and MARGINS (n,)."""
+    'I', 'err' (n, 3), MARGINS, 'bounces' and 'reach' (n,)."""
     pixels = np.asarray(pixels, np.int64)
     n = len(pixels)
-    out = {"I": np.zeros((n, 3)), "err": np.zeros((n, 3)), "bounces": np.zeros(n, np.int32)}
+    out = {"I": np.zeros((n, 3)), "err": np.zeros((n, 3)), "bounces": np.zeros(n, np.int32),
+           "reach": np.zeros(n)}
     out.update({m: np.full(n, INF) for m in MARGINS})
     out["paths"] = [None] * n           # (colour, near decisions, bounces): other_sides' first
     todo = range(n)
@@ -506,7 +531,7 @@ def shade_pixels(scene, columns: int, rows: int, pixels, sampling: str = "corner
         if shade_batch.supported(scene):
             base, d = shade_batch.rays(scene, columns, rows, pixels, sampling, rules)
             got = shade_batch.shade(scene, base, d, rules, max_dist)
-            for key in ("I", "err", "bounces", *MARGINS):
+            for key in ("I", "err", "bounces", "reach", *MARGINS):
                 out[key][:] = got[key]
             out["paths"] = shade_batch.paths(got)
             todo = [k for k, path in enumerate(out["paths"]) if path is None]
@@ -519,6 +544,7 @@ def shade_pixels(scene, columns: int, rows: int, pixels, sampling: str = "corner
         out["I"][k] = [c.v for c in I]
         out["err"][k] = [c.e for c in I]
         out["bounces"][k] = px.bounces
+        out["reach"][k] = px.reach
         for m in MARGINS:
             out[m][k] = getattr(px, m)
     return out

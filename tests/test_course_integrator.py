@@ -348,18 +348,24 @@ def test12_plugins_registered_on_import(tmp_path):
     assert r.stdout.strip() == "False", r.stderr
 
 
-def test13_geometry_classifier_decides_what_the_oracle_cannot(tmp_path):
+def test13_the_oracle_and_the_geometry_classifier_find_the_stand_ins_end(tmp_path):
     """A bright floor far below a level camera: rt_core sees the infinite plane out to the
     horizon, Mitsuba's stand-in square (64 × the scene's scale) ends before it.  The shading
-    oracle (infinite planes) sees no decision there; the geometry classifier names the
-    stand-in's extent, so those pixels are boundary, not wrong."""
+    oracle's ``reach`` puts those primary hits beyond the square, so its classes alone make
+    them boundary, not wrong; and the geometry classifier names the same pixels, each
+    "extent"."""
+    from mitsuba_ref.explain import CLASS_CODE
+    from tools.harness.compare import compare
     from tools.harness.shaded import classify_shaded
     sc = parse_text("8 6  0 0 5\npointlight 9 9 9  0 4 0\n"
                     "plane 5000 5000 5000  0 0 0  0 0 0  0 1 0  0 -100 0\n")
     cmp = compare_shaded(sc, 64)
     assert cmp.ok and cmp.counts["boundary"] > 0, cmp.counts
     oracle_only = classify_shaded(sc, cmp.ours, cmp.theirs, "corners", cmp.rules, cmp.max_dist)
-    assert (oracle_only == SHADED_CODE["wrong"]).sum() == cmp.counts["boundary"]
+    boundary = oracle_only == SHADED_CODE["boundary"]
+    assert boundary.sum() == cmp.counts["boundary"]
+    geo = compare(sc, 64, cmp.rows, "f64", "rays").classes
+    assert (geo[boundary] == CLASS_CODE["extent"]).all()
 
 
 @pytest.mark.parametrize("path,kinds", [(CYLINDERS, ("cylinder",)),
@@ -501,3 +507,26 @@ def test19_a_stepped_over_hit_keeps_the_course_line():
     for got, on in rec.origins:
         off = np.linalg.norm(np.cross(got[on] - V, D[on]), axis=1)     # distance from the line
         assert off.max() < 1e-5, off.max()
+
+
+def test20_a_reflection_beyond_the_stand_in_is_boundary():
+    """A mirror floor and a bright ceiling, both infinite.  Row 18's rays meet the floor
+    about 250 units away, within the half-size 640 of the squares that stand in for the
+    planes in Mitsuba's scene, and their reflections the ceiling about 750 away, beyond its
+    square: rt_core sees the ceiling (white), Mitsuba nothing (black).  The oracle's
+    ``reach`` finds those hits beyond the square, so the pixels are ``boundary`` (as the
+    geometry classifier's "extent" for a primary ray), not ``wrong``; every other pixel
+    matches.  (Found on scenes/shade_mirrors.txt at 1200 columns: 12 pixels down the
+    corridor of mirrors.)"""
+    from mitsuba_ref.convert import plane_extent
+    sc = parse_text("8 6\n0 -0.0657 5\n"
+                    "plane\n0 0 0\n0 0 0\n1 1 1\n0 1 0\n0 -1 0\n"
+                    "plane\n5000 5000 5000\n0 0 0\n0 0 0\n0 -1 0\n0 1 0\n")
+    cmp = compare_shaded(sc, 49)
+    assert 600 < plane_extent(sc) < 700
+    row = cmp.classes[18]
+    assert (row == SHADED_CODE["boundary"]).all(), row
+    assert (cmp.ours[18] == 255).all() and (cmp.theirs[18] == 0).all()
+    others = np.delete(cmp.classes, 18, axis=0)
+    assert (others == SHADED_CODE["match"]).all(), cmp.counts
+    assert cmp.ok, cmp.counts

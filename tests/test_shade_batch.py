@@ -27,7 +27,7 @@ from rt_core.rules import Rules
 from tools.harness.validate import default_scene_paths, load_supported
 
 REPO = Path(__file__).resolve().parents[1]
-OUT = ("I", "err", "bounces", *shade_oracle.MARGINS)
+OUT = ("I", "err", "bounces", "reach", *shade_oracle.MARGINS)
 VARIANTS = [Rules(ties="last", edges="open"), Rules(screen_clip=">=", clip_spheres=True),
             Rules(screen_clip="off", reflect="segment"),
             Rules(tile_add_first=True, tile_project=False, rows="shifted", t_min=0.01)]
@@ -354,3 +354,35 @@ def test15_long_paths_handed_over(tail, monkeypatch):
     with monkeypatch.context() as m:
         m.setattr(shade_oracle, "BATCH_MIN", 10 ** 9)
         assert many == [shade_oracle.other_sides(spec, W, H, p, limit=F32_LIMIT) for p in pick]
+
+
+@pytest.mark.parametrize("batch", [False, True])
+def test16_reach_counts_hits_and_shadow_blockers(batch, monkeypatch):
+    """``reach``: the farthest a path's hit on an infinite plane lies from the viewpoint's
+    foot point along its stand-in square's axes, its closest hits and the blockers of its
+    shadow rays both.  The floor's points are shadowed by the roof on the way to a light far
+    down -z, and the blocker lies farther out than the hit: the reach is the blocker's,
+    computed here from the ray (per-pixel oracle and batch alike)."""
+    from mitsuba_ref.convert import stand_in_frame
+    sc = parse_text("8 6\n0 0 5\n"
+                    "pointlight\n9 9 9\n0 5 -200\n"
+                    "plane\n1 1 1\n4 4 4\n0 0 0\n0 1 0\n0 -10 0\n"     # floor
+                    "plane\n0 0 0\n1 1 1\n0 0 0\n0 -1 0\n0 3 0\n")    # roof
+    W, H = 16, 12
+    pixels = [11 * W + 3, 10 * W + 12] * (8 if batch else 1)  # the bottom rows: the floor
+    if not batch:
+        monkeypatch.setattr(shade_oracle, "BATCH_MIN", 10 ** 9)
+    out = shade_oracle.shade_pixels(sc, W, H, pixels, "corners", Rules())
+    V = np.array(sc.viewpoint)
+    for k, p in enumerate(pixels[:2]):
+        r, x = divmod(p, W)
+        E = np.array([x / (W - 1) * 8 - 4, (H - 1 - r) / (H - 1) * 6 - 3, 0.0]) - V
+        Hf = V + E * (-10 - V[1]) / E[1]                     # on the floor, y = -10
+        L = np.array([0.0, 5.0, -200.0])
+        B = Hf + (L - Hf) * (3 - Hf[1]) / (L[1] - Hf[1])     # on the roof, y = 3
+        want = []
+        for obj, P in ((sc.objects[0], Hf), (sc.objects[1], B)):
+            ax, ay, foot = (np.array(a) for a in stand_in_frame(obj, sc.viewpoint))
+            want.append(max(abs((P - foot) @ ax), abs((P - foot) @ ay)))
+        assert want[1] > want[0]
+        assert out["reach"][k] == pytest.approx(want[1], rel=1e-9), (out["reach"][k], want)

@@ -9,9 +9,13 @@ Classes of a pixel (``SHADED_CLASSES``):
   (255·I within K·u·err of an integer): the two floors may differ there;
 * ``boundary``: the oracle puts a decision of the pixel's rays (the primary or a reflection
   ray's closest hit, a shadow test, a tile's parity, the distance cut-off) within float32's
-  bound of its threshold, or the geometry classifier (mitsuba_ref/explain.py, as in
-  ``rtval compare --mode rays``) explains the primary ray's disagreement (an edge, a tie,
-  the clip, the stand-in plane's extent, a grazing or parallel ray);
+  bound of its threshold, or a hit of its path on an infinite or tiled plane (a closest
+  hit, or a shadow ray's blocker) beyond the square that stands in for the plane in
+  Mitsuba's scene (the oracle's ``reach`` over ``plane_extent``, the geometry classifier's
+  "extent" test: a reflection ray down a corridor of mirrors), or the geometry classifier
+  (mitsuba_ref/explain.py, as in ``rtval compare --mode rays``) explains the primary ray's
+  disagreement (an edge, a tie, the clip, the stand-in plane's extent, a grazing or
+  parallel ray);
 * ``wrong``: anything else.  A wrong pixel fails the comparison.
 
 Beside the classes, NVIDIA FLIP (tools/harness/flip.py) says how visible the differences
@@ -107,6 +111,7 @@ def quantize32(I: np.ndarray) -> np.ndarray:
 def classify_shaded(scene: Scene, ours: np.ndarray, theirs: np.ndarray, sampling: str,
                     rules: Rules, max_dist: float) -> np.ndarray:
     """SHADED_CODE per pixel (module docstring); the oracle runs on the differing pixels."""
+    from mitsuba_ref.convert import plane_extent
     from mitsuba_ref.shade_oracle import flags, shade_pixels
     H, W = ours.shape[:2]
     diff = np.abs(ours.astype(np.int16) - theirs.astype(np.int16)).max(-1)
@@ -116,7 +121,9 @@ def classify_shaded(scene: Scene, ours: np.ndarray, theirs: np.ndarray, sampling
         return classes
     orc = shade_pixels(scene, W, H, pix, sampling, rules, max_dist)
     f = flags(orc, "f32")
-    jump, quant = f["jump"], f["quant"]
+    # (beyond the stand-in square as explain.ObjectEval's "extent" test takes it)
+    beyond = orc["reach"] > plane_extent(scene) * (1 - 1e-6)
+    jump, quant = f["jump"] | beyond, f["quant"]
     small = diff.ravel()[pix] <= 1
     code = np.where(jump, SHADED_CODE["boundary"],
                     np.where(small & quant, SHADED_CODE["rounding"], SHADED_CODE["wrong"]))
