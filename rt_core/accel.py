@@ -463,7 +463,9 @@ def ray_bins(ks, grid: Grid, d):
 
 def _range(ks, kind: str, d, o):
     """(table, start, end): the rows start..end-1 of the table that each ray visits, as
-    Int32 (a signed comparison ends the loop: AVX2 has no unsigned one; rows < 2³¹)."""
+    Int32 (a signed comparison ends the loop: AVX2 has no unsigned one; rows < 2³¹); None
+    when no ray can hit an object of the kind (its bins list none: every one is never_hit,
+    and an empty table has nothing to gather from)."""
     I = ks.T.Int32
     use = o is None and ks.__dict__.get("_accel_opts", {}).get("bins", True)
     b = binned(ks, dr.width(d)) if use else None
@@ -473,6 +475,8 @@ def _range(ks, kind: str, d, o):
     if tab is None:
         tab = tables(ks)[kind]
         return tab, dr.zeros(I, dr.width(d)), dr.opaque(I, tab.count, dr.width(d))
+    if dr.width(tab.rows) == 0:
+        return None
     se = dr.gather(ks.T.module.ArrayXu, tab.offsets, ray_bins(ks, b[0], d),
                    shape=(4, dr.width(d)))
     return tab, I(se[0]), I(se[1])
@@ -486,7 +490,10 @@ def closest_kind(ks, kind: str, d, o, rules: Rules, skip, st, scale: float = 0.0
         return reflectbins.closest_kind(ks, kind, d, o, rules, skip, st)
     T = ks.T
     vz = ks.scene.viewpoint[2]
-    tab, start, end = _range(ks, kind, d, o)
+    got = _range(ks, kind, d, o)
+    if got is None:
+        return st
+    tab, start, end = got
     cert = st.cert
     st.fresh = False                    # the body is traced once for every iteration
 
@@ -565,7 +572,10 @@ def occluded_kind(ks, kind: str, d, o, maxt, rules: Rules, skip, blocked, toward
         return bvh.occluded_kind(ks, kind, d, o, maxt, rules, skip, blocked)
     T = ks.T
     vz = ks.scene.viewpoint[2]
-    tab, start, end = _range(ks, kind, d, o)
+    got = _range(ks, kind, d, o)
+    if got is None:
+        return blocked
+    tab, start, end = got
 
     def body(i, blk):
         obj = tab.view(T, i)

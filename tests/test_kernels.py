@@ -128,6 +128,31 @@ def test01_camera_rays_loop_equals_unrolled(seed, precision, monkeypatch):
 
 
 @pytest.mark.parametrize("precision", PRECISIONS)
+def test01b_a_kind_no_camera_ray_can_hit(precision, monkeypatch):
+    """The viewpoint inside the only sphere (and a second scene: on its surface): no camera
+    ray hits it (accel.never_hit), so its bins list no row.  The loop over the kind is left
+    out; it used to gather from the empty table and fail as the kernel was traced
+    (RuntimeError from dr.while_loop, float64 renders of 9 bounded objects)."""
+    T = types(precision)
+    for centre, r in (((0, 0, 4), 1.0), ((0, 0, 6), 2.0)):
+        panels = [make_fplane(GREY, (0, 0, 1), (x, y, -4), (1, 0, 0), (1, 1))
+                  for x, y in [(-3, 0), (-2, 0), (-1, 0), (0, 0), (1, 0), (2, 0), (3, 0),
+                               (0, 2)]]
+        scene = Scene((8, 6), (0, 0, 4), (), (make_sphere(GREY, centre, r), *panels),
+                      path="<inside>")
+        a = hits(scene, T, LOOPED, monkeypatch, columns=17)
+        b = hits(scene, T, UNROLLED, monkeypatch, columns=17)
+        assert_same(a, b, f"viewpoint in a sphere {precision}")
+        assert ((a[1] >= 1) | (a[1] == -1)).all() and (a[1] >= 1).any()
+        # the renders, certified in float64: looped as unrolled
+        ids = []
+        for unroll in (LOOPED, UNROLLED):
+            monkeypatch.setattr(accel, "UNROLL_MAX", unroll)
+            ids.append(render_geometry(scene, 17, None, precision)["object.id"])
+        assert np.array_equal(*ids), precision
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
 def test02_secondary_rays_loop_equals_unrolled(precision, monkeypatch):
     scene = adversarial_scene(7)
     T = types(precision)
