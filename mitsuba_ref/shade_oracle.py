@@ -499,18 +499,39 @@ def render_shade_oracle(scene, columns: int, rows: int | None = None,
            "bounces": np.zeros((H, W), np.int32), "reach": np.zeros((H, W))}
     out.update({m: np.full((H, W), INF) for m in MARGINS})
     for y in range(H):
-        r = H - 1 - y
         for x in range(W):
-            px = _Pixel()
-            base, d = primary_ray(scene, x, y, W, H, sampling)
-            I = ray_trace(scene, base, d, EF(0.0, 0.0), None, rules, max_dist, px)
-            out["I"][r, x] = [c.v for c in I]
-            out["err"][r, x] = [c.e for c in I]
-            out["bounces"][r, x] = px.bounces
-            out["reach"][r, x] = px.reach
-            for m in MARGINS:
-                out[m][r, x] = getattr(px, m)
+            _trace_into(out, (H - 1 - y, x), scene, lambda: primary_ray(scene, x, y, W, H,
+                                                                         sampling),
+                        rules, max_dist)
     return out
+
+
+def _trace_into(out: dict, k, scene, ray, rules: Rules, max_dist: float) -> None:
+    """One pixel's path (its primary ray from ``ray()``) into the arrays of ``out`` at index
+    ``k``: 'I', 'err', 'bounces', 'reach', MARGINS and, where ``out`` has them, 'paths'.  A
+    path the notes' arithmetic cannot compute (a division by zero: a light at the point it
+    lights, whose direction is 0/0; a primary ray of a degenerate camera) is a course
+    program's inf or NaN, no colour to name: every margin 0, so every decision is flagged,
+    and no path (other_sides: any colour)."""
+    px, alt = _Pixel(), _Alt()
+    try:
+        base, d = ray()
+        I = ray_trace(scene, base, d, EF(0.0, 0.0), None, rules, max_dist, px, alt)
+    except ArithmeticError:
+        out["I"][k] = out["err"][k] = 0.0
+        out["bounces"][k], out["reach"][k] = px.bounces, px.reach
+        for m in MARGINS:
+            out[m][k] = 0.0
+        if "paths" in out:
+            out["paths"][k] = None
+        return
+    if "paths" in out:
+        out["paths"][k] = (_colour(I), tuple(dict.fromkeys(alt.seen)), px.bounces)
+    out["I"][k] = [c.v for c in I]
+    out["err"][k] = [c.e for c in I]
+    out["bounces"][k], out["reach"][k] = px.bounces, px.reach
+    for m in MARGINS:
+        out[m][k] = getattr(px, m)
 
 
 def shade_pixels(scene, columns: int, rows: int, pixels, sampling: str = "corners",
@@ -526,7 +547,7 @@ def shade_pixels(scene, columns: int, rows: int, pixels, sampling: str = "corner
     todo = range(n)
     if n >= BATCH_MIN:
         # many pixels: shade_batch, the same numbers on arrays; the per-pixel code below
-        # only where its numbers are not all numbers (a division by zero: raised here)
+        # only where its numbers are not all numbers (a division by zero: _trace_into)
         from mitsuba_ref import shade_batch
         if shade_batch.supported(scene):
             base, d = shade_batch.rays(scene, columns, rows, pixels, sampling, rules)
@@ -536,17 +557,8 @@ def shade_pixels(scene, columns: int, rows: int, pixels, sampling: str = "corner
             out["paths"] = shade_batch.paths(got)
             todo = [k for k, path in enumerate(out["paths"]) if path is None]
     for k in todo:
-        i = int(pixels[k])
-        px, alt = _Pixel(), _Alt()
-        base, d = pixel_ray(scene, columns, rows, i, sampling, rules)
-        I = ray_trace(scene, base, d, EF(0.0, 0.0), None, rules, max_dist, px, alt)
-        out["paths"][k] = (_colour(I), tuple(dict.fromkeys(alt.seen)), px.bounces)
-        out["I"][k] = [c.v for c in I]
-        out["err"][k] = [c.e for c in I]
-        out["bounces"][k] = px.bounces
-        out["reach"][k] = px.reach
-        for m in MARGINS:
-            out[m][k] = getattr(px, m)
+        _trace_into(out, k, scene, lambda: pixel_ray(scene, columns, rows, int(pixels[k]),
+                                                      sampling, rules), rules, max_dist)
     return out
 
 

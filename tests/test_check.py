@@ -466,6 +466,24 @@ def test07_a_correct_tracer_differs_only_at_boundaries(ctracer, tmp_path):
     assert r.counts["boundary"] > 0, r.counts
 
 
+def test07b_a_light_on_the_point_it_lights(ctracer, tmp_path):
+    """Pixel (21, 10)'s ray meets the plane exactly at the light: the course's unit(L − H)
+    is 0/0.  The C tracer writes black there, rt_core (NaN: c > 0 fails) the ambient colour;
+    a course program's NaN is no colour to name, so the pixel is boundary and the check
+    passes.  (The shading oracle divided by zero, and rtval check stopped with a
+    traceback: a helper's fuzzing found it.)"""
+    scene = tmp_path / "light_on_plane.txt"
+    scene.write_text("4 4\n0.25 0 0.5\n"
+                     "fplane 0 2 2 0 0 0.5 0 0 0  -1 1 -1 -2 -1 1 3 3 0 2 1\n"
+                     "plane 0.5 0 1 0 2 2 0 0 0  0 0 -0.5 1 1.5 -0.5\n"
+                     "pointlight 1 1 4  1 1.5 -0.5\n")
+    img = _render(ctracer / "course", scene, 33, tmp_path)
+    r = check_image(scene, img)
+    assert r.status == "pass", (r.counts, r.worst)
+    assert CLASSES[r.classes[10, 21]] == "boundary"
+    assert read_image(img)[10, 21].tolist() == [0, 0, 0]
+
+
 # --- --run, outputs, hit dumps, bad input -----------------------------------------------------
 
 def test08_run_reports_each_failure_per_scene(ctracer, tmp_path):

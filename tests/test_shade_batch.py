@@ -8,7 +8,8 @@ oracle's numbers, bit for bit.
 * the same under every rule variant, on the bundled scenes (all course scenes: ``slow``);
 * shade_pixels runs the batch from BATCH_MIN pixels on, and leaves to the per-pixel oracle what
   the batch does not cover (a cylinder, a texture) and a pixel whose numbers are not all
-  numbers (a light on the surface: the per-pixel oracle's division by zero, raised as always);
+  numbers (a light on the surface: the per-pixel oracle's division by zero, a course
+  program's NaN: every margin 0, no path);
 * seeded random scenes, and _at_risk's ties and NaNs against the scalar function;
 * decisions taken the other way (flips, at float64's and at the float hint's limit): each
   path as the per-pixel code traces it, and other_sides_of's answers other_sides', also at
@@ -149,7 +150,9 @@ def test07_shade_pixels_uses_the_batch(monkeypatch):
 
 def test08_left_to_the_per_pixel_oracle(monkeypatch):
     """A scene the batch does not cover runs per pixel; a pixel whose light lies on the point
-    it lights divides by zero in the per-pixel oracle, and so does shade_pixels still."""
+    it lights divides by zero in the per-pixel oracle: shade_pixels gives it every margin 0
+    (flagged) and no path (any colour), and the other pixels their numbers.  (It raised
+    the ZeroDivisionError, and rtval check stopped with a traceback.)"""
     cyl = parse_text(CYLINDER)
     calls = []
     real = shade_oracle.ray_trace
@@ -165,10 +168,17 @@ def test08_left_to_the_per_pixel_oracle(monkeypatch):
     assert list(np.flatnonzero(got["raised"])) == [4]
     assert list(np.flatnonzero(~shade_batch.usable(got))) == [4]
     with pytest.raises(ZeroDivisionError):
-        shade_oracle.shade_pixels(on, 3, 3, px)
+        shade_oracle.ray_trace(on, *shade_oracle.pixel_ray(on, 3, 3, 4, "corners", Rules()),
+                               shade_oracle.EF(0.0, 0.0), None, Rules(), 1000.0,
+                               shade_oracle._Pixel())
+    whole = shade_oracle.shade_pixels(on, 3, 3, px)
+    assert whole["paths"][4] is None and all(whole[m][4] == 0 for m in shade_oracle.MARGINS)
+    assert shade_oracle.flags(whole, "f64")["jump"][4]
+    assert shade_oracle.other_sides(on, 3, 3, 4) is None
     rest = [p for p in px if p != 4]
     ref = _per_pixel(on, 3, 3, rest, Rules(), 1000.0, monkeypatch)
-    assert np.array_equal(shade_oracle.shade_pixels(on, 3, 3, rest)["I"], ref["I"])
+    for k in OUT:
+        assert np.array_equal(np.delete(whole[k], 4, axis=0), ref[k]), k
 
 
 def test09_at_risk_ties_and_nan():
@@ -314,7 +324,7 @@ def test14_review_cases(monkeypatch):
     plane, a plane far off, tiles of 1e-16), where the float sum of the two floors rounds
     to even; a scene without objects; pixel_ray's divisions by zero that numpy makes NaN or
     inf (a viewpoint a hair from the window plane, one row of pixels): the per-pixel
-    oracle's numbers, or its exception."""
+    oracle's numbers, or where it divides by zero every margin 0 and no path."""
     _same(parse_text(TILE_GRAZE), 9, Rules(), 1000.0, monkeypatch, rows=7)
     far = (REPO / "scenes" / "tplane.txt").read_text().replace(
         "0 -3.2 0        # a point", "1e17 -3.2 0     # a point").replace(
@@ -328,10 +338,11 @@ def test14_review_cases(monkeypatch):
     assert not got["I"].any() and got["paths"][0] == ((0, 0, 0), (), 0)
     near = parse_text((REPO / "scenes" / "shade_spot.txt").read_text().replace(
         "0 0 4\n", "0 0 1e-170\n", 1))
-    with pytest.raises(ZeroDivisionError):
-        shade_oracle.shade_pixels(near, 9, 9, np.arange(81))
-    with pytest.raises(ZeroDivisionError):
-        shade_oracle.shade_pixels(SCENES[0], 64, 1, np.arange(64), rules=Rules(rows="shifted"))
+    for got in (shade_oracle.shade_pixels(near, 9, 9, np.arange(81)),
+                shade_oracle.shade_pixels(SCENES[0], 64, 1, np.arange(64),
+                                          rules=Rules(rows="shifted"))):
+        undone = [k for k, p in enumerate(got["paths"]) if p is None]
+        assert undone and all((got[m][undone] == 0).all() for m in shade_oracle.MARGINS)
 
 
 @pytest.mark.parametrize("tail", [0, 10 ** 6], ids=["arrays", "handed-over"])
