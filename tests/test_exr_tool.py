@@ -158,6 +158,21 @@ def test05_stats_depth_without_hit_mask(tmp_path, capsys):
     assert code == 0 and r["channels"]["depth.Z"]["hit"] is None
 
 
+
+def test05b_stats_of_an_image_without_hits(tmp_path, capsys):
+    """A render that hits nothing (a common scene: the viewpoint inside a sphere): the
+    depth channel's stats over the hit pixels are of no values, not a traceback from
+    OpenImageIO's empty buffer."""
+    p = tmp_path / "nohit.exr"
+    write_exr(p, {"depth.Z": np.zeros((2, 3)), "hit.mask": np.zeros((2, 3))})
+    code, r = run_json(capsys, "stats", p)
+    assert code == 0
+    assert r["channels"]["depth.Z"]["hit"] == {"count": 0, "finite": 0, "nan": 0, "inf": 0,
+                                               "min": None, "max": None, "mean": None,
+                                               "std": None}
+    assert r["channels"]["depth.Z"]["count"] == 6
+
+
 # ----------------------------------------------------------------------------- diff
 
 def test06_diff_identical_passes(pair, capsys):

@@ -181,6 +181,9 @@ def _pixel_stats(pixels: np.ndarray) -> list[dict]:
     """OpenImageIO's computePixelStats of (rows, columns, channels) values: per channel
     min/max/mean/std over the finite values (std: the population standard deviation;
     float32, as ``oiiotool --stats`` prints them) and the NaN/Inf/finite counts."""
+    if not pixels.size:                     # (no values: OpenImageIO makes no buffer of them)
+        return [{"count": 0, "finite": 0, "nan": 0, "inf": 0, "min": None, "max": None,
+                 "mean": None, "std": None} for _ in range(pixels.shape[2])]
     oiio = _oiio()
     st = oiio.ImageBufAlgo.computePixelStats(_buf(pixels))
     out = []
