@@ -71,6 +71,7 @@ def test02_did_you_mean(args, said):
     (("bench", "--objects", 99999999), "--objects: at most 65536"),
     (("bench", "--shaded", "--lights", 99999999), "--lights: at most 64"),
     (("validate", SPHERE, "--workers", 200), "--workers: at most 64 local worker processes"),
+    (("stability", "--quick", "--seeds", 99999999999), "--seeds: at most 1000"),
     # an empty value was taken as not given: no report, exit 0
     (("check", SPHERE, SPHERE, "--report", ""), "argument --report: an empty value"),
     # one column or row under corner sampling: a usage error in every command (it was exit 2
@@ -84,7 +85,7 @@ def test02_did_you_mean(args, said):
     (("report", SPHERE, "--columns", 8, 1), "--columns: 1 column"),
     (("bench", "--command", "--command-columns", 1), "--command-columns: 1 column"),
 ], ids=["timeout-0", "timeout-negative", "texture-dir", "timeout-huge", "threads", "objects", "lights",
-        "workers", "empty", "render-1-column", "render-1-row", "compare", "check", "convert",
+        "workers", "seeds", "empty", "render-1-column", "render-1-row", "compare", "check", "convert",
         "validate", "report", "bench-command"])
 def test02b_invalid_option_values(args, said):
     r = rtval(*args)

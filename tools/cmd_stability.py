@@ -6,7 +6,11 @@ import contextlib
 import os
 import sys
 
-from .options import add_parallel, positive_int
+from .options import add_parallel, at_most
+
+# --seeds at most this: a quick run of every case takes most of a minute a seed, so 1000 seeds
+# are half a day (an unbounded count made range() of it raise MemoryError, or ran on forever)
+MAX_SEEDS = 1000
 
 FAMILY_HELP = ("grazing distance size window offset far_square orient normal edges viewpoint "
                "ties tangent tiny_sphere straddle parallel")
@@ -30,8 +34,10 @@ def add_parser(sub) -> None:
                         "(well under a minute); default: every parameter, 64x48 rays")
     p.add_argument("--families", nargs="+", metavar="NAME", default=None,
                    help=f"only these families (default all: {FAMILY_HELP})")
-    p.add_argument("--seeds", type=positive_int, default=1, metavar="N",
-                   help="run N seeds (0..N-1) of every case (default 1)")
+    p.add_argument("--seeds", type=at_most(MAX_SEEDS, "each seed runs every case again: "
+                                           "--quick takes most of a minute a seed"),
+                   default=1, metavar="N",
+                   help=f"run N seeds (0..N-1) of every case (default 1; at most {MAX_SEEDS})")
     p.add_argument("--json", nargs="?", const="-", metavar="FILE",
                    help="print the results as JSON on stdout (the tables go to stderr), as "
                         "rtval's other commands do; with FILE write them there instead")
