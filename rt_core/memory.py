@@ -21,8 +21,10 @@ GB = 1e9
 # bounces), rounded up
 KERNEL = {("f32", False): 80, ("f64", False): 130, ("f32", True): 500, ("f64", True): 900}
 # rtval compare: rt_core, Mitsuba's own buffers and the per-pixel classification (measured
-# 880 B/px f32, 1115 B/px f64)
-COMPARE = {"f32": 1000, "f64": 1250}
+# 880 B/px f32, 1115 B/px f64); "shaded": --shaded, the course images of both (peak RSS at
+# 1200 less at 400 columns: 416, 530 B/px on scenes/mixed.txt, planar_many.txt), and where a
+# pixel is wrong the float64 geometry comparison after them (1088 B/px on shade_mirrors.txt)
+COMPARE = {"f32": 1000, "f64": 1250, "shaded": 1300}
 BASE = 300e6                   # Python, Dr.Jit, LLVM and the compiled kernels (~150 MB)
 # rtval bench: every tracer's rays, outputs and Dr.Jit's cached blocks held at once
 # (measured: peak RSS at 1920 less at 64 columns, spheres 1 and 4096 objects: 141 B/px for
@@ -87,7 +89,8 @@ def render_bytes(pixels: int, precision: str, shade: bool, geometry: bool,
 
 
 def compare_bytes(pixels: int, precision: str) -> float:
-    """One comparison (``rtval compare``'s modes run one after the other)."""
+    """One comparison (``rtval compare``'s modes run one after the other; ``precision``
+    "shaded": the course images, ``rtval compare --shaded``)."""
     return BASE + pixels * COMPARE[precision]
 
 
@@ -116,9 +119,11 @@ def _gb(x: float) -> str:
     return f"{x / GB:.1f} GB" if x < 10 * GB else f"{x / GB:.0f} GB"
 
 
-def guard(need, what: str, columns: int, rows: int, hint: str = "") -> None:
+def guard(need, what: str, columns: int, rows: int, hint: str = "",
+          option: str = "--columns") -> None:
     """InputError (exit 2) when ``need(pixels)`` bytes for the columns × rows image exceed
-    what is available, naming the largest column count (rows in proportion) that fits."""
+    what is available, naming the largest column count (rows in proportion) that fits, as
+    a value of ``option``."""
     have, why = available()
     budget = have * 0.9
     total = need(columns * rows)
@@ -131,6 +136,6 @@ def guard(need, what: str, columns: int, rows: int, hint: str = "") -> None:
             lo = c
         else:
             hi = c - 1
-    fix = f"use --columns <= {lo}" if lo >= 2 else "free some memory"
+    fix = f"use {option} <= {lo}" if lo >= 2 else "free some memory"
     raise InputError(f"{what} {columns}x{rows} needs ~{_gb(total)}, {_gb(have)} available "
                      f"({why}); {fix}" + (f" {hint}" if hint else ""))

@@ -324,6 +324,25 @@ def test09_too_large_is_refused_before_allocating():
     assert 2 <= suggested < 20000
 
 
+
+@pytest.mark.parametrize("cmd, said", [
+    (("compare", "--shaded", SEED, "--columns", 20000),
+     ("compare --shaded 20000x15000 needs ~", "use --columns <= ")),
+    (("validate", SEED, "--shaded-columns", 20000, "--mode", "rays", "--precision", "f32"),
+     ("compare --shaded 20000x15000 needs ~", "use --shaded-columns <= ")),
+    (("validate", SEED, "--columns", 20000, "--mode", "rays"),
+     ("compare 20000x15000 needs ~", "use --columns <= "))],
+    ids=["compare-shaded", "validate-shaded", "validate"])
+def test09b_shaded_and_validate_sizes_are_refused_before_allocating(cmd, said, tmp_path):
+    """The shaded comparison had no memory guard: at 20000 columns it segfaulted under a
+    ulimit -v (or allocated hundreds of GB); validate checks its largest comparison of each
+    kind before any runs, and names the option to lower."""
+    r = rtval(*cmd, *(("-o", tmp_path / "v") if cmd[0] == "validate" else ()))
+    err = one_line(r, 2, *said, "available")
+    assert 2 <= int(err.rsplit("<= ", 1)[1].split()[0]) < 20000
+    assert not (tmp_path / "v").exists()
+
+
 def test10_guard_suggests_a_size_that_fits(monkeypatch):
     import rt_core.memory as memory
     monkeypatch.setattr(memory, "available", lambda: (2e9, "a test"))

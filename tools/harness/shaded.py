@@ -35,6 +35,7 @@ import numpy as np
 
 from rt_core import backend
 from rt_core.camera import make_camera
+from rt_core.memory import compare_bytes, guard
 from rt_core.render import render_image
 from rt_core.rules import Rules
 from rt_core.scene import Scene
@@ -143,6 +144,8 @@ def compare_shaded(scene: Scene, columns: int, rows: int | None = None,
         from mitsuba_ref.convert import mitsuba_subset
         scene, note = mitsuba_subset(scene, lambda k: k in SHADED_KINDS)
         cam = make_camera(scene, columns, rows, sampling, rules)
+        guard(lambda px: compare_bytes(px, "shaded"), "compare --shaded", cam.columns,
+              cam.rows)
     with sw("rt_core"):
         t0 = time.perf_counter()
         ims, _ = render_image(scene, cam, backend.types("f64"), rules, geometry=False,
