@@ -11,6 +11,7 @@ import resource
 import signal
 import stat
 import subprocess
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -311,6 +312,35 @@ def test08_deep_info_and_every_part_of_a_multi_part_file(odd_exrs):
     r = rtval("exr", "stats", odd_exrs / "multi.exr")
     rows = {ln.split()[0]: ln.split() for ln in r.stdout.splitlines()[2:]}
     assert r.returncode == 0 and rows["a.R"][3] == "1" and rows["b.G"][3] == "2"
+
+
+
+@pytest.mark.parametrize("cmd, code", [
+    (("check", "s.txt", "i.ppm", "--junit", "s.txt"), 2),
+    (("compare", "s.txt", "--columns", 8, "--junit", "s.txt"), 2),
+    (("validate", "s.txt", "--junit", "s.txt"), 2),
+    (("render", "link.txt", "--columns", 8, "-o", "s.txt"), 2),     # the same file, linked
+    (("exr", "diff", "a.exr", "b.exr", "-o", "a.exr"), 4),
+    (("exr", "preview", "i.ppm", "-o", "i.ppm"), 4)],
+    ids=["check-junit", "compare-junit", "validate-junit", "render-link", "exr-diff", "preview"])
+def test07c_an_output_naming_an_input_is_refused(cmd, code, tmp_path):
+    """An output option naming a file the command reads replaced it, exit 0 (the scene
+    became JUnit XML, image A the difference image): refused before anything runs, one line,
+    the input as it was (a helper's review)."""
+    shutil.copy(SEED, tmp_path / "s.txt")
+    os.link(tmp_path / "s.txt", tmp_path / "link.txt")
+    for name, args in (("a.exr", ("-o", "a.exr")), ("b.exr", ("-o", "b.exr")),
+                       ("i.ppm", ("--ppm", "i.ppm"))):
+        r = subprocess.run([sys.executable, "-m", "tools.cli", "render", str(tmp_path / "s.txt"),
+                            "--columns", "8", *args[:1], str(tmp_path / args[1])],
+                           cwd=REPO, capture_output=True, text=True)
+        assert r.returncode == 0, r.stderr
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    r = subprocess.run([sys.executable, "-m", "tools.cli", *map(str, cmd)], cwd=tmp_path,
+                       capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(REPO)})
+    err = one_line(r, code, "names the input", "write the output elsewhere")
+    assert "cannot write" in err
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
 
 
 # --- 5. memory --------------------------------------------------------------------------------

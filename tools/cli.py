@@ -149,6 +149,18 @@ class _VersionAction(argparse.Action):
         parser.exit()
 
 
+def _refuse_overwriting_inputs(args) -> None:
+    """WriteError (exit 2; rtval exr's 4) for an output option naming an input file."""
+    from tools.options import outputs_over_inputs
+    for opt, out, same in outputs_over_inputs(args):
+        from rt_core.outputs import WriteError
+        err = WriteError(out, f"{opt} names the input {same}, which writing it would replace",
+                         "write the output elsewhere")
+        if args.command == "exr":
+            err.exit_code = 4
+        raise err
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = Parser(prog="rtval", description="Reference harness for the course ray tracer.")
     # (the version is looked up only when asked: the package metadata and a git call took
@@ -170,6 +182,7 @@ def main(argv=None) -> int:
     for sig in (signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, _terminate)
     try:
+        _refuse_overwriting_inputs(args)
         return int(args.func(args) or 0)
     except Terminated as e:
         cleanup()

@@ -200,3 +200,29 @@ def add_parallel(p: argparse.ArgumentParser, what: str) -> None:
                    help="show Dask's log, and each worker's cases, set-ups and kernels "
                         "(check --run and --images: also each scene's verdict as it is "
                         "known, as on a terminal)")
+
+
+# what the commands read (positional arguments) and the files they write (options)
+INPUT_DESTS = ("scene", "scenes", "inputs", "file", "files", "a", "b")
+OUTPUT_DESTS = ("output", "junit", "ppm", "png", "hits", "json")
+
+
+def outputs_over_inputs(args) -> list[tuple[str, str, str]]:
+    """(option, output, input) for each output file option of ``args`` that names a file
+    the command reads: writing it would replace the input (``rtval check S.txt I.ppm
+    --junit S.txt`` replaced the scene, ``exr diff A B -o A`` the image A)."""
+    import os
+    ins = []
+    for dest in INPUT_DESTS:
+        v = getattr(args, dest, None)
+        ins += [x for x in (v if isinstance(v, list) else [v]) if isinstance(x, str)]
+    ins = [x for x in ins if os.path.isfile(x)]
+    found = []
+    for dest in OUTPUT_DESTS:
+        out = getattr(args, dest, None)
+        if not isinstance(out, str) or out == "-" or not os.path.isfile(out):
+            continue
+        same = next((x for x in ins if os.path.samefile(x, out)), None)
+        if same is not None:
+            found.append(("--" + dest if dest != "output" else "-o", out, same))
+    return found
