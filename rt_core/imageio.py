@@ -268,6 +268,8 @@ def read_image(path: str) -> np.ndarray:
         if inp.format_name() == "pnm" and not spec.get_int_attribute("pnm:binary", 1):
             _ascii_samples_in_range(path)
         _needs_bytes(path, ImageError, spec, 1)
+        if str(spec.format) in ("float", "half", "double"):
+            _finite_samples(path, inp, spec)
         with native_output_captured(fds=(2,)):
             px = inp.read_image(0, 0, 0, spec.nchannels, "uint8")
         if px is None:
@@ -285,6 +287,23 @@ def read_image(path: str) -> np.ndarray:
     if spec.nchannels < 3:
         return np.repeat(px[..., :1], 3, -1)
     return np.ascontiguousarray(px[..., :3])
+
+
+def _finite_samples(path: str, inp, spec) -> None:
+    """A floating-point image (EXR, PFM, HDR) with a NaN or infinite sample is bad input:
+    OpenImageIO's conversion to 8 bits makes NaN 0, so a tracer's NaN would pass as black.
+    The first such pixel is named."""
+    with native_output_captured(fds=(2,)):
+        px = inp.read_image(0, 0, 0, spec.nchannels, "float")
+    if px is None:
+        return                          # (unreadable: the caller says so)
+    px = np.asarray(px, np.float32).reshape(spec.height, spec.width, spec.nchannels)
+    bad = ~np.isfinite(px[..., :3])
+    if bad.any():
+        y, x, c = (int(v[0]) for v in np.nonzero(bad))
+        raise ImageError(f"{path}: {int(bad.sum())} samples are NaN or infinite (the first at "
+                         f"column {x}, row {y}: {px[y, x, c]}); a course image has a colour "
+                         "0..255 in every sample")
 
 
 def _pnm_header(data: bytes):
@@ -459,14 +478,19 @@ def _ascii_samples_in_range(path: str) -> None:
             vals = np.fromstring(body, dtype=np.int64, sep=" ")
         except (ValueError, DeprecationWarning):
             return
-    if not vals.size or vals.max() <= maxval:
+    if not vals.size or (vals.max() <= maxval and vals.min() >= 0):
         return
     for no in range(start + 1, len(lines) + 1):     # the first line holding one, named
         toks = (first if no == start + 1 else lines[no - 1].split("#", 1)[0]).split()
-        big = [int(t) for t in toks if t.lstrip("-").isdigit() and int(t) > maxval]
+        got = [int(t) for t in toks if t.lstrip("-").isdigit()]
+        big = [v for v in got if v > maxval]
         if big:
             raise ImageError(f"{path}:{no}: sample {max(big)} above the maxval "
                              f"{maxval}; clamp each colour to 0..{maxval} before writing it")
+        neg = [v for v in got if v < 0]
+        if neg:     # (OpenImageIO reads them as 0: a tracer's NaN or negative colour black)
+            raise ImageError(f"{path}:{no}: sample {min(neg)} below 0; clamp each colour to "
+                             f"0..{maxval} before writing it")
 
 
 # ----------------------------------------------------------------------------- writing

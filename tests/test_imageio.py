@@ -77,6 +77,12 @@ def test03_course_ppm_bytes_and_channels_of_each_format(tmp_path):
     # on the maxval's own line, after a comment naming a larger number
     ("over1.ppm", b"P3 2 1 255 256 2 3 # 999\n0 0 0\n", "ppm:1: sample 256 above the maxval"),
     ("over2.ppm", b"P3 2 1 255\n# 999\n1 2 3 0 0\n0 7 400\n", "ppm:4: sample 400 above"),
+    # OpenImageIO read a negative sample, or a float image's NaN, as 0: black that matched
+    # (a helper's review)
+    ("neg.ppm", b"P3 2 1 255\n1 2 3\n0 -1 0\n", "ppm:3: sample -1 below 0"),
+    ("nan.pfm", b"PF\n2 1\n-1.0\n" + np.array([0.5, 0.5, 0.5, np.nan, 0, 0],
+                                                 "<f4").tobytes(),
+     "1 samples are NaN or infinite (the first at column 1, row 0: nan)"),
     ("empty.png", b"", "the file is empty"),
     # more samples than the header says, which OpenImageIO read without a word (a student's
     # review: an extra row passed, a text-mode file was wrong at every pixel with no hint)
