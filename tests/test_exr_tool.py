@@ -309,8 +309,21 @@ def test09_diff_nan_and_inf(tmp_path, capsys):
     pa, pb = tmp_path / "a.exr", tmp_path / "b.exr"
     write_exr(pa, {"depth.Z": a})
     write_exr(pb, {"depth.Z": b})
-    code, r = run_json(capsys, "diff", pa, pb, "--fail", "1e30", "--warn", "1e30")
+    code, r = run_json(capsys, "diff", pa, pb, "--fail", "1e30", "--warn", "1e30", "-o",
+                       tmp_path / "d.exr")
     assert code == 2 and r["failing_pixels"] == 3 and r["nonfinite_mismatches"] == 3
+    # the difference image: inf at the mismatches, 0 where they match, and says so (the
+    # header had no count, no versions, no inputs' hashes: a helper's review)
+    ch, hdr = read_exr(tmp_path / "d.exr")
+    want = np.zeros((4, 5), np.float32)
+    want[1, 1] = want[2, 3] = want[3, 0] = np.inf
+    np.testing.assert_array_equal(ch["depth.Z"], want)
+    assert hdr["rtval.nonfinite"] == "3" and "inf where A and B differ" in \
+        hdr["rtval.diff.nonfinite"]
+    import hashlib
+    assert hdr["rtval.diff.a_sha256"] == hashlib.sha256(pa.read_bytes()).hexdigest()
+    assert hdr["rtval.diff.b_sha256"] == hashlib.sha256(pb.read_bytes()).hexdigest()
+    assert "rtval=" in hdr["rtval.versions"]
     assert r["max_error"] == "inf"
     w = r["worst"]                      # the first mismatch in scan order
     assert (w["x"], w["y"], w["a"], w["b"]) == (1, 1, "inf", "-inf")

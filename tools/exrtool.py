@@ -400,13 +400,31 @@ def diff(path_a, path_b, channels=None, thresholds: Thresholds | None = None,
     if diff_out is not None:
         err = oiio.ImageBufAlgo.absdiff(A0, B0).get_pixels(oiio.FLOAT)
         err = np.asarray(err, np.float32).reshape(H, W, C)
+        # (NaN matches NaN and an infinity the same-signed one: 0 there, as in the counts)
+        err[~np.isfinite(err)] = 0.0
         err[bad] = np.inf
+        from rt_core.render import versions
         attrs = {"rtval.kind": DIFF_KIND, "rtval.diff.a": a.path, "rtval.diff.b": b.path,
-                 "rtval.diff.status": STATUS_NAMES[status]}
+                 "rtval.diff.a_sha256": _sha256(a.path), "rtval.diff.b_sha256": _sha256(b.path),
+                 "rtval.diff.status": STATUS_NAMES[status],
+                 # (as every output: its count of values that are not finite, and what they
+                 # mean here)
+                 "rtval.nonfinite": str(int(np.count_nonzero(~np.isfinite(err)))),
+                 "rtval.diff.nonfinite": "inf where A and B differ in a NaN or infinite value",
+                 "rtval.versions": " ".join(f"{k}={v}" for k, v in versions().items())}
         result["diff_image"] = _write_exr(diff_out, {n: err[..., i] for i, n in
                                                      enumerate(names)}, attrs,
                                           "the difference image")
     return result
+
+
+def _sha256(path) -> str:
+    import hashlib
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
 
 
 def _write_exr(out, channels: dict, attrs: dict, what: str) -> str:
