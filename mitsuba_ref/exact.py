@@ -243,8 +243,12 @@ def _eval_plane(p: _Prep, D, Dd, rules: Rules):
     sg = 1 if ND > 0 else -1
     tn, td = p.NQ * Dd * sg, p.L * ND * sg                  # t = tn/td, td > 0
     tests = {"parallel": (True, _ratio(abs(ND), p.Ln * Dd))}
-    slack_n = tn * p.tmin_d - p.tmin_n * td
-    tests["t"] = (slack_n > 0, _ratio(slack_n, td * p.tmin_d))
+    # the distance t·|D|/Dd against t_min (t is the parameter along D/Dd, which ideal rays
+    # do not make unit): t > 0 and t²·|D|²·tmin_d² > tmin_n²·(td·Dd)², in integers
+    DD = _dot(D, D)
+    slack2 = tn * tn * DD * p.tmin_d ** 2 - (p.tmin_n * td * Dd) ** 2
+    tests["t"] = (tn > 0 and slack2 > 0,
+                  _ratio(tn, td) * math.sqrt(_ratio(DD, Dd * Dd)) - _ratio(p.tmin_n, p.tmin_d))
     if rules.screen_clip != "off":
         zint = p.VZ * Dd * td + tn * D[2] * p.L             # z · (L·Dd·td)
         zs = (zint > 0) - (zint < 0)
