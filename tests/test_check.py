@@ -358,6 +358,68 @@ def _rt_image(scene_text, columns, rows, rules_text="", max_dist=1000.0):
     return np.floor(255 * np.clip(rgb, 0, 1)).astype(np.uint8)
 
 
+def _quantized(path, columns, how):
+    """rt_core's float64 image of the scene at ``path`` with another quantization of its
+    intensity: '256' floor(256 I) (at most 255), 'green+1' the notes' colours, green one
+    level up everywhere (black too)."""
+    from rt_core import backend
+    from rt_core.camera import make_camera
+    from rt_core.parser import parse_scene
+    from rt_core.render import render_image
+    sc = parse_scene(path)
+    imgs, _ = render_image(sc, make_camera(sc, columns), backend.types("f64"),
+                           geometry=False, shade=True)
+    I = np.clip(np.stack([imgs[c] for c in "RGB"], -1), 0, 1)
+    if how == "256":
+        return np.minimum(np.floor(256 * I), 255).astype(np.uint8)
+    img = np.floor(255 * I)
+    img[..., 1] = np.minimum(img[..., 1] + 1, 255)
+    return img.astype(np.uint8)
+
+
+@pytest.mark.skipif(not COURSE.is_dir(), reason="../shared/course-scenes is not there")
+@pytest.mark.parametrize("name", ["numeric/nw__a01.txt", "numeric/m4__v1_a05.txt"])
+def test06c_a_one_level_bug_is_named_as_such(name, tmp_path):
+    """floor(256 I) instead of floor(255 I) (a helper's review): on nw__a01 its one level up
+    on gradients took the shifted rows' colour at half the pixels that variant changes, and
+    rows=shifted was named as a deviation; on m4__v1_a05 its pixels, each within a level of
+    rt_core's own colour, were 'explained' by float32 and the student asked whether the
+    tracer computes in float.  Now: no rule named, no float hint, the quantization named."""
+    from rt_core.imageio import write_ppm
+    img = tmp_path / "q256.ppm"
+    write_ppm(str(img), _quantized(COURSE / name, 97, "256"))
+    r = check_image(COURSE / name, img)
+    assert r.status == "fail" and r.deviations == [], r.deviations
+    assert not [f for f in r.findings if f.determined and f.value != f.notes], r.findings
+    assert not any("compute in float" in h for h in r.hints), r.hints
+    if name.endswith("a01.txt"):            # (a05's 100 wrong pixels are no systematic offset)
+        assert any("floor(256 I)" in h for h in r.hints), r.hints
+
+
+def test06d_hints_that_do_not_fit_are_not_given(tmp_path):
+    """Green one level up everywhere, where rt_core sees nothing as well: not rounding (it
+    cannot brighten black), and said so; and shadow specks are no hint on a scene without a
+    light (a helper's review: both were given)."""
+    from rt_core.imageio import write_ppm
+    from tools.harness.check import SPECKS, hints
+    scene = REPO / "scenes" / "shade_shadows.txt"
+    img = tmp_path / "g1.ppm"
+    write_ppm(str(img), _quantized(scene, 65, "green+1"))
+    r = check_image(scene, img)
+    assert r.status == "fail"
+    assert not any("floor(255 I + 0.5)" in h and "as rt_core's" in h for h in r.hints)
+    assert any("neither rounding" in h for h in r.hints), r.hints
+    # scattered darker specks: the hint where the scene has a light, none where it has not
+    rng = np.random.default_rng(1)
+    wrong = np.zeros((60, 80), bool)
+    wrong.ravel()[rng.choice(wrong.size, 200, replace=False)] = True
+    ours = np.full((60, 80, 3), 200, np.uint8)
+    theirs = np.where(wrong[..., None], 100, 200).astype(np.uint8)
+    ids = np.zeros((60, 80), int)
+    assert any(SPECKS in h for h in hints(ids, wrong, ours, theirs))
+    assert not any(SPECKS in h for h in hints(ids, wrong, ours, theirs, lit=False))
+
+
 VARIANT_SCENE = """16 12  0.25 0.5 6
 pointlight 9 9 9  -3 5 4
 plane 1 1 1  3 3 3  0 0 0   0 1 0  0 -5 0

@@ -360,9 +360,12 @@ class Boundary:
                                              cam.sampling, rules, md,
                                              limit=K_DECISION * F32_U)))
         # (where the sides cannot all be enumerated, not explained: a hint that may send a
-        # student after the wrong cause had better say nothing)
+        # student after the wrong cause had better say nothing.  The unflipped path's own
+        # colour, rt_core's, counts only as ``level`` does, where its intensity is near a
+        # level: within a level of it is what any one-level bug gives, floor(256 I) say)
         return np.array([lv or (sides[p] is not None and any(
-            np.abs(self.theirs[p] - np.array(c)).max() <= 1 for c in sides[p]))
+            np.abs(self.theirs[p] - np.array(c)).max() <= 1 for c in sides[p]
+            if tuple(c) != tuple(ours[p].tolist())))
             for p, lv in zip(pixels, level)], bool)
 
     def levels(self, pixels, rules, md: float) -> tuple:
@@ -406,8 +409,10 @@ SYSTEMATIC = 0.05
 # and on every object where its render differs, the share of pixels the image must have the
 # variant's colour at (within a level)
 OBJECT_SHARE = 0.9
-# the level-offset hint needs one-level pixels to be this share of the wrong ones at least
+# the level-offset hint needs one-level pixels to be this share of the wrong ones at least,
+# and names a quantization (rounding, 256) that makes this share of them
 LEVEL_SHARE = 0.75
+LEVEL_FIT = 0.9
 # one-level pixels the inference asks the oracle about per candidate (evidence, not the
 # verdict: classify asks a sample of Boundary.SAMPLE, then all of them if need be)
 LEVEL_SAMPLE = 12
@@ -482,6 +487,13 @@ def infer(r: Renderer, theirs: np.ndarray, start_rules, start_max_dist: float, f
         la, lb = _apart(a, theirs), _apart(b, theirs)
         agree = changed & ((la == 0) | ((la <= 1) & (lb > 1)))
         if agree.sum() < CONSISTENT * changed.sum():
+            return False
+        # and so where the two renders are 2 levels apart or more, which a one-level bug on
+        # the other's colours cannot match (it gives la >= 1 and lb <= 1 there): a tracer
+        # flooring 256 I took the shifted rows' colour at half the pixels the rows variant
+        # changes, on gradients where a row's move adds a level too (a helper's review)
+        far = changed & (_apart(a, b) >= 2)
+        if (agree & far).sum() < CONSISTENT * far.sum():
             return False
         # and on the objects it changes, the image has cfg's colours nearly everywhere
         # (OBJECT_SHARE): a tracer that swaps a tiled plane's colours took the tile offset
@@ -689,7 +701,8 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
         objs = [(int(k), int(n)) for k, n in zip(*np.unique(on, return_counts=True))]
         objs.sort(key=lambda kn: -kn[1])
         res.worst["objects"] = [_describe(scene, k, n) for k, n in objs[:3]]
-        res.hints = hints(ids, wrong, ours, img, r.unclamped[(final_rules, md)]) + res.hints
+        res.hints = hints(ids, wrong, ours, img, r.unclamped[(final_rules, md)],
+                          bool(scene.lights)) + res.hints
         # an image upside down or with channels exchanged may still have a rule variant
         # inferred that explains some of its pixels (a near-symmetric scene): asked against
         # the notes' image too
@@ -816,15 +829,16 @@ def provenance(scene, img: np.ndarray) -> dict:
             "versions": versions()}
 
 
-def hints(ids: np.ndarray, wrong: np.ndarray, ours=None, theirs=None, intensity=None) -> list:
+def hints(ids: np.ndarray, wrong: np.ndarray, ours=None, theirs=None, intensity=None,
+          lit: bool = True) -> list:
     """Plain-words guesses about what the wrong pixels look like (not part of the verdict):
     outlines only; the image as rt_core's upside down or mirrored; a one-level offset all
-    one way; shadow specks; two colour channels swapped; intensities above 1 wrapped around
-    (``intensity``: rt_core's, not clamped)."""
+    one way; shadow specks (``lit``: the scene has a light); two colour channels swapped;
+    intensities above 1 wrapped around (``intensity``: rt_core's, not clamped)."""
     out = []
     if ours is not None:
-        out += _orientation(ours, theirs) + _level_offset(ours, theirs, wrong) + \
-            _speckles(wrong, ours, theirs) + _channels(ours, theirs)
+        out += _orientation(ours, theirs) + _level_offset(ours, theirs, wrong, intensity) + \
+            (_speckles(wrong, ours, theirs) if lit else []) + _channels(ours, theirs)
         if intensity is not None:
             out += _wrapped(intensity, theirs, wrong)
     edge = np.zeros_like(wrong)
@@ -911,17 +925,30 @@ def _speckles(wrong: np.ndarray, ours: np.ndarray, theirs: np.ndarray) -> list:
             "t > 0)? the notes test only the other objects"]
 
 
-def _level_offset(ours: np.ndarray, theirs: np.ndarray, wrong: np.ndarray) -> list:
+def _level_offset(ours: np.ndarray, theirs: np.ndarray, wrong: np.ndarray,
+                  intensity=None) -> list:
     """Wrong one-level differences in more than SYSTEMATIC of the image, nearly all one
     way, and most of the wrong pixels (LEVEL_SHARE): a tracer wrong by more (its pixels
-    mapped one off, say) has one-level pixels too, on gradients, which no rounding made."""
+    mapped one off, say) has one-level pixels too, on gradients, which no rounding made.
+    A quantization that makes nearly all the wrong pixels from rt_core's intensity
+    (``intensity``, unclamped) is named; the others are only guessed at."""
     up, down = _one_way(ours, theirs, (_apart(ours, theirs) == 1) & wrong)
     if not _systematic(up, down, wrong.size) or up + down < LEVEL_SHARE * wrong.sum():
         return []
+    if intensity is not None:
+        I = np.clip(np.nan_to_num(intensity, nan=0.0), 0.0, 1.0)
+        for words, img in (("rounded, floor(255 I + 0.5)", np.floor(255.0 * I + 0.5)),
+                           ("floor(256 I) (a scale of 256, at most 255)",
+                            np.minimum(np.floor(256.0 * I), 255.0))):
+            fit = int(((img == theirs).all(-1) & wrong).sum())
+            if fit >= LEVEL_FIT * wrong.sum():
+                return [f"{fit} of the {int(wrong.sum())} wrong pixels are one level "
+                        f"brighter than floor(255 I), as rt_core's intensity {words} makes "
+                        "them: the notes floor 255 I"]
     if up > down:
-        return [f"{up} pixels are one level brighter than floor(255 I) and {down} darker: "
-                "the notes floor 255 I (rounding, floor(255 I + 0.5), makes about half the "
-                "lit pixels one level brighter)"]
+        return [f"{up} pixels are one level brighter than floor(255 I) and {down} darker, "
+                "and neither rounding (floor(255 I + 0.5)) nor floor(256 I) makes most of "
+                "them: a level added to the colours?"]
     return [f"{down} pixels are one level darker than floor(255 I) and {up} brighter: "
             "a scale below 255, or an intensity made a little smaller (float instead of "
             "double)?"]
