@@ -17,7 +17,7 @@ import struct
 import numpy as np
 import OpenEXR
 
-from .outputs import atomic_write  # noqa: F401  (re-exported: EXR writers use it)
+from .outputs import atomic_write, attr_text  # noqa: F401  (atomic_write re-exported: EXR writers use it)
 
 
 # Compression, chosen by measurement (README "Speed"): PIZ is lossless, read by every OpenEXR
@@ -55,7 +55,7 @@ def write_exr(path: str, channels: dict, attrs: dict | None = None,
         data[name] = np.ascontiguousarray(a)
     header = {"compression": COMPRESSIONS[compression], "type": OpenEXR.scanlineimage}
     for k, v in (attrs or {}).items():
-        header[k] = str(v)
+        header[k] = attr_text(v)
     atomic_write(path, lambda tmp: OpenEXR.File(header, data).write(tmp), verify=incomplete)
 
 

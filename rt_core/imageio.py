@@ -25,7 +25,7 @@ import numpy as np
 
 from .inputfile import LIMITS, check_input
 from .native import native_output_captured
-from .outputs import atomic_write
+from .outputs import atomic_write, attr_text
 from .usererror import InputError
 
 EXR_MAGIC = b"\x76\x2f\x31\x01"       # the first four bytes of every OpenEXR file
@@ -106,6 +106,8 @@ def open_input(path, what: str = "image", error=ImageError):
         raise error(f"{path}: no such file")
     try:
         size = check_input(path, what)
+        with open(path, "rb"):              # (OpenImageIO says only "Could not open file")
+            pass
         if what == "EXR or other image" and size > LIMITS["image"]:
             with open(path, "rb") as f:         # an EXR's limit only for an EXR
                 if f.read(4) != EXR_MAGIC:
@@ -116,6 +118,11 @@ def open_input(path, what: str = "image", error=ImageError):
         raise error(f"{path}: cannot read it ({(exc.strerror or str(exc)).lower()})") from None
     if size == 0:
         raise error(f"{path}: the file is empty")
+    try:
+        path.encode("utf-8")
+    except UnicodeEncodeError:
+        raise error(f"{attr_text(path)}: the file name is not UTF-8, which OpenImageIO cannot "
+                    "open; rename the file") from None
     config = oiio.ImageSpec()
     config.attribute("oiio:UnassociatedAlpha", 1)    # colours as stored, not premultiplied
     with native_output_captured(fds=(2,)):            # libpng's own "libpng error: ..."
@@ -528,7 +535,7 @@ def write_image(path: str, pixels, text: dict | None = None, fmt: str = "png") -
     spec = oiio.ImageSpec(a.shape[1], a.shape[0], a.shape[2],
                           "uint8" if a.dtype == np.uint8 else "float")
     for k, v in (text or {}).items():
-        spec.attribute(str(k), str(v))
+        spec.attribute(str(k), attr_text(v))
 
     def write(tmp):
         out = oiio.ImageOutput.create(fmt)

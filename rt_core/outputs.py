@@ -43,6 +43,12 @@ _SPACE = _space()
 _LIVE: set[str] = set()          # this process's temporaries (removed at exit, see cleanup())
 
 
+def attr_text(value) -> str:
+    """A value as a file's text attribute (EXR header, PNG text): UTF-8, a path's bytes that
+    are not (Python's surrogate escapes) written as \\xNN, where the encoder raised."""
+    return str(value).encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+
+
 class WriteError(OSError):
     """An output that could not be written; ``str(err)`` is one line naming the target."""
     exit_code = 2

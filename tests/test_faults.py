@@ -343,6 +343,29 @@ def test07c_an_output_naming_an_input_is_refused(cmd, code, tmp_path):
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
 
 
+
+def test07d_file_names_that_are_not_utf8(tmp_path):
+    """A scene whose name is not UTF-8 renders, its name in the provenance with the odd byte
+    escaped (the EXR's header would not take it: the error blamed the output); an image of
+    such a name is one line, exit 2 (4 for rtval exr), not a TypeError from OpenImageIO (a
+    helper's review)."""
+    d = os.fsencode(tmp_path)
+    scene, image, out = d + b"/sc\xff.txt", d + b"/img\xff.ppm", tmp_path / "o.exr"
+    with open(scene, "wb") as f:
+        f.write(SEED.read_bytes())
+    r = subprocess.run([sys.executable.encode(), b"-m", b"tools.cli", b"render", scene,
+                        b"--columns", b"8", b"-o", os.fsencode(out), b"--ppm", image],
+                       cwd=REPO, capture_output=True)
+    assert r.returncode == 0, r.stderr
+    _, hdr = read_exr(out)
+    assert hdr["rtval.scene"].endswith("sc\\xff.txt")
+    for cmd, code in (([b"check", scene, image], 2), ([b"exr", b"info", image], 4)):
+        r = subprocess.run([sys.executable.encode(), b"-m", b"tools.cli", *cmd], cwd=REPO,
+                           capture_output=True)
+        err = r.stderr.decode("utf-8", "replace").strip()
+        assert r.returncode == code and len(err.splitlines()) == 1, err
+        assert "img\\xff.ppm: the file name is not UTF-8" in err and "rename" in err, err
+
 # --- 5. memory --------------------------------------------------------------------------------
 
 def test09_too_large_is_refused_before_allocating():
