@@ -100,6 +100,25 @@ def test02_dev_full_is_an_error_not_a_success(opt, columns):
              "/dev/full: cannot write: no space left on device", "write elsewhere")
 
 
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="no /dev/full on this system")
+@pytest.mark.parametrize("cmd", [("exr", "info", SEED.with_name("sphere.txt")),
+                                 ("check", SEED, "@"), ("validate", "--help")],
+                         ids=["exr-info", "check", "help"])
+def test02b_standard_output_on_a_full_disk(cmd, tmp_path):
+    """Standard output on /dev/full: one line naming it and what to do (it read
+    '[Errno 28] No space left on device', no file, no fix: a helper's review)."""
+    img = tmp_path / "i.ppm"
+    rtval("render", SEED, "--columns", 8, "--ppm", img)
+    args = [img if a == "@" else a for a in cmd]
+    if cmd[0] == "exr":
+        args[2] = img
+    with open("/dev/full", "w") as full:
+        r = subprocess.run([sys.executable, "-m", "tools.cli", *map(str, args)], cwd=REPO,
+                           stdout=full, stderr=subprocess.PIPE, text=True, timeout=120)
+    one_line(r, 2, "standard output: cannot write: no space left on device",
+             "free some space or write elsewhere")
+
+
 @pytest.mark.parametrize("opt,name", [("-o", "x.exr"), ("--ppm", "x.ppm"), ("--png", "x.png")])
 def test03_full_file_system_small_write_is_not_lost(full_dir, opt, name):
     r = rtval("render", SEED, "--columns", 4, "--rows", 3, opt, full_dir / name)

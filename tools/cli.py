@@ -173,7 +173,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+    saved, sys.stdout = sys.stdout, _Stdout(sys.stdout)
+    try:
+        try:
+            args = build_parser().parse_args(argv)
+        finally:                        # (--help, --version: what they printed, written)
+            sys.stdout.flush()
+    except (SystemExit, OSError) as e:
+        sys.stdout = saved
+        if isinstance(e, SystemExit):
+            raise
+        print(f"rtval: {e}", file=sys.stderr)
+        return 2
     if hasattr(args, "before_import"):      # e.g. pick Dr.Jit's kernel cache before it loads
         args.before_import(args)
     from rt_core.errors import USER_ERRORS
@@ -183,7 +194,9 @@ def main(argv=None) -> int:
         signal.signal(sig, _terminate)
     try:
         _refuse_overwriting_inputs(args)
-        return int(args.func(args) or 0)
+        code = int(args.func(args) or 0)
+        sys.stdout.flush()              # (a full disk shows here, where it can be said)
+        return code
     except Terminated as e:
         cleanup()
         print(f"rtval: terminated by {signal.Signals(e.signum).name}", file=sys.stderr)
@@ -214,6 +227,52 @@ def main(argv=None) -> int:
             return 128 + why.signum
         print("rtval: interrupted", file=sys.stderr)
         return 130
+    finally:
+        sys.stdout = saved
+
+
+class _Stdout:
+    """``sys.stdout`` whose write errors (a full disk, /dev/full) are WriteError naming it,
+    with what to do: they read ``[Errno 28] No space left on device``, no file, no fix.  The
+    stream then writes to /dev/null, so that the interpreter's last flush does not raise the
+    same error again."""
+
+    def __init__(self, stream):
+        self._stream = stream
+        self._error = None              # (raised again by flush: argparse swallows it)
+
+    def _failed(self, e: OSError):
+        import os
+        from rt_core.outputs import WriteError, _HINTS
+        try:
+            os.dup2(os.open(os.devnull, os.O_WRONLY), self._stream.fileno())
+        except (OSError, ValueError, AttributeError):
+            pass
+        self._error = WriteError("standard output", (e.strerror or str(e)).lower(),
+                                 _HINTS.get(e.errno, "write it elsewhere (redirect it to a "
+                                                     "file)"))
+        return self._error
+
+    def write(self, text):
+        try:
+            return self._stream.write(text)
+        except BrokenPipeError:
+            raise
+        except OSError as e:
+            raise self._failed(e) from None
+
+    def flush(self):
+        if self._error is not None:
+            raise self._error
+        try:
+            return self._stream.flush()
+        except BrokenPipeError:
+            raise
+        except OSError as e:
+            raise self._failed(e) from None
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
 
 
 if __name__ == "__main__":
