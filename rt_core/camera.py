@@ -60,8 +60,13 @@ def make_camera(scene: Scene, columns: int, rows: int | None = None,
     if rows is None:
         rows = scene.default_rows(columns)
     if columns * rows >= 2 ** 31:
+        # the most columns, rows in proportion, below 2^31 pixels
+        fit = math.isqrt(int((2 ** 31 - 1) * columns / rows))
+        while fit * max(1, fit * rows // columns) >= 2 ** 31:
+            fit -= 1
         raise InputError(f"image {columns}x{rows} has {columns * rows} pixels; Dr.Jit indexes "
-                         "at most 2^31 rays in one kernel")
+                         f"at most 2^31 rays in one kernel: use --columns <= {fit}"
+                         + (" (and --rows in proportion)" if given_rows else ""))
     least = 2 if sampling == "corners" else 1
     if columns < least or rows < least:
         raise InputError(f"image {columns}x{rows} is too small: {sampling} sampling needs at "

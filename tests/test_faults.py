@@ -415,6 +415,16 @@ def test09b_shaded_and_validate_sizes_are_refused_before_allocating(cmd, said, t
     assert not (tmp_path / "v").exists()
 
 
+def test09c_more_rays_than_a_kernel_indexes_names_a_size_that_fits():
+    """Over 2^31 pixels: Dr.Jit's limit, said with the column count that fits (it gave
+    none: a helper's review)."""
+    r = rtval("render", SEED, "--columns", 100000, "-o", "never.exr")
+    err = one_line(r, 2, "Dr.Jit indexes at most 2^31 rays in one kernel: use --columns <= ")
+    fit = int(err.rsplit("<= ", 1)[1].split()[0])
+    sc = parse_scene(SEED)
+    assert fit * sc.default_rows(fit) < 2 ** 31 <= (fit + 2) * sc.default_rows(fit + 2)
+
+
 def test10_guard_suggests_a_size_that_fits(monkeypatch):
     import rt_core.memory as memory
     monkeypatch.setattr(memory, "available", lambda: (2e9, "a test"))
