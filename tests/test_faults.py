@@ -617,6 +617,33 @@ def test15c_a_signal_a_library_wrapped_is_still_the_signal(wrapped, code, monkey
     assert len(err) == 1 and err[0] in ("rtval: terminated by SIGTERM", "rtval: interrupted")
 
 
+@pytest.mark.parametrize("first", [signal.SIGTERM, signal.SIGINT])
+def test15f_a_second_signal_during_cleanup_is_noted(first, monkeypatch, capsys):
+    """coreutils' timeout signals rtval and its process group: a second SIGTERM landing in
+    the cleanup after the first broke it off with a traceback (a helper's review).  The
+    cleanup finishes, one line, the first signal's exit; the handlers are back after."""
+    from tools import cli, cmd_exr
+    import rt_core.outputs as outputs
+    monkeypatch.setattr(cli, "_SIGNALLED", [])
+    done = []
+
+    def stopped(args):
+        os.kill(os.getpid(), first)
+        time.sleep(5)
+
+    def cleanup():
+        os.kill(os.getpid(), signal.SIGTERM)            # the second, mid-cleanup
+        done.append(1)
+    monkeypatch.setattr(cmd_exr, "run_info", stopped)
+    monkeypatch.setattr(outputs, "cleanup", cleanup)
+    before = signal.getsignal(signal.SIGINT)
+    assert cli.main(["exr", "info", "x.exr"]) == 128 + first
+    assert done == [1]
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0] in ("rtval: terminated by SIGTERM", "rtval: interrupted")
+    assert signal.getsignal(signal.SIGINT) is before
+
+
 @pytest.mark.parametrize("where", ["file", "report"])
 def test15e_sigterm_between_creating_and_registering_a_temporary(tmp_path, monkeypatch, where):
     """A SIGTERM whose handler would run right after tempfile created the temporary (before

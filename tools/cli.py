@@ -39,6 +39,19 @@ def _terminate(signum, frame):
     raise Terminated(signum)
 
 
+def _stop(cleanup) -> None:
+    """``cleanup()`` of a run stopped by a signal or Ctrl-C, with a second one noted rather
+    than raised: coreutils' ``timeout`` signals rtval and its process group, and the second
+    SIGTERM broke off the cleanup with a traceback (a helper's review)."""
+    quiet = lambda signum, frame: _SIGNALLED.append(signum)
+    old = {s: signal.signal(s, quiet) for s in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT)}
+    try:
+        cleanup()
+    finally:
+        for s, handler in old.items():
+            signal.signal(s, handler)
+
+
 def _interrupted(e: BaseException):
     """The Terminated or KeyboardInterrupt behind ``e``: Dr.Jit and Mitsuba re-raise an
     exception from Python code they run (a custom op, an if_stmt's branch, a plugin's
@@ -198,7 +211,7 @@ def main(argv=None) -> int:
         sys.stdout.flush()              # (a full disk shows here, where it can be said)
         return code
     except Terminated as e:
-        cleanup()
+        _stop(cleanup)
         print(f"rtval: terminated by {signal.Signals(e.signum).name}", file=sys.stderr)
         return 128 + e.signum
     except BrokenPipeError:       # (an OSError: caught before USER_ERRORS)
@@ -214,14 +227,14 @@ def main(argv=None) -> int:
         print(f"rtval {args.command}: {msg}", file=sys.stderr)
         return getattr(e, "exit_code", 2)
     except KeyboardInterrupt:
-        cleanup()
+        _stop(cleanup)
         print("rtval: interrupted", file=sys.stderr)
         return 130
     except Exception as e:              # a signal that a library wrapped, or a bug of ours
         why = _interrupted(e)
         if why is None:
             raise
-        cleanup()
+        _stop(cleanup)
         if isinstance(why, Terminated):
             print(f"rtval: terminated by {signal.Signals(why.signum).name}", file=sys.stderr)
             return 128 + why.signum
