@@ -251,23 +251,34 @@ def atomic_write(path: str, write, verify=None) -> None:
         raise NotADirectoryError(errno.ENOTDIR, "not a directory", directory) from None
     except OSError as exc:
         raise WriteError(shown, f"cannot create {directory} ({(exc.strerror or str(exc)).lower()})") from None
-    remove_stale(directory)
-    if os.path.exists(path):
-        mode = stat.S_IMODE(os.stat(path).st_mode)
-    else:
-        umask = os.umask(0)
-        os.umask(umask)
-        mode = 0o666 & ~umask
-    with signals_held():
-        try:
-            fd, tmp = tempfile.mkstemp(prefix=f"{TMP_PREFIX}{_SPACE}-{os.getpid()}-",
-                                       suffix=ext, dir=directory)
-        except OSError as exc:
-            _remove_dirs(created)
-            reason, hint = _reason(exc, "", shown)
-            raise WriteError(shown, reason, hint) from None
-        _LIVE.add(tmp)
-    os.close(fd)
+    tmp = fd = None
+    try:                                    # (stopped before the write: the directories go)
+        remove_stale(directory)
+        if os.path.exists(path):
+            mode = stat.S_IMODE(os.stat(path).st_mode)
+        else:
+            umask = os.umask(0)
+            os.umask(umask)
+            mode = 0o666 & ~umask
+        with signals_held():
+            try:
+                fd, tmp = tempfile.mkstemp(prefix=f"{TMP_PREFIX}{_SPACE}-{os.getpid()}-",
+                                           suffix=ext, dir=directory)
+            except OSError as exc:
+                reason, hint = _reason(exc, "", shown)
+                raise WriteError(shown, reason, hint) from None
+            _LIVE.add(tmp)
+        os.close(fd)
+        fd = None
+    except BaseException:
+        if fd is not None:
+            os.close(fd)
+        if tmp is not None:                 # (a signal held while it was made)
+            _LIVE.discard(tmp)
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+        _remove_dirs(created)
+        raise
     done = staged = False
     try:
         _checked(write, tmp, shown, verify)
