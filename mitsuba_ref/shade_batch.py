@@ -33,7 +33,7 @@ from rt_core.kinds import kind
 from mitsuba_ref import oracle
 from mitsuba_ref.convert import stand_in_frame
 from mitsuba_ref.oracle import EF, _f32_exact
-from mitsuba_ref.shade_oracle import _Alt, quantize
+from mitsuba_ref.shade_oracle import FACING, _Alt, quantize
 
 INF = math.inf
 KINDS = ("sphere", "plane", "fplane", "tplane")
@@ -735,6 +735,12 @@ def _shade(scene, base, d, rules, max_dist: float, flips, limit) -> dict:
             raised[lane] |= zero
             cl = dot3(L, N)
             lit = ~(cl.v <= 0)
+            near = np.flatnonzero((cl.v <= 0) & (cl.v > -FACING * cl.e))
+            if len(near):           # (shade_oracle: the term's size joins the bound)
+                zero, distn = V(np.zeros(len(near)), cl.e[near]), dist.at(near)
+                for i in range(3):
+                    term = div(mul(mul(mat["diffuse"][i].at(near), emis[i]), zero), distn)
+                    I[i] = _put(I[i], near, add(I[i].at(near), term))
             if spot is not None:
                 axis, cos_t = spot
                 if axis is None:

@@ -26,7 +26,9 @@ of a shadow ray that is blocked); 0 if it has none.  Beyond the square's half-si
 (``convert.plane_extent``) Mitsuba's scene has no plane there (tools/harness/shaded.py).
 
 The light test c > 0 is not among them: the diffuse term is c·(...), continuous where c
-changes sign.  ``flags`` turns margins into per-pixel flags for one precision.
+changes sign; where c lies within float32's rounding of 0, the term a tracer may add (c's
+bound times diffuse·E/d, huge at tiny scales) joins the intensity's bound (``FACING``).
+``flags`` turns margins into per-pixel flags for one precision.
 """
 from __future__ import annotations
 
@@ -55,6 +57,9 @@ U = {"f32": 2.0 ** -24, "f64": 2.0 ** -53}
 K_DECISION = 64.0
 K_VALUE = 8.0
 MARGINS = ("geo", "shadow", "tile", "maxdist", "texel")
+# a light whose c = L·N lies at or below 0 within this many times its error bound still adds
+# its term's size to the intensity's bound (float32's decision limit, the widest asked)
+FACING = K_DECISION * U["f32"]
 # from this many pixels on, shade_pixels runs shade_batch (where it covers the scene): below,
 # numpy's per-call cost outweighs the per-pixel loop's.  Measured on the differing pixels of
 # rtval validate's 149 shaded comparisons (48 columns, a test run beside it): the
@@ -241,6 +246,14 @@ def ray_trace(scene, base, d, total_dist, skip, rules: Rules, max_dist: float, p
             L = unit3(D)
             c = dot3(L, N)
             if c.v <= 0:
+                if c.v > -FACING * c.e:
+                    # c within float32's rounding of 0 (a light in the surface's plane): a
+                    # tracer's c may come out > 0 and add the light's term, whose size (c's
+                    # bound times diffuse·E/d: huge at tiny scales) joins I's bound, not its
+                    # value
+                    for i in range(3):
+                        I[i] = I[i] + EF(mat.diffuse[i]) * EF(light.emissivity[i]) * \
+                            EF(0.0, c.e) / dist
                 continue                                    # light behind the surface
             if light.kind == "spotlight":
                 # inside the cone iff unit(H − centre)·unit(aim − centre) > cos θ: a decision

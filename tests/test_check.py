@@ -546,6 +546,26 @@ def test07b_a_light_on_the_point_it_lights(ctracer, tmp_path):
     assert read_image(img)[10, 21].tolist() == [0, 0, 0]
 
 
+def test07c_a_light_in_a_plane_at_a_tiny_scale(ctracer, tmp_path):
+    """The light lies in the tiled plane's own plane, so c = L·N is exactly 0 there and the
+    light adds nothing; rt_core's float64 c comes out ~4e-17, which 1/(d·total) ≈ 3e12 at
+    this scale (1e-7) makes a whole level: red 1 where the C tracer writes 0.  The shading
+    oracle skipped the light with no bound, and the C tracer failed; the term a tracer may
+    add now joins the bound, so that pixel is rounding (a helper's fuzzing)."""
+    scene = tmp_path / "tiny.txt"
+    scene.write_text(
+        "0.0000012 0.0000012\n0 1.5E-7 3E-7\n"
+        "fplane 0.5 1 0.5 0 0 2 0.5 1 1  0.25 0 0 -3E-7 0 4.5E-7 -4 -4 2 6E-7 1.5E-7\n"
+        "fplane 1 0 2 2 8 8 0 0 0  0 1 0 6E-7 0 -6E-7 0 -4 1 9E-7 6E-7\n"
+        "tplane 0 1 2 8 8 2 0 0 0  0 1 0 -3E-7 0 6E-7 2 2 1 9E-7 0.0000012  1 1 1 1 8 8 0 0 0\n"
+        "pointlight 5 3 4  -3E-7 0 6E-7\n")
+    img = _render(ctracer / "course", scene, 33, tmp_path)
+    r = check_image(scene, img, max_dist=50000.0)
+    assert r.status == "pass", (r.counts, r.worst)
+    assert CLASSES[r.classes[15, 10]] == "rounding"
+    assert read_image(img)[15, 10].tolist() != r.ours[15, 10].tolist()
+
+
 # --- --run, outputs, hit dumps, bad input -----------------------------------------------------
 
 def test08_run_reports_each_failure_per_scene(ctracer, tmp_path):

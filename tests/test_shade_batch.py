@@ -397,3 +397,18 @@ def test16_reach_counts_hits_and_shadow_blockers(batch, monkeypatch):
             want.append(max(abs((P - foot) @ ax), abs((P - foot) @ ay)))
         assert want[1] > want[0]
         assert out["reach"][k] == pytest.approx(want[1], rel=1e-9), (out["reach"][k], want)
+
+
+def test17_a_light_in_a_plane_adds_its_term_to_the_bound(monkeypatch):
+    """A light lying in the tiled plane's plane: c = 0 there, and the term a tracer's c
+    rounded above 0 may add joins the bound (shade_oracle.FACING), on arrays as per pixel,
+    bit for bit; where c is exactly 0 the pixel's bound is that term's, not 0."""
+    sc = parse_text(
+        "0.0000012 0.0000012\n0 1.5E-7 3E-7\n"
+        "fplane 0.5 1 0.5 0 0 2 0.5 1 1  0.25 0 0 -3E-7 0 4.5E-7 -4 -4 2 6E-7 1.5E-7\n"
+        "fplane 1 0 2 2 8 8 0 0 0  0 1 0 6E-7 0 -6E-7 0 -4 1 9E-7 6E-7\n"
+        "tplane 0 1 2 8 8 2 0 0 0  0 1 0 -3E-7 0 6E-7 2 2 1 9E-7 0.0000012  1 1 1 1 8 8 0 0 0\n"
+        "pointlight 5 3 4  -3E-7 0 6E-7\n")
+    got = _same(sc, 33, Rules(), 50000.0, monkeypatch, rows=33)
+    p = 15 * 33 + 10
+    assert got["I"][p, 0] == 0 and got["err"][p, 0] > 1e12
