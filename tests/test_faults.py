@@ -415,6 +415,32 @@ def test09b_shaded_and_validate_sizes_are_refused_before_allocating(cmd, said, t
     assert not (tmp_path / "v").exists()
 
 
+def test09d_validate_checks_memory_once_before_its_run(tmp_path, monkeypatch):
+    """validate checks its largest comparison of each kind once, before the run; the
+    comparisons in this process skip their own check (each read /proc and the cgroup's
+    files: 0.1 s of a run), those on a Dask worker keep it (its memory is its own)."""
+    import rt_core.memory as memory
+    import tools.harness.compare as compare_mod
+    import tools.harness.shaded as shaded_mod
+    import tools.harness.validate as V
+    calls = []
+    real = memory.guard
+
+    def counted(need, what, *a, **k):
+        calls.append(what)
+        return real(need, what, *a, **k)
+    for mod in (memory, compare_mod, shaded_mod):
+        monkeypatch.setattr(mod, "guard", counted)
+    scene = parse_scene(SEED)
+    rows = V.validate([scene], 16, ("f32",), ("rays", "camera"), str(tmp_path / "v"),
+                      shaded_columns=8)
+    assert len(rows) == 3 and calls == ["compare", "compare --shaded"], calls
+    calls.clear()
+    monkeypatch.setattr(V, "_on_worker", lambda: True)
+    V.run_job(V.Job(scene, ("rays", "camera"), "f32", 16))
+    assert calls == ["compare", "compare"], calls
+
+
 def test09c_more_rays_than_a_kernel_indexes_names_a_size_that_fits():
     """Over 2^31 pixels: Dr.Jit's limit, said with the column count that fits (it gave
     none: a helper's review)."""

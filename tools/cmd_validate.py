@@ -58,24 +58,11 @@ def _log_progress(total: int):
     return progress
 
 
-def _guard(scenes, columns: int, precisions, shaded_columns: int) -> None:
-    """The run's largest comparison of each kind against the memory there is, before any
-    runs: InputError naming the option to lower (each comparison checks its own too)."""
-    from rt_core.camera import make_camera
-    from rt_core.memory import compare_bytes, guard
-    for cols, key, what, option in (
-            (columns, "f64" if "f64" in precisions else "f32", "compare", "--columns"),
-            (shaded_columns, "shaded", "compare --shaded", "--shaded-columns")):
-        if cols > 0 and scenes:
-            rows = max(make_camera(s, cols).rows for s in scenes)
-            guard(lambda px: compare_bytes(px, key), what, cols, rows, option=option)
-
-
 def run(args) -> int:
     from tqdm import tqdm
     from rt_core.render import versions
     from tools.harness.parallel import plan_of
-    from tools.harness.validate import (SERIAL_BUSY_CORES, default_scene_paths,
+    from tools.harness.validate import (SERIAL_BUSY_CORES, check_memory, default_scene_paths,
                                         load_supported, seconds_per_comparison, skip_counts,
                                         stem_of, validate, write_report)
 
@@ -108,7 +95,7 @@ def run(args) -> int:
         from rt_core.errors import InputError
         raise InputError(f"--shaded-columns {args.shaded_columns}: give 0 (off) or a width of "
                          "at least 2")
-    _guard(scenes, args.columns, precisions, args.shaded_columns)
+    check_memory(scenes, args.columns, precisions, args.shaded_columns)    # (before the run)
     from tools.harness.validate import evidence_run
     with evidence_run(args.output):     # a run stopped while it reports leaves no evidence
         results = validate(scenes, args.columns, precisions, modes, args.output,

@@ -124,6 +124,19 @@ def jobs(scenes, columns: int, precisions, modes, evidence: str = "failures",
     return out
 
 
+def check_memory(scenes, columns: int, precisions, shaded_columns: int) -> None:
+    """The run's largest comparison of each kind against the memory there is: InputError
+    naming the option to lower (``--columns``, ``--shaded-columns``)."""
+    from rt_core.camera import make_camera
+    from rt_core.memory import compare_bytes, guard
+    for cols, key, what, option in (
+            (columns, "f64" if "f64" in precisions else "f32", "compare", "--columns"),
+            (shaded_columns, "shaded", "compare --shaded", "--shaded-columns")):
+        if cols > 0 and scenes:
+            rows = max(make_camera(s, cols).rows for s in scenes)
+            guard(lambda px: compare_bytes(px, key), what, cols, rows, option=option)
+
+
 def seconds_per_comparison(columns: int) -> float:
     """Rough serial seconds of one comparison at ``columns`` (measured on 2 cores: the
     default run's 670 comparisons at 160 columns take about 90 s): whether a run is worth a
@@ -177,21 +190,25 @@ def run_job(job: Job) -> list:
     # which dispatch over every live instance, the other scene's BSDFs too.  On a Dask
     # worker nothing is shared: its jobs come pickled, each with a scene of its own, and
     # what it kept would outlive the run)
-    if _on_worker():
+    worker = _on_worker()
+    if worker:
         cache = {}
     else:
         cache = _scene_cache(job.scene) if job.modes != ("shaded",) else _free()
+    # (validate checked the run's largest comparisons against this machine's memory before
+    # it started; a worker's memory is its own)
+    guarded = not worker
     out = []
     for mode in job.modes:
         t0 = time.perf_counter()
         if mode == "shaded":
             from tools.harness.shaded import compare_shaded
-            cmp = compare_shaded(job.scene, job.columns)
+            cmp = compare_shaded(job.scene, job.columns, guarded=guarded)
         else:
             # one call a side: validate checks, rtval bench times (a second call of each
             # was a fifth of the run)
             cmp = compare(job.scene, job.columns, None, job.precision, mode, cache=cache,
-                          calls=1)
+                          calls=1, guarded=guarded)
         row = cmp.summary()
         # the time outside the comparison's own phases (imports, the summary) is "other"
         row["seconds"] = dict(row["seconds"])
@@ -225,7 +242,12 @@ def validate(scenes, columns: int, precisions, modes, outdir: str, progress=None
 
     Evidence of an earlier run in ``outdir/failures`` and ``outdir/exr`` is removed first,
     so what is there belongs to this run; a run stopped (a signal, Ctrl-C, an error)
-    removes what it wrote there, and the directories it made."""
+    removes what it wrote there, and the directories it made.
+
+    The run's largest comparison of each kind is checked against the memory there is before
+    any runs (InputError naming the option to lower); each comparison then skips its own
+    check, but on a Dask worker."""
+    check_memory(scenes, columns, precisions, shaded_columns)
     _free()                 # (what an earlier run in this process left is not this run's)
     try:
         with evidence_run(outdir):
