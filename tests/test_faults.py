@@ -102,14 +102,16 @@ def test02_dev_full_is_an_error_not_a_success(opt, columns):
 
 @pytest.mark.skipif(not os.path.exists("/dev/full"), reason="no /dev/full on this system")
 @pytest.mark.parametrize("cmd", [("exr", "info", SEED.with_name("sphere.txt")),
-                                 ("check", SEED, "@"), ("validate", "--help")],
-                         ids=["exr-info", "check", "help"])
+                                 ("check", SEED, "@"), ("validate", "--help"),
+                                 ("render", SEED, "--columns", 8, "--json", "-o", "@j")],
+                         ids=["exr-info", "check", "help", "render-json"])
 def test02b_standard_output_on_a_full_disk(cmd, tmp_path):
     """Standard output on /dev/full: one line naming it and what to do (it read
-    '[Errno 28] No space left on device', no file, no fix: a helper's review)."""
+    '[Errno 28] No space left on device', no file, no fix: a helper's review); render's
+    --json report goes with its files, all or none (the EXR was left, announced)."""
     img = tmp_path / "i.ppm"
     rtval("render", SEED, "--columns", 8, "--ppm", img)
-    args = [img if a == "@" else a for a in cmd]
+    args = [img if a == "@" else tmp_path / "j.exr" if a == "@j" else a for a in cmd]
     if cmd[0] == "exr":
         args[2] = img
     with open("/dev/full", "w") as full:
@@ -117,6 +119,7 @@ def test02b_standard_output_on_a_full_disk(cmd, tmp_path):
                            stdout=full, stderr=subprocess.PIPE, text=True, timeout=120)
     one_line(r, 2, "standard output: cannot write: no space left on device",
              "free some space or write elsewhere")
+    assert not (tmp_path / "j.exr").exists()
 
 
 @pytest.mark.parametrize("opt,name", [("-o", "x.exr"), ("--ppm", "x.ppm"), ("--png", "x.png")])

@@ -160,7 +160,19 @@ def run(args) -> int:
         for k, c in enumerate("RGB"):
             pixels[..., k] = quantize(images[c])
     bad = nonfinite_count(images)
-    # everything is computed: write each output (atomically; all of them or none)
+    report = None
+    if args.json:
+        from rt_core.outputs import json_text
+        report = json_text({
+            "outputs": [{"option": opt, "path": path} for opt, path in outs],
+            "columns": cam.columns, "rows": cam.rows, "precision": args.precision,
+            "objects": len(scene.objects), "hits": int(images["hit.mask"].sum())
+            if "hit.mask" in images else None, "shaded": shade,
+            "reflection_bounces": res.bounces if shade else None,
+            "max_dist": max_dist if shade else None, "nonfinite": bad,
+            "stand_ins": scene.stand_ins() if shade else [], "provenance": attrs})
+    # everything is computed: write each output (atomically; all of them or none, and the
+    # --json report with them: standard output that cannot take it keeps the files out)
     with together():
         for opt, path in outs:
             try:
@@ -174,6 +186,9 @@ def run(args) -> int:
                 raise                       # one line naming the target already
             except OSError as e:
                 raise InputError(f"{path}: cannot write ({e.strerror or e})") from None
+        if report is not None:
+            print(report, end="")
+            sys.stdout.flush()
     phase("write")
     if os.environ.get("RTVAL_PHASES"):      # where rtval bench --command wants the split
         import json
@@ -193,16 +208,6 @@ def run(args) -> int:
         print(f"rtval render: warning: reflections stopped at the safety cap of "
               f"{shading.MAX_BOUNCES} bounces with {res.left_active} rays still short of "
               f"max-dist {max_dist:g}", file=sys.stderr)
-    if args.json:
-        from rt_core.outputs import json_text
-        print(json_text({
-            "outputs": [{"option": opt, "path": path} for opt, path in outs],
-            "columns": cam.columns, "rows": cam.rows, "precision": args.precision,
-            "objects": len(scene.objects), "hits": int(images["hit.mask"].sum())
-            if "hit.mask" in images else None, "shaded": shade,
-            "reflection_bounces": res.bounces if shade else None,
-            "max_dist": max_dist if shade else None, "nonfinite": bad,
-            "stand_ins": scene.stand_ins() if shade else [], "provenance": attrs}), end="")
     return 1 if bad else 0
 
 
