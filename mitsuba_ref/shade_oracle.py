@@ -583,14 +583,16 @@ def quantize(I: np.ndarray) -> np.ndarray:
 def flags(orc: dict, precision: str, u: float | None = None) -> dict:
     """Per-pixel flags (rows, columns) for a tracer in ``precision``: each discontinuous
     decision that may flip ('geo', 'shadow', 'tile', 'maxdist', 'texel', together 'jump'); 'quant': a
-    channel within the intensity bound of an 8-bit level boundary (255·I near an integer);
-    'any'.  ``u``: the unit roundoff to take instead of the precision's."""
+    channel within the intensity bound of an 8-bit level boundary (255·I near an integer),
+    'quant_rgb' which channels (rows, columns, 3): a one-level difference is rounding only
+    in a channel near its level; 'any'.  ``u``: the unit roundoff to take instead of the precision's."""
     u = U[precision] if u is None else u
     out = {m: orc[m] < K_DECISION * u for m in MARGINS}
     q = 255.0 * orc["I"]
     bound = K_VALUE * u * orc["err"]
     near = np.abs(q - np.round(q)) < 255.0 * bound
-    out["quant"] = np.any(near & (orc["I"] <= 1 + bound), -1)
+    out["quant_rgb"] = near & (orc["I"] <= 1 + bound)      # per channel
+    out["quant"] = np.any(out["quant_rgb"], -1)
     out["jump"] = out["geo"] | out["shadow"] | out["tile"] | out["maxdist"] | out["texel"]
     out["any"] = out["jump"] | out["quant"]
     return out

@@ -1196,3 +1196,13 @@ def test16_many_boundary_pixels_are_named_by_their_decision(tmp_path):
     assert f"boundary: {r.boundary_note}" in details(r)
     write_ppm(str(tmp_path / "k.ppm"), keep)
     assert check_image(scene, tmp_path / "k.ppm").boundary_note == ""
+
+
+def test17_a_channel_near_its_level_excuses_no_other():
+    """check's rounding: the channels that differ must each lie near their 8-bit level; one
+    near its level excused a one-level difference in another (a review)."""
+    from tools.harness.check import _near_where_differs
+    assert _near_where_differs((True, False, False), (68, 64, 72), (67, 64, 72))
+    assert not _near_where_differs((True, False, False), (68, 64, 72), (68, 65, 72))
+    assert not _near_where_differs((True, False, True), (68, 64, 72), (67, 65, 72))
+    assert _near_where_differs((False, True, True), (68, 64, 72), (68, 65, 71))

@@ -530,3 +530,19 @@ def test20_a_reflection_beyond_the_stand_in_is_boundary():
     others = np.delete(cmp.classes, 18, axis=0)
     assert (others == SHADED_CODE["match"]).all(), cmp.counts
     assert cmp.ok, cmp.counts
+
+
+def test21_rounding_is_of_the_channel_that_differs():
+    """scenes/mixed.txt at 160 columns, pixel (97, 7): 255·I is (68.0012, 64.6895, 72.58).
+    Red one level down is rounding (68.0012 lies within float32's bound of 68); green one
+    level up is wrong, though red is near its level (a review: a broken Mitsuba side had 69
+    of 223 'rounding' pixels differ in a channel far from any level)."""
+    from tools.harness.shaded import classify_shaded
+    sc = parse_scene(ROOT / "scenes" / "mixed.txt")
+    cmp = compare_shaded(sc, 160)
+    y, x = 7, 97
+    for ch, step, want in ((0, -1, "rounding"), (1, 1, "wrong")):
+        theirs = cmp.ours.copy()
+        theirs[y, x, ch] = int(theirs[y, x, ch]) + step
+        got = classify_shaded(sc, cmp.ours, theirs, "corners", cmp.rules, cmp.max_dist)
+        assert got[y, x] == SHADED_CODE[want], (ch, got[y, x])

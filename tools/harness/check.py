@@ -261,6 +261,15 @@ def _shading(rules) -> tuple:
     return rules.rows, rules.reflect, rules.tile_add_first, rules.tile_project
 
 
+def _near_where_differs(near, ours, theirs) -> bool:
+    """Is every channel where ``ours`` and ``theirs`` differ near an 8-bit level (``near``,
+    per channel)?  (A pixel with none differing: whether any is.)"""
+    differs = [int(a) != int(b) for a, b in zip(ours, theirs)]
+    if not any(differs):
+        return any(near)
+    return all(n for n, d in zip(near, differs) if d)
+
+
 class Boundary:
     """Which pixels are ``boundary``: a decision of one of their rays within the float64
     shading oracle's bound (mitsuba_ref/shade_oracle.py), under the given rules.  The
@@ -278,7 +287,7 @@ class Boundary:
         self.r, self.max_dist = r, max_dist
         self.theirs = theirs.reshape(-1, 3).astype(np.int16)     # the image checked
         self.known = {}          # (rows, max_dist, pixel) -> bool
-        self.quant = {}          # (rules, max_dist, pixel) -> bool
+        self.quant = {}          # (rules, max_dist, pixel) -> per channel, near a level
         self.colours = {}        # (rules, max_dist, pixel) -> colours its decisions give
         self.paths = {}          # (rules, max_dist, pixel) -> the oracle's unflipped path
         # one fixed random order of the pixels: every sample takes the first ones in it, so
@@ -294,9 +303,9 @@ class Boundary:
         cam = self.r.cam
         orc = shade_pixels(self.r.scene, cam.columns, cam.rows, todo, cam.sampling, rules, md)
         f = flags(orc, "f64")
-        for p, j, q, path in zip(todo, f["jump"], f["quant"], orc["paths"]):
+        for p, j, q, path in zip(todo, f["jump"], f["quant_rgb"], orc["paths"]):
             self.known.setdefault((rules.rows, md, p), bool(j))
-            self.quant[(_shading(rules), md, p)] = bool(q)
+            self.quant[(_shading(rules), md, p)] = tuple(bool(c) for c in q)
             self.paths[(rules, md, p)] = path       # (sides: its first path, not again)
 
     def of(self, pixels, rules, md: float | None = None) -> np.ndarray:
@@ -350,10 +359,11 @@ class Boundary:
         pixels = np.asarray(pixels, np.int64)
         orc = shade_pixels(self.r.scene, cam.columns, cam.rows, pixels, cam.sampling, rules,
                            md)
-        quant = flags(orc, "f32", u=F32_U)["quant"]
+        quant = flags(orc, "f32", u=F32_U)["quant_rgb"]
         ours = self.r.image(rules, md).reshape(-1, 3).astype(np.int16)
         pixels = pixels.tolist()
-        level = [np.abs(self.theirs[p] - ours[p]).max() == 1 and quant[k]
+        level = [np.abs(self.theirs[p] - ours[p]).max() == 1 and
+                 _near_where_differs(quant[k], ours[p], self.theirs[p])
                  for k, p in enumerate(pixels)]
         ask = [p for p, lv in zip(pixels, level) if not lv]
         sides = dict(zip(ask, other_sides_of(self.r.scene, cam.columns, cam.rows, ask,
@@ -370,15 +380,18 @@ class Boundary:
 
     def levels(self, pixels, rules, md: float) -> tuple:
         """(jump, quant) of ``pixels`` under exactly (rules, md): a decision within its bound,
-        and an intensity within its bound of an 8-bit level (where a tracer's rounding may
-        put the pixel on either side of the level)."""
+        and an intensity within its bound of an 8-bit level in every channel where the image
+        differs from rt_core's render (where a tracer's rounding may put the pixel on either
+        side of the level; a channel near its level excuses no other)."""
         pixels = [int(p) for p in np.asarray(pixels, np.int64)]
         key = _shading(rules)
         todo = [p for p in pixels if (key, md, p) not in self.quant]
         if todo:
             self._oracle(todo, rules, md)
+        ours = self.r.image(rules, md).reshape(-1, 3)
         return (np.array([self.known[(rules.rows, md, p)] for p in pixels], bool),
-                np.array([self.quant[(key, md, p)] for p in pixels], bool))
+                np.array([_near_where_differs(self.quant[(key, md, p)], ours[p],
+                                              self.theirs[p]) for p in pixels], bool))
 
     def sample(self, pixels, size: int | None = None) -> np.ndarray:
         """The first ``size`` (SAMPLE) of ``pixels`` in the fixed random order (all if
