@@ -214,6 +214,16 @@ def xml_provenance(scene: Scene, setup, sampling: str, mode: str, rules, max_dis
     return out
 
 
+def _comment(text: str) -> str:
+    """``text`` as an XML comment: '--' may not stand in one, nor a '-' at its end (XML 1.0;
+    Mitsuba's parser lets them pass, ElementTree and xmllint do not), so each hyphen that
+    follows a hyphen is spaced off."""
+    text = str(text)
+    while "--" in text:
+        text = text.replace("--", "- -")
+    return f"<!-- {text} -->"
+
+
 def read_provenance(xml_text: str) -> dict:
     """The provenance comment ``scene_xml`` wrote ({} if there is none)."""
     start = xml_text.find("<!-- " + PROVENANCE + " ")
@@ -690,7 +700,8 @@ def scene_xml(scene: Scene, columns: int, rows: int | None = None, sampling: str
     mode = "aovs" if aovs else "shading" if shading else "sensor"
     prov = xml_provenance(scene, s, sampling, mode, rules, max_dist)
     lines = ['<?xml version="1.0" encoding="utf-8"?>',
-             f"<!-- rtval convert: {scene.path} ({columns}x{s.rows}, {sampling} sampling) -->",
+             _comment(f"rtval convert: {scene.path} ({columns}x{s.rows}, {sampling} "
+                      "sampling)"),
              # (machine-readable, for rtval render --mitsuba's outputs; '--' may not stand
              # in a comment, so its second '-' is a JSON escape)
              "<!-- " + PROVENANCE + " " +
@@ -698,17 +709,18 @@ def scene_xml(scene: Scene, columns: int, rows: int | None = None, sampling: str
              f"<!-- infinite and tiled planes: rectangles of half-size {plane_extent(scene):.6g}"
              " (64 x scene scale) around the viewpoint's foot point -->"]
     if aovs:
-        lines.append("<!-- --aovs: the 'course' integrator in its AOV mode: rtval's geometry "
-                     "channels (hit.mask, depth.Z, object.id, normal, position, uv); write them "
-                     "with rtval render --mitsuba -o OUT.exr -->")
+        lines.append(_comment("AOVs (rtval convert's aovs option): the 'course' integrator in "
+                              "its AOV mode: rtval's geometry channels (hit.mask, depth.Z, "
+                              "object.id, normal, position, uv); write them to an EXR with "
+                              "rtval render and its mitsuba option"))
     elif shading:
-        lines.append("<!-- --shading: the course image: the 'course' integrator and each shape's"
-                     " 'course_material' (plugins of rtval's mitsuba_ref: render with"
-                     " rtval render --mitsuba, or register them with"
-                     " mitsuba_ref.convert.mitsuba()) -->")
+        lines.append(_comment("the course image (rtval convert's shading option): the 'course' "
+                              "integrator and each shape's 'course_material' (plugins of "
+                              "rtval's mitsuba_ref: render with rtval render and its mitsuba "
+                              "option, or register them with mitsuba_ref.convert.mitsuba())"))
     if s.note and mode == "sensor":     # (the course integrator samples the course's grid)
-        lines.append(f"<!-- WARNING: {s.note} -->")
-    lines += [f"<!-- {note} -->" for note in oracle_only(scene) + scene.stand_ins()]
+        lines.append(_comment(f"WARNING: {s.note}"))
+    lines += [_comment(note) for note in oracle_only(scene) + scene.stand_ins()]
     lines.append('<scene version="3.0.0">')
     for k, v in d.items():
         if k != "type":

@@ -73,6 +73,22 @@ def test01_xml_loads_and_equals_dict(path, tmp_path):
     np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.parametrize("mode", ["sensor", "shading", "aovs"])
+def test01b_the_xml_is_well_formed(mode, tmp_path):
+    """Every comment of the XML is one XML 1.0 allows: '--' stood in the --shading and
+    --aovs notes and in a scene path, and ElementTree, lxml and xmllint refused the file
+    (Mitsuba's parser let it pass: a helper's review)."""
+    import xml.etree.ElementTree as ET
+    src = tmp_path / "d--x" / "a--b.txt"
+    src.parent.mkdir()
+    src.write_text((REPO / "scenes" / "mixed.txt").read_text())
+    scene = parse_scene(src)
+    text = scene_xml(scene, 16, shading=mode == "shading", aovs=mode == "aovs")
+    root = ET.fromstring(text.encode())
+    assert root.tag == "scene"
+    assert "rtval convert:" in text and "d- -x/a- -b.txt" in text
+
+
 def test02_shape_ids_carry_course_index():
     scene = parse_scene(REPO / "scenes" / "mixed.txt")
     d = scene_dict(scene, 32)
