@@ -174,6 +174,8 @@ def _classes(mi):
             if self.screen_clip not in (">", ">=", "off"):
                 raise ValueError(f"course integrator: screen_clip must be '>', '>=' or 'off', "
                                  f"not {self.screen_clip!r}")
+            if self.sampling == "centers":      # (rtval's own spelling: --sampling centers)
+                self.sampling = "centres"
             if self.sampling not in ("corners", "centres"):
                 raise ValueError(f"course integrator: sampling must be 'corners' or 'centres', "
                                  f"not {self.sampling!r}")
@@ -409,6 +411,10 @@ def _classes(mi):
             out = []
             for e in scene.emitters():
                 p = mi.traverse(e)
+                if "intensity.value" not in p or not ("position" in p or
+                                                      "cutoff_angle" in p):
+                    raise ValueError(f"course integrator: the emitter {str(e).split('[')[0]} "
+                                     "is not a course light: give 'point' or 'spot' emitters")
                 # (opaque: scene numbers are kernel data, so other scenes reuse the kernels)
                 E = mi.Color3f(p["intensity.value"])
                 if "position" in p:

@@ -209,6 +209,43 @@ def test07_render_mitsuba_refuses_what_it_cannot_do(tmp_path):
     assert r.returncode == 64 and "--max-dist goes with --shaded" in r.stderr
 
 
+def test07d_an_edited_xml_says_why_and_what_it_rendered(tmp_path):
+    """A porter's edits to a --shading XML (a helper's review): a directional emitter was a
+    KeyError traceback (exit 1), now one line, exit 2, nothing written; the integrator's own
+    refusal (screen_clip 'x') was cut to 'Traceback (most recent call last):', now its
+    reason; sampling 'centers', rtval's own spelling, is taken; and the outputs of an XML
+    whose max_dist was edited recorded the converted 1000, now the 3 rendered, with the
+    XML's own hash."""
+    from rt_core.exrio import read_exr
+    base = tmp_path / "base.xml"
+    assert _rtval("convert", ROOT / "scenes" / "mixed.txt", "--columns", 16, "--shading",
+                  "-o", base).returncode == 0
+    text = base.read_text()
+    cases = [("dir", text.replace("</scene>", '<emitter type="directional"><vector '
+                                  'name="direction" value="0,-1,0"/></emitter>\n</scene>'),
+              "the emitter DirectionalEmitter is not a course light"),
+             ("clip", text.replace('name="screen_clip" value="&gt;"', 'name="screen_clip" '
+                                   'value="x"'), "screen_clip must be '>', '>=' or 'off'")]
+    for name, edited, said in cases:
+        xml = tmp_path / f"{name}.xml"
+        xml.write_text(edited)
+        assert edited != text
+        r = _rtval("render", "--mitsuba", xml, "--ppm", tmp_path / f"{name}.ppm")
+        assert r.returncode == 2 and len(r.stderr.splitlines()) == 1, r.stderr
+        assert said in r.stderr and "Traceback" not in r.stderr, r.stderr
+        assert not (tmp_path / f"{name}.ppm").exists()
+    xml = tmp_path / "edited.xml"
+    xml.write_text(text.replace('name="sampling" value="corners"',
+                                'name="sampling" value="centers"').replace(
+        'name="max_dist" value="1000.0"', 'name="max_dist" value="3.0"'))
+    r = _rtval("render", "--mitsuba", xml, "-o", tmp_path / "e.exr")
+    assert r.returncode == 0, r.stderr
+    _, hdr = read_exr(tmp_path / "e.exr")
+    assert hdr["rtval.max_dist"] == "3" and "max_dist=3" in hdr["rtval.integrator"]
+    import hashlib
+    assert hdr["rtval.scene_xml_sha256"] == hashlib.sha256(xml.read_bytes()).hexdigest()
+
+
 def test07b_porting_outputs_say_what_they_came_from(tmp_path):
     """A porting user's review: convert's XML and render --mitsuba's outputs did not record
     the course scene (its sha256, the rules, the stand-ins), convert counted objects it left

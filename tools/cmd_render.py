@@ -239,7 +239,12 @@ def _run_mitsuba(args, outs) -> tuple[int, list]:
     try:
         ms = mi.load_file(args.scene)
     except Exception as e:          # Mitsuba's parser: one line of its message
-        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        lines = [ln.strip() for ln in str(e).strip().splitlines() if ln.strip()]
+        msg = lines[0] if lines else type(e).__name__
+        if msg.endswith("Traceback (most recent call last):"):
+            # a Python plugin raised (the course integrator refusing a value): its own
+            # last line says why
+            msg = msg[:-len("Traceback (most recent call last):")].rstrip() + " " + lines[-1]
         raise InputError(f"{args.scene}: Mitsuba cannot load it: {msg}") from None
     integ = ms.integrator()
     name = type(integ).__name__
@@ -269,8 +274,24 @@ def _run_mitsuba(args, outs) -> tuple[int, list]:
         source = read_provenance(f.read())
     attrs = {**source, "rtval.source": "mitsuba course integrator",
              "rtval.scene": os.path.abspath(args.scene),
+             "rtval.scene_xml_sha256": _sha256(args.scene),
              "rtval.integrator": str(integ.to_string()),
              "rtval.versions": " ".join(f"{k}={v}" for k, v in versions().items())}
+    # the rules and cut-off the integrator rendered with (the XML may have been edited since
+    # rtval convert wrote its provenance); the others (edges, ties, the tile projection)
+    # as converted
+    import dataclasses
+    from rt_core.rules import Rules
+    try:
+        base = Rules.parse(source.get("rtval.rules", ""))
+    except (ValueError, TypeError):
+        base = Rules()
+    attrs["rtval.rules"] = dataclasses.replace(
+        base, t_min=integ.t_min, screen_clip=integ.screen_clip, clip_spheres=integ.clip_spheres,
+        reflect=integ.reflect, tile_add_first=integ.tile_add_first,
+        rows="shifted" if integ.row_shift else "course").describe()
+    if not integ.aovs:
+        attrs["rtval.max_dist"] = f"{integ.max_dist:g}"
     if integ.aovs:          # rtval's geometry channels, names and conventions
         from mitsuba_ref.integrator import GEOMETRY
         if any(opt != "-o" for opt, _ in outs):
@@ -297,6 +318,12 @@ def _run_mitsuba(args, outs) -> tuple[int, list]:
                     f"integrator, {_n(integ.stats.get('bounces', 0), 'reflection bounce')}"
                     + (f", {bad} NON-FINITE values" if bad else ""))
     return (1 if bad else 0), said
+
+
+def _sha256(path) -> str:
+    import hashlib
+    with open(path, "rb") as f:
+        return hashlib.sha256(f.read()).hexdigest()
 
 
 def _n(count: int, noun: str) -> str:
