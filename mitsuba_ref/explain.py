@@ -200,9 +200,20 @@ def classify(scene: Scene, d: np.ndarray, ours: dict, ref: dict, rules: Rules,
     # (a last row of NaN for "no object": a miss on one side, never compared)
     t_all = np.stack([ev.t for ev in evals] + [np.full(len(bad), np.nan)])
     b_all = np.stack([ev.bound(ev.t) for ev in evals] + [np.full(len(bad), np.nan)])
-    for side_ids in (a_id[bad], b_id[bad]):
+    cols = np.arange(len(bad))
+    a, b = a_id[bad], b_id[bad]
+    ia, ib = (np.where(x >= 0, row[np.maximum(x, 0)], -1) for x in (a, b))
+    ta, tb, ba, bb = t_all[ia, cols], t_all[ib, cols], b_all[ia, cols], b_all[ib, cols]
+    for side_ids, t_self, t_other, b_self, b_other in ((a, ta, tb, ba, bb),
+                                                       (b, tb, ta, bb, ba)):
+        # a side's object explains the ray by its own decision only where it may be the
+        # closest hit: not beyond the other side's object by more than their bounds (an
+        # edge 6 units behind the object the other side hits firmly decides nothing; a
+        # miss on the other side, NaN, leaves it in front)
+        with np.errstate(invalid="ignore"):
+            front = ~(t_self > t_other + b_self + b_other)
         for j, ev in enumerate(evals):
-            involved = side_ids == used[j]
+            involved = (side_ids == used[j]) & front
             if not involved.any():
                 continue
             if ev.kind in ("fplane", "triangle", "disk"):
@@ -214,13 +225,9 @@ def classify(scene: Scene, d: np.ndarray, ours: dict, ref: dict, rules: Rules,
                 mark(involved & (ev.cos <= K_ROUNDING * EPS32), "graze")
                 mark(involved & ev.beyond, "extent")
     # ties: both hit, different objects, at the same depth within the bounds
-    a, b = a_id[bad], b_id[bad]
     both = (a >= 0) & (b >= 0)
-    cols = np.arange(len(bad))
-    ia, ib = (np.where(x >= 0, row[np.maximum(x, 0)], -1) for x in (a, b))
     with np.errstate(invalid="ignore"):
-        gap = np.abs(t_all[ia, cols] - t_all[ib, cols])
-        mark(both & (gap <= b_all[ia, cols] + b_all[ib, cols]), "tie")
+        mark(both & (np.abs(ta - tb) <= ba + bb), "tie")
     out[bad] = reason
     return out
 
