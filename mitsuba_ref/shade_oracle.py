@@ -309,7 +309,7 @@ def other_sides(scene, columns: int, rows: int, pixel: int, sampling: str = "cor
     verdict whose other side has no hit to take (a quadric's, a torus's, a sphere's missed
     by its discriminant), or one taken at t = 0 that the intensity divides by: then any
     colour is the caller's answer.  ``first``: the unflipped path from ``shade_pixels``
-    (its 'paths' entry), not traced again.  ``limit``: a decision is near below this
+    (its 'paths' entry, recorded at this ``limit``), not traced again.  ``limit``: a decision is near below this
     margin (default float64's, ``_Alt.LIMIT``; a wider one asks what a tracer computing
     in lower precision may take either way)."""
     colours, todo, done = set(), [frozenset()], set()
@@ -320,7 +320,7 @@ def other_sides(scene, columns: int, rows: int, pixel: int, sampling: str = "cor
         if len(done) >= runs:
             return None
         done.add(flips)
-        got = first if not flips and first is not None and limit is None else \
+        got = first if not flips and first is not None else \
             _path(scene, columns, rows, pixel, sampling, rules, max_dist, flips, limit)
         if got is None:
             # no hit to take, or a hit taken at t = 0 that the intensity divides by (a
@@ -408,7 +408,7 @@ def _paths(scene, columns, rows, pixels, sampling, rules, max_dist, lanes, first
     from ``firsts`` where known, the rest on arrays (shade_batch) where they are
     BATCH_MIN or more, each lane the per-pixel code raises on by that code."""
     from mitsuba_ref import shade_batch
-    out = [firsts[k] if not flips and limit is None and firsts[k] is not None else False
+    out = [firsts[k] if not flips and firsts[k] is not None else False
            for k, flips in lanes]
     todo = [i for i, got in enumerate(out) if got is False]
     if len(todo) >= BATCH_MIN:
@@ -519,14 +519,15 @@ def render_shade_oracle(scene, columns: int, rows: int | None = None,
     return out
 
 
-def _trace_into(out: dict, k, scene, ray, rules: Rules, max_dist: float) -> None:
+def _trace_into(out: dict, k, scene, ray, rules: Rules, max_dist: float,
+                limit: float | None = None) -> None:
     """One pixel's path (its primary ray from ``ray()``) into the arrays of ``out`` at index
     ``k``: 'I', 'err', 'bounces', 'reach', MARGINS and, where ``out`` has them, 'paths'.  A
     path the notes' arithmetic cannot compute (a division by zero: a light at the point it
     lights, whose direction is 0/0; a primary ray of a degenerate camera) is a course
     program's inf or NaN, no colour to name: every margin 0, so every decision is flagged,
-    and no path (other_sides: any colour)."""
-    px, alt = _Pixel(), _Alt()
+    and no path (other_sides: any colour).  ``limit``: the near decisions' (_Alt's)."""
+    px, alt = _Pixel(), _Alt(limit=limit)
     try:
         base, d = ray()
         I = ray_trace(scene, base, d, EF(0.0, 0.0), None, rules, max_dist, px, alt)
@@ -548,9 +549,12 @@ def _trace_into(out: dict, k, scene, ray, rules: Rules, max_dist: float) -> None
 
 
 def shade_pixels(scene, columns: int, rows: int, pixels, sampling: str = "corners",
-                 rules: Rules = Rules(), max_dist: float = 1000.0) -> dict:
+                 rules: Rules = Rules(), max_dist: float = 1000.0,
+                 limit: float | None = None) -> dict:
     """``render_shade_oracle`` for some pixels only (indices in image order, row 0 the top):
-    'I', 'err' (n, 3), MARGINS, 'bounces' and 'reach' (n,)."""
+    'I', 'err' (n, 3), MARGINS, 'bounces' and 'reach' (n,), and 'paths', each unflipped
+    path's (colour, near decisions, bounces) with decisions near below ``limit`` (_Alt's;
+    other_sides' ``first`` at that limit)."""
     pixels = np.asarray(pixels, np.int64)
     n = len(pixels)
     out = {"I": np.zeros((n, 3)), "err": np.zeros((n, 3)), "bounces": np.zeros(n, np.int32),
@@ -564,14 +568,14 @@ def shade_pixels(scene, columns: int, rows: int, pixels, sampling: str = "corner
         from mitsuba_ref import shade_batch
         if shade_batch.supported(scene):
             base, d = shade_batch.rays(scene, columns, rows, pixels, sampling, rules)
-            got = shade_batch.shade(scene, base, d, rules, max_dist)
+            got = shade_batch.shade(scene, base, d, rules, max_dist, limit=limit)
             for key in ("I", "err", "bounces", "reach", *MARGINS):
                 out[key][:] = got[key]
             out["paths"] = shade_batch.paths(got)
             todo = [k for k, path in enumerate(out["paths"]) if path is None]
     for k in todo:
         _trace_into(out, k, scene, lambda: pixel_ray(scene, columns, rows, int(pixels[k]),
-                                                      sampling, rules), rules, max_dist)
+                                                      sampling, rules), rules, max_dist, limit)
     return out
 
 

@@ -412,3 +412,23 @@ def test17_a_light_in_a_plane_adds_its_term_to_the_bound(monkeypatch):
     got = _same(sc, 33, Rules(), 50000.0, monkeypatch, rows=33)
     p = 15 * 33 + 10
     assert got["I"][p, 0] == 0 and got["err"][p, 0] > 1e12
+
+
+@pytest.mark.parametrize("batch", [False, True])
+def test18_paths_recorded_at_a_limit_are_other_sides_first(batch, monkeypatch):
+    """shade_pixels(limit=L)'s unflipped paths are the ones other_sides traces at L (so the
+    shaded comparison hands them over as ``first`` instead of tracing them again): per
+    pixel and on arrays, at float32's limit, where more decisions are near."""
+    L = shade_oracle.K_DECISION * shade_oracle.U["f32"]
+    scene = parse_text((REPO / "scenes" / "mixed.txt").read_text())
+    W, H = 24, 18
+    px = list(range(0, W * H, 7))
+    if not batch:
+        monkeypatch.setattr(shade_oracle, "BATCH_MIN", 10 ** 9)
+    got = shade_oracle.shade_pixels(scene, W, H, px, "corners", Rules(), 1000.0, limit=L)
+    want = [shade_oracle._path(scene, W, H, p, "corners", Rules(), 1000.0, frozenset(), L)
+            for p in px]
+    assert got["paths"] == want
+    assert any(len(w[1]) for w in want)         # (some decision is near at that limit)
+    default = shade_oracle.shade_pixels(scene, W, H, px, "corners", Rules(), 1000.0)
+    assert default["paths"] != want

@@ -121,7 +121,8 @@ def classify_shaded(scene: Scene, ours: np.ndarray, theirs: np.ndarray, sampling
     pix = np.flatnonzero(diff.ravel())
     if not len(pix):
         return classes
-    orc = shade_pixels(scene, W, H, pix, sampling, rules, max_dist)
+    near = K_DECISION * U["f32"]       # (the paths' near decisions, for other_sides)
+    orc = shade_pixels(scene, W, H, pix, sampling, rules, max_dist, limit=near)
     f = flags(orc, "f32")
     # (beyond the stand-in square as explain.ObjectEval's "extent" test takes it)
     beyond = orc["reach"] > plane_extent(scene) * (1 - 1e-6)
@@ -142,7 +143,7 @@ def classify_shaded(scene: Scene, ours: np.ndarray, theirs: np.ndarray, sampling
         want = theirs.reshape(-1, 3)[pix[asked]].astype(np.int16)
         own = ours.reshape(-1, 3)[pix[asked]].tolist()
         sides = other_sides_of(scene, W, H, pix[asked], sampling, rules, max_dist,
-                               limit=K_DECISION * U["f32"])
+                               firsts=[orc["paths"][i] for i in asked], limit=near)
         gives = np.array([s is None or any(list(c) == list(w) for c in s if list(c) != o)
                           for w, o, s in zip(want.tolist(), own, sides)], bool)
         jump[asked[~gives]] = beyond[asked[~gives]]
