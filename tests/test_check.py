@@ -948,6 +948,17 @@ def test11_hit_dump(ctracer, tmp_path):
     names = [c.get("name") for c in ET.fromstring(junit_xml(twins + [
         SceneCheck("c/plane.txt", None, "pass")])).iter("testcase")]
     assert names == ["a/sphere.txt", "b/sphere.txt", "plane.txt"], names
+    # a failure of the hit dump alone says so in JUnit (it read "0 wrong pixels")
+    lines = good.with_suffix(".hits").read_text().splitlines()
+    k = next(i for i, ln in enumerate(lines) if i > 1000 and int(ln.split()[2]) >= 0)
+    col, row, obj, t = lines[k].split()
+    lines[k] = f"{col} {row} {obj} {float(t) * 1.01!r}"
+    edited = tmp_path / "edited.hits"
+    edited.write_text("\n".join(lines) + "\n")
+    r = check_image(scene, good, hits_path=str(edited))
+    assert r.status == "fail" and r.counts["wrong"] == 0
+    msg = ET.fromstring(junit_xml([r])).find("testcase/failure").get("message")
+    assert msg == "0 wrong pixels, 1 wrong in the hit dump", msg
 
 
 def test12_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
@@ -1206,3 +1217,21 @@ def test17_a_channel_near_its_level_excuses_no_other():
     assert not _near_where_differs((True, False, False), (68, 64, 72), (68, 65, 72))
     assert not _near_where_differs((True, False, True), (68, 64, 72), (67, 65, 72))
     assert _near_where_differs((False, True, True), (68, 64, 72), (68, 65, 71))
+
+
+def test18_an_output_in_the_images_directory_is_refused(tmp_path, capsys):
+    """check --images DIR --junit DIR/S.ppm replaced a student's image with JUnit XML, exit
+    0 (a helper's review): an output in the directory of the images checked is refused, one
+    line, exit 2, the image as it was."""
+    from tools.cli import main
+    from rt_core.imageio import write_ppm
+    scene = REPO / "scenes" / "sphere.txt"
+    imgs = tmp_path / "imgs"
+    imgs.mkdir()
+    write_ppm(str(imgs / "sphere.ppm"), _rt_image(scene.read_text(), 16, 12))
+    before = (imgs / "sphere.ppm").read_bytes()
+    assert main(["check", "--images", str(imgs), str(scene), "--junit",
+                 str(imgs / "sphere.ppm")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "lies in the --images directory" in err[0], err
+    assert (imgs / "sphere.ppm").read_bytes() == before

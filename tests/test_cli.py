@@ -214,10 +214,41 @@ def test10_junit_marks_failures_and_skips():
     cases = comparison_cases([row, dict(row, ok=True, mode="camera")], "rtval.validate")
     cases.append(skip_case(Skipped("c/bad.txt", "c/bad.txt:3:1: oops", "malformed")))
     suite = ET.fromstring(junit_xml("rtval validate", cases))
-    assert (suite.get("tests"), suite.get("failures"), suite.get("errors")) == ("3", "1", "1")
+    # a skipped file is skipped, as the run passes without it (it was an error: CI went red
+    # on a run that exited 0 and said PASS, a helper's review)
+    assert (suite.get("tests"), suite.get("failures"), suite.get("errors"),
+            suite.get("skipped")) == ("3", "1", "0", "1")
     failure = suite.find("testcase/failure")
     assert "3 unexplained pixels" in failure.get("message") and "evidence" in failure.text
-    assert suite.find("testcase/error").get("message").startswith("malformed: ")
+    assert suite.find("testcase/skipped").get("message").startswith("malformed: ")
+
+
+def test10b_junit_names_are_unique_and_its_text_is_xml():
+    """A case named twice in a class (a scene listed twice, two scenes of one file name) is
+    numbered: CI tools merge cases of one class and name; a control character or a byte
+    that is not UTF-8 in a name is written as \\xNN (the file was not XML: a helper's
+    review)."""
+    import xml.etree.ElementTree as ET
+    from tools.harness.junit import Case, junit_xml
+    suite = ET.fromstring(junit_xml("s", [Case("a.txt", "c"), Case("a.txt", "c"),
+                                          Case("a.txt", "d"), Case("p\x01l\udcff.txt", "c",
+                                                                   failure="x\x02")]).encode())
+    names = [(c.get("classname"), c.get("name")) for c in suite.iter("testcase")]
+    assert names == [("c", "a.txt"), ("c", "a.txt (2)"), ("d", "a.txt"),
+                     ("c", "p\\x01l\\xff.txt")]
+    assert suite.find("testcase/failure").get("message") == "x\\x02"
+
+
+def test10c_two_scenes_of_one_name_keep_their_own_evidence():
+    """validate's evidence files are named by the scene's stem: two scenes of one file name
+    in different folders wrote each other's; they get their folders' names."""
+    from tools.harness.validate import unique_stems
+    got = unique_stems(["scenes/plane.txt", "x/dup/plane.txt", "scenes/sphere.txt",
+                        "a/dup/plane.txt"])
+    assert got["scenes/sphere.txt"] == "sphere"
+    assert len({got[p] for p in ("scenes/plane.txt", "x/dup/plane.txt",
+                                 "a/dup/plane.txt")}) == 3
+    assert got["scenes/plane.txt"] == "scenes__plane"
 
 
 def test11_an_option_value_may_start_with_dashes(tmp_path):

@@ -165,10 +165,9 @@ class _VersionAction(argparse.Action):
 def _refuse_overwriting_inputs(args) -> None:
     """WriteError (exit 2; rtval exr's 4) for an output option naming an input file."""
     from tools.options import outputs_over_inputs
-    for opt, out, same in outputs_over_inputs(args):
+    for opt, out, why in outputs_over_inputs(args):
         from rt_core.outputs import WriteError
-        err = WriteError(out, f"{opt} names the input {same}, which writing it would replace",
-                         "write the output elsewhere")
+        err = WriteError(out, f"{opt} {why}", "write the output elsewhere")
         if args.command == "exr":
             err.exit_code = 4
         raise err

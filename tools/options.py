@@ -208,21 +208,34 @@ OUTPUT_DESTS = ("output", "junit", "ppm", "png", "hits", "json")
 
 
 def outputs_over_inputs(args) -> list[tuple[str, str, str]]:
-    """(option, output, input) for each output file option of ``args`` that names a file
+    """(option, output, why) for each output file option of ``args`` that names a file
     the command reads: writing it would replace the input (``rtval check S.txt I.ppm
-    --junit S.txt`` replaced the scene, ``exr diff A B -o A`` the image A)."""
+    --junit S.txt`` replaced the scene, ``exr diff A B -o A`` the image A); with ``check
+    --images DIR``, any output file in DIR (``--junit DIR/x.ppm`` replaced a submission)."""
     import os
     ins = []
     for dest in INPUT_DESTS:
         v = getattr(args, dest, None)
         ins += [x for x in (v if isinstance(v, list) else [v]) if isinstance(x, str)]
     ins = [x for x in ins if os.path.isfile(x)]
+    # (check --images DIR reads the images there: an output among them replaced one)
+    images = getattr(args, "images", None)
+    folder = os.path.realpath(images) if isinstance(images, str) and os.path.isdir(images) \
+        else None
     found = []
     for dest in OUTPUT_DESTS:
         out = getattr(args, dest, None)
-        if not isinstance(out, str) or out == "-" or not os.path.isfile(out):
+        if not isinstance(out, str) or out == "-":
+            continue
+        opt = "--" + dest if dest != "output" else "-o"
+        if folder and os.path.dirname(os.path.realpath(out)) == folder:
+            found.append((opt, out, f"lies in the --images directory {images}, whose "
+                                    "images the check reads"))
+            continue
+        if not os.path.isfile(out):
             continue
         same = next((x for x in ins if os.path.samefile(x, out)), None)
         if same is not None:
-            found.append(("--" + dest if dest != "output" else "-o", out, same))
+            found.append((opt, out, f"names the input {same}, which writing it would "
+                                    "replace"))
     return found

@@ -1577,7 +1577,9 @@ def junit_xml(results, name: str | None = None) -> str:
                  # (a dot would make a package of the name's parts in CI tools)
                  "rtval.check" + (f".{name.replace('.', '_')}" if name else ""), r.seconds)
         if r.status == "fail":
-            c.failure = f"{r.counts.get('wrong', 0)} wrong pixels"
+            hits = r.hits.get("wrong", 0) if r.hits else 0
+            c.failure = f"{r.counts.get('wrong', 0)} wrong pixels" + (
+                f", {hits} wrong in the hit dump" if hits else "")
             c.body = "\n".join([f"rules: {r.rules}, max_dist={r.max_dist:g}"] +
                                details(r, ("deviation", "hint", "wrong", "hit dump")))
         elif r.status in ("error", "refused"):

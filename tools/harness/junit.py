@@ -1,8 +1,28 @@
 """JUnit XML for CI systems: one test suite, one test case per scene or comparison."""
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
-from xml.sax.saxutils import escape, quoteattr
+from xml.sax.saxutils import escape as _escape, quoteattr as _quoteattr
+
+# characters XML 1.0 does not allow (C0 controls but tab, newline, CR; a surrogate: a file
+# name's byte that is not UTF-8): written as \xNN, or the file is not XML
+_NOT_XML = re.compile("[\x00-\x08\x0b\x0c\x0e-\x1f\ud800-\udfff\ufffe\uffff]")
+
+
+def _text(s) -> str:
+    def code(m) -> str:
+        c = ord(m.group())              # (a surrogate escape \udcNN stands for the byte NN)
+        return f"\\x{c - 0xdc00 if 0xdc00 <= c <= 0xdcff else c & 0xff:02x}"
+    return _NOT_XML.sub(code, str(s))
+
+
+def escape(s) -> str:
+    return _escape(_text(s))
+
+
+def quoteattr(s) -> str:
+    return _quoteattr(_text(s))
 
 
 @dataclass
@@ -13,6 +33,7 @@ class Case:
     failure: str | None = None     # message of a failed case
     error: str | None = None       # message of a case that could not run (bad input, crash)
     body: str = ""                 # failure details, or what a passing case printed
+    skipped: str | None = None     # why a case was not run (the run passes without it)
 
 
 def junit_xml(suite: str, cases: list[Case]) -> str:
@@ -20,19 +41,28 @@ def junit_xml(suite: str, cases: list[Case]) -> str:
     from rt_core.render import versions
     fails = sum(c.failure is not None for c in cases)
     errors = sum(c.error is not None for c in cases)
+    skips = sum(c.skipped is not None for c in cases)
     out = ['<?xml version="1.0" encoding="UTF-8"?>',
            f'<testsuite name={quoteattr(suite)} tests="{len(cases)}" failures="{fails}" '
-           f'errors="{errors}" time="{sum(c.seconds for c in cases):.3f}">',
+           f'errors="{errors}" skipped="{skips}" time="{sum(c.seconds for c in cases):.3f}">',
            "  <properties>"] + [
            f'    <property name={quoteattr(k)} value={quoteattr(str(v))}/>'
            for k, v in versions().items()] + ["  </properties>"]
+    seen: dict = {}
     for c in cases:
-        out.append(f'  <testcase classname={quoteattr(c.classname)} name={quoteattr(c.name)} '
+        # (a name given twice, a scene listed twice or two of one file name: CI tools merge
+        # cases of one class and name, so the later ones are numbered)
+        key = (c.classname, c.name)
+        seen[key] = seen.get(key, 0) + 1
+        name = c.name if seen[key] == 1 else f"{c.name} ({seen[key]})"
+        out.append(f'  <testcase classname={quoteattr(c.classname)} name={quoteattr(name)} '
                    f'time="{c.seconds:.3f}">')
         if c.failure is not None:
             out.append(f'    <failure message={quoteattr(c.failure)}>{escape(c.body)}</failure>')
         elif c.error is not None:
             out.append(f'    <error message={quoteattr(c.error)}/>')
+        elif c.skipped is not None:
+            out.append(f'    <skipped message={quoteattr(c.skipped)}/>')
         elif c.body:
             out.append(f'    <system-out>{escape(c.body)}</system-out>')
         out.append("  </testcase>")
