@@ -56,3 +56,13 @@ def read_input(path, what: str) -> bytes:
         raise InputError(f"{os.fspath(path)}: more than {limit // MiB} MiB, too large for "
                          f"{_a(what)} file; is it the right file?")
     return data
+
+
+def file_sha256(path) -> str:
+    """The sha256 of a file's bytes, read a MiB at a time (provenance of an input)."""
+    import hashlib
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()

@@ -217,7 +217,7 @@ def _run_mitsuba(args, outs) -> tuple[int, list]:
     import numpy as np
     from rt_core.errors import InputError
     from rt_core.imageio import write_png, write_ppm
-    from rt_core.inputfile import check_input
+    from rt_core.inputfile import check_input, file_sha256
     from rt_core.outputs import check_file_target
     from rt_core.render import write_images, versions
     from mitsuba_ref.convert import mitsuba
@@ -274,7 +274,7 @@ def _run_mitsuba(args, outs) -> tuple[int, list]:
         source = read_provenance(f.read())
     attrs = {**source, "rtval.source": "mitsuba course integrator",
              "rtval.scene": os.path.abspath(args.scene),
-             "rtval.scene_xml_sha256": _sha256(args.scene),
+             "rtval.scene_xml_sha256": file_sha256(args.scene),
              "rtval.integrator": str(integ.to_string()),
              "rtval.versions": " ".join(f"{k}={v}" for k, v in versions().items())}
     # the rules and cut-off the integrator rendered with (the XML may have been edited since
@@ -318,12 +318,6 @@ def _run_mitsuba(args, outs) -> tuple[int, list]:
                     f"integrator, {_n(integ.stats.get('bounces', 0), 'reflection bounce')}"
                     + (f", {bad} NON-FINITE values" if bad else ""))
     return (1 if bad else 0), said
-
-
-def _sha256(path) -> str:
-    import hashlib
-    with open(path, "rb") as f:
-        return hashlib.sha256(f.read()).hexdigest()
 
 
 def _n(count: int, noun: str) -> str:

@@ -403,9 +403,11 @@ def diff(path_a, path_b, channels=None, thresholds: Thresholds | None = None,
         # (NaN matches NaN and an infinity the same-signed one: 0 there, as in the counts)
         err[~np.isfinite(err)] = 0.0
         err[bad] = np.inf
+        from rt_core.inputfile import file_sha256
         from rt_core.render import versions
         attrs = {"rtval.kind": DIFF_KIND, "rtval.diff.a": a.path, "rtval.diff.b": b.path,
-                 "rtval.diff.a_sha256": _sha256(a.path), "rtval.diff.b_sha256": _sha256(b.path),
+                 "rtval.diff.a_sha256": file_sha256(a.path),
+                 "rtval.diff.b_sha256": file_sha256(b.path),
                  "rtval.diff.status": STATUS_NAMES[status],
                  # (as every output: its count of values that are not finite, and what they
                  # mean here)
@@ -416,15 +418,6 @@ def diff(path_a, path_b, channels=None, thresholds: Thresholds | None = None,
                                                      enumerate(names)}, attrs,
                                           "the difference image")
     return result
-
-
-def _sha256(path) -> str:
-    import hashlib
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _write_exr(out, channels: dict, attrs: dict, what: str) -> str:
