@@ -64,7 +64,7 @@ def run(args) -> int:
     from tools.harness.parallel import plan_of
     from tools.harness.validate import (SERIAL_BUSY_CORES, check_memory, default_scene_paths,
                                         load_supported, seconds_per_comparison, skip_counts,
-                                        stem_of, validate, write_report)
+                                        row_stem, validate, write_report)
 
     from rt_core.outputs import check_dir_target, check_file_target
     if args.report:                     # refused before the run, not after it
@@ -138,12 +138,12 @@ def run(args) -> int:
     for r in results:
         if r["mode"] == "shaded":           # explained: rounding and boundary; unexpl: wrong
             c = r["classes"]
-            print(f"{stem_of(r['scene'])[:34]:34s} {'shaded':6s} {'f64':4s} {r['pixels']:7d} "
+            print(f"{row_stem(r)[:34]:34s} {'shaded':6s} {'f64':4s} {r['pixels']:7d} "
                   f"{c['rounding'] + c['boundary']:9d} {c['wrong']:6d} {'(8-bit)':>13s} "
                   f"{r['rt_core_ms']:10.2f} {r['mitsuba_ms']:10.2f}"
                   + ("" if r["ok"] else "  FAIL"))
             continue
-        print(f"{stem_of(r['scene'])[:34]:34s} {r['mode']:6s} {r['precision']:4s} "
+        print(f"{row_stem(r)[:34]:34s} {r['mode']:6s} {r['precision']:4s} "
               f"{r['pixels']:7d} {r['explained']:9d} {r['unexplained']:6d} "
               f"{r['depth']['max_rel']:13.2e} {r['rt_core_ms']:10.2f} {r['mitsuba_ms']:10.2f}"
               + ("" if r["ok"] else "  FAIL"))

@@ -289,17 +289,17 @@ def compare_command(row: dict, rows_given: int | None = None) -> str:
 
 def comparison_row(row: dict, rows_given: int | None = None) -> Row:
     """A Row of a validate/compare result (its summary dict; "pictures" if it has them)."""
-    from .validate import stem_of
+    from .validate import row_stem
     counts = {k: v for k, v in row["classes"].items()}
     listed = ", ".join(f"{k} {v}" for k, v in counts.items() if v)
     if row["mode"] == "shaded":
-        title = f"{stem_of(row['scene'])} · shaded"
+        title = f"{row_stem(row)} · shaded"
         summary = f"{row['columns']}×{row['rows']} 8-bit, rt_core f64 / Mitsuba f32: {listed}"
         details = [f"wrong pixel (column {x}, row {y}): rt_core {o}, Mitsuba {t}"
                    for x, y, o, t in row.get("worst", [])]
     else:
         d = row["depth"]
-        title = f"{stem_of(row['scene'])} · {row['mode']} · {row['precision']}"
+        title = f"{row_stem(row)} · {row['mode']} · {row['precision']}"
         summary = (f"{row['columns']}×{row['rows']}: {listed}; depth: max rel error "
                    f"{d['max_rel']:.3g} on {d['pixels']} same-object pixels, "
                    f"{d['over_bound']} over their bound")

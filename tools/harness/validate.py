@@ -105,6 +105,12 @@ def unique_stems(paths) -> dict:
     return out
 
 
+def row_stem(row: dict) -> str:
+    """A result row's scene as the reports name it: validate's unique stem, else the
+    scene's own."""
+    return row.get("stem") or stem_of(row["scene"])
+
+
 def stem_of(path: str) -> str:
     p = Path(path)
     return f"{p.parent.name}__{p.stem}" if p.parent.name in ("keyword", "numeric") else p.stem
@@ -313,13 +319,14 @@ def _validate(scenes, columns, precisions, modes, outdir, progress, evidence, sh
         rows = []
         for row, cmp in outs:
             t0 = time.perf_counter()
+            row["stem"] = stems[job.scene.path]         # (its name in the reports)
             if row["mode"] == "shaded":
                 if cmp is not None:
                     from tools.harness.shaded import write_shaded_evidence
                     row["evidence"] = write_shaded_evidence(
-                        cmp, os.path.join(outdir, "failures"), stems[job.scene.path])
+                        cmp, os.path.join(outdir, "failures"), row["stem"])
             elif cmp is not None:
-                stem = f"{stems[job.scene.path]}.{row['mode']}.{job.precision}"
+                stem = f"{row['stem']}.{row['mode']}.{job.precision}"
                 row["evidence"] = (write_evidence(cmp, os.path.join(outdir, "failures"), stem)
                                    if not cmp.ok else
                                    write_evidence(cmp, os.path.join(outdir, "exr"), stem,
@@ -380,7 +387,7 @@ def write_report(results, skipped, outdir: str, meta: dict) -> tuple[str, str]:
     for r in results:
         if r["mode"] == "shaded":
             continue
-        lines.append(f"| {stem_of(r['scene'])} | {r['mode']} | {r['precision']} | {r['pixels']} |"
+        lines.append(f"| {row_stem(r)} | {r['mode']} | {r['precision']} | {r['pixels']} |"
                      f" {r['explained']} | {r['unexplained']} | {r['depth']['max_rel']:.2e} | "
                      f"{r['depth']['over_bound']} | {r['rt_core_ms']:.2f} | {r['mitsuba_ms']:.2f} |")
     if shaded:
@@ -392,7 +399,7 @@ def write_report(results, skipped, outdir: str, meta: dict) -> tuple[str, str]:
                   "Mitsuba ms |", "|---|---|---|---|---|---|---|---|"]
         for r in shaded:
             c = r["classes"]
-            lines.append(f"| {stem_of(r['scene'])} | {r['pixels']} | {c['match']} | "
+            lines.append(f"| {row_stem(r)} | {r['pixels']} | {c['match']} | "
                          f"{c['rounding']} | {c['boundary']} | {c['wrong']} | "
                          f"{r['rt_core_ms']:.2f} | {r['mitsuba_ms']:.2f} |")
     bad = [r for r in results if not r["ok"]]
@@ -415,7 +422,7 @@ def comparison_cases(rows, classname: str) -> list:
         prec = r["precision"].split()[0]
         # the comparison's own wall time, every phase (a camera row whose rt_core trace was
         # the rays row's repeats that trace's ms, but not its seconds)
-        c = Case(f"{stem_of(r['scene'])}.{r['mode']}.{prec}", classname,
+        c = Case(f"{row_stem(r)}.{r['mode']}.{prec}", classname,
                  sum(r["seconds"].values()))
         counts = ", ".join(f"{k} {v}" for k, v in r["classes"].items() if v)
         if r["mode"] == "shaded":
