@@ -1235,3 +1235,17 @@ def test18_an_output_in_the_images_directory_is_refused(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "lies in the --images directory" in err[0], err
     assert (imgs / "sphere.ppm").read_bytes() == before
+
+
+def test19_an_unreadable_image_names_the_others_there(tmp_path):
+    """--images takes the first of STEM.ppm, .pnm, .png; where that one cannot be read and
+    another is there, the error names it (an empty sphere.ppm hid a good sphere.png: a
+    helper's review)."""
+    from tools.harness.check import check_images
+    from rt_core.imageio import write_png
+    scene = REPO / "scenes" / "sphere.txt"
+    (tmp_path / "sphere.ppm").write_bytes(b"")
+    write_png(str(tmp_path / "sphere.png"), _rt_image(scene.read_text(), 16, 12))
+    r, = check_images(str(tmp_path), [str(scene)])
+    assert r.status == "error" and "the file is empty" in r.reason
+    assert "also there: sphere.png" in r.reason, r.reason

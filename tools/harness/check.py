@@ -1537,7 +1537,12 @@ def _image_jobs(directory, scenes, kw):
         try:
             theirs = read_image(found[0])
         except ImageError as exc:
-            yield SceneCheck(str(s), found[0], "error", str(exc))
+            # (the others are not tried: which one is the tracer's is the directory's to say)
+            others = ", ".join(os.path.basename(f) for f in found[1:])
+            yield SceneCheck(str(s), found[0], "error", str(exc) + (
+                f" (also there: {others}; --images checks the first of "
+                f"{', '.join(IMAGE_SUFFIXES)}: remove the one that is not the tracer's)"
+                if others else ""))
             continue
         yield (str(s), found[0], sc, theirs, None, None, None,
                {**kw, "maxval": pnm_maxval(found[0])})
