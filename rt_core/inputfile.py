@@ -6,6 +6,7 @@ Shared by rt_core and the references (it knows nothing of scenes or images).
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import stat
 
@@ -29,11 +30,41 @@ def _a(what: str) -> str:
     return ("an " if what[0] in "aeiouAEIOU" else "a ") + what
 
 
+# the files a command has read (device, inode), while ``tracking_inputs`` holds: an output
+# may not replace one (a scene's texture overwritten by --ppm textures/x.ppm; outputs.py)
+_READ: list = []
+
+
+@contextlib.contextmanager
+def tracking_inputs():
+    """Within the block (one command of rtval's), every input file ``check_input`` passes is
+    noted, and ``atomic_write`` refuses to replace one.  (Library calls outside it write
+    where they are told: a test may rewrite the image it checked.)"""
+    _READ.append(set())
+    try:
+        yield
+    finally:
+        _READ.pop()
+
+
+def was_read(path) -> bool:
+    """Has the command running (``tracking_inputs``) read the file at ``path``?"""
+    if not _READ:
+        return False
+    try:
+        st = os.stat(path)
+    except OSError:
+        return False
+    return (st.st_dev, st.st_ino) in _READ[-1]
+
+
 def check_input(path, what: str) -> int:
     """Refuse ``path`` unless it is a regular file within the size limit for ``what``;
     returns its size.  A missing file raises FileNotFoundError (an OSError naming it)."""
     path = os.fspath(path)
     st = os.stat(path)
+    if _READ:
+        _READ[-1].add((st.st_dev, st.st_ino))
     if stat.S_ISDIR(st.st_mode):
         raise InputError(f"{path}: is a directory; give {_a(what)} file")
     if not stat.S_ISREG(st.st_mode):

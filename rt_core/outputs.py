@@ -232,6 +232,9 @@ def atomic_write(path: str, write, verify=None) -> None:
     shown = os.fspath(path)
     if os.path.isdir(shown):
         raise IsADirectoryError(errno.EISDIR, "is a directory, expected a file name", shown)
+    from .inputfile import was_read
+    if was_read(shown):         # (a scene's texture under --ppm textures/x.ppm, say)
+        raise WriteError(shown, "it is a file this command read", "write the output elsewhere")
     ext = os.path.splitext(shown)[1]
     if os.path.exists(shown) and not os.path.isfile(shown):
         with tempfile.TemporaryDirectory(prefix=f"rtval-{os.getpid()}-") as d:

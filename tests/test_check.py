@@ -1221,8 +1221,8 @@ def test17_a_channel_near_its_level_excuses_no_other():
 
 def test18_an_output_in_the_images_directory_is_refused(tmp_path, capsys):
     """check --images DIR --junit DIR/S.ppm replaced a student's image with JUnit XML, exit
-    0 (a helper's review): an output in the directory of the images checked is refused, one
-    line, exit 2, the image as it was."""
+    0 (a helper's review): an output named as a scene's image there is refused, one line,
+    exit 2, the image as it was (tests/test_faults.py test07e: a JUnit beside it is fine)."""
     from tools.cli import main
     from rt_core.imageio import write_ppm
     scene = REPO / "scenes" / "sphere.txt"
@@ -1233,7 +1233,7 @@ def test18_an_output_in_the_images_directory_is_refused(tmp_path, capsys):
     assert main(["check", "--images", str(imgs), str(scene), "--junit",
                  str(imgs / "sphere.ppm")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "lies in the --images directory" in err[0], err
+    assert len(err) == 1 and "is the image of a scene in the --images directory" in err[0], err
     assert (imgs / "sphere.ppm").read_bytes() == before
 
 

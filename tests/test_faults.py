@@ -366,6 +366,47 @@ def test07c_an_output_naming_an_input_is_refused(cmd, code, tmp_path):
 
 
 
+def test07e_inputs_read_on_the_way_are_not_replaced_and_neighbours_are_fine(tmp_path):
+    """A review of the refusal: a scene's texture is an input too (--ppm textures/x.ppm
+    replaced it: refused at the write, as a file the command read); a hit dump is an input
+    of check; and with --images DIR only the scenes' images there are refused, a JUnit
+    file beside them is fine."""
+    import shutil as sh
+    sh.copytree(REPO / "scenes" / "textures", tmp_path / "textures")
+    sh.copy(REPO / "scenes" / "textured.txt", tmp_path)
+    tex = tmp_path / "textures" / "tiles4x3.ppm"
+    before = tex.read_bytes()
+    r = subprocess.run([sys.executable, "-m", "tools.cli", "render", str(tmp_path /
+                        "textured.txt"), "--columns", "40", "--ppm", str(tex)], cwd=REPO,
+                       capture_output=True, text=True)
+    one_line(r, 2, "tiles4x3.ppm: cannot write: it is a file this command read")
+    assert tex.read_bytes() == before
+    img, hits = tmp_path / "i.ppm", tmp_path / "h.txt"
+    rtval("render", SEED, "--columns", 8, "--ppm", img)
+    hits.write_text("0 0 -1 0\n")
+    r = rtval("check", SEED, img, "--hits", hits, "--junit", hits)
+    one_line(r, 2, "--junit names the input")
+    assert hits.read_text() == "0 0 -1 0\n"
+    imgs = tmp_path / "imgs"
+    imgs.mkdir()
+    sh.copy(img, imgs / f"{SEED.stem}.ppm")
+    r = rtval("check", "--images", imgs, SEED, "--junit", imgs / "report.xml")
+    assert r.returncode in (0, 1) and (imgs / "report.xml").exists(), r.stderr
+    r = rtval("check", "--images", imgs, SEED, "--junit", imgs / f"{SEED.stem}.png")
+    one_line(r, 2, "is the image of a scene in the --images directory")
+
+
+def test07f_standard_output_closed(tmp_path):
+    """Standard output closed (>&-): Python makes sys.stdout None and print() skips it; the
+    full-disk wrapper turned that into an AttributeError traceback (a review)."""
+    for args in (["render", str(SEED), "--columns", "8", "--ppm", str(tmp_path / "x.ppm")],
+                 ["--help"]):
+        r = subprocess.run([sys.executable, "-m", "tools.cli", *args], cwd=REPO,
+                           stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                           preexec_fn=lambda: os.close(1))
+        assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
+
+
 def test07d_file_names_that_are_not_utf8(tmp_path):
     """A scene whose name is not UTF-8 renders, its name in the provenance with the odd byte
     escaped (the EXR's header would not take it: the error blamed the output); an image of

@@ -185,16 +185,25 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    saved, sys.stdout = sys.stdout, _Stdout(sys.stdout)
+    from rt_core.inputfile import tracking_inputs
+    saved = sys.stdout
+    if saved is not None:               # (None: standard output closed, print() skips it)
+        sys.stdout = _Stdout(saved)
+    try:
+        with tracking_inputs():         # (an output may not replace a file the run read)
+            return _main(argv)
+    finally:
+        sys.stdout = saved
+
+
+def _main(argv) -> int:
     try:
         try:
             args = build_parser().parse_args(argv)
         finally:                        # (--help, --version: what they printed, written)
-            sys.stdout.flush()
-    except (SystemExit, OSError) as e:
-        sys.stdout = saved
-        if isinstance(e, SystemExit):
-            raise
+            if sys.stdout is not None:
+                sys.stdout.flush()
+    except OSError as e:
         print(f"rtval: {e}", file=sys.stderr)
         return 2
     if hasattr(args, "before_import"):      # e.g. pick Dr.Jit's kernel cache before it loads
@@ -207,7 +216,8 @@ def main(argv=None) -> int:
     try:
         _refuse_overwriting_inputs(args)
         code = int(args.func(args) or 0)
-        sys.stdout.flush()              # (a full disk shows here, where it can be said)
+        if sys.stdout is not None:
+            sys.stdout.flush()          # (a full disk shows here, where it can be said)
         return code
     except Terminated as e:
         _stop(cleanup)
@@ -239,8 +249,6 @@ def main(argv=None) -> int:
             return 128 + why.signum
         print("rtval: interrupted", file=sys.stderr)
         return 130
-    finally:
-        sys.stdout = saved
 
 
 class _Stdout:

@@ -203,34 +203,38 @@ def add_parallel(p: argparse.ArgumentParser, what: str) -> None:
 
 
 # what the commands read (positional arguments) and the files they write (options)
-INPUT_DESTS = ("scene", "scenes", "inputs", "file", "files", "a", "b")
-OUTPUT_DESTS = ("output", "junit", "ppm", "png", "hits", "json")
+INPUT_DESTS = ("scene", "scenes", "inputs", "file", "files", "a", "b", "hits")
+OUTPUT_DESTS = ("output", "junit", "ppm", "png", "json")
 
 
 def outputs_over_inputs(args) -> list[tuple[str, str, str]]:
     """(option, output, why) for each output file option of ``args`` that names a file
     the command reads: writing it would replace the input (``rtval check S.txt I.ppm
     --junit S.txt`` replaced the scene, ``exr diff A B -o A`` the image A); with ``check
-    --images DIR``, any output file in DIR (``--junit DIR/x.ppm`` replaced a submission)."""
+    --images DIR``, a scene's image there (``--junit DIR/S.ppm`` replaced a submission)."""
     import os
     ins = []
     for dest in INPUT_DESTS:
         v = getattr(args, dest, None)
         ins += [x for x in (v if isinstance(v, list) else [v]) if isinstance(x, str)]
     ins = [x for x in ins if os.path.isfile(x)]
-    # (check --images DIR reads the images there: an output among them replaced one)
+    # (check --images DIR reads the scenes' images there, STEM.ppm, .pnm or .png: an output
+    # named so replaced one)
     images = getattr(args, "images", None)
-    folder = os.path.realpath(images) if isinstance(images, str) and os.path.isdir(images) \
-        else None
+    taken = set()
+    if isinstance(images, str) and os.path.isdir(images):
+        from pathlib import Path
+        taken = {os.path.realpath(os.path.join(images, Path(x).stem + ext))
+                 for x in ins for ext in (".ppm", ".pnm", ".png")}
     found = []
     for dest in OUTPUT_DESTS:
         out = getattr(args, dest, None)
         if not isinstance(out, str) or out == "-":
             continue
         opt = "--" + dest if dest != "output" else "-o"
-        if folder and os.path.dirname(os.path.realpath(out)) == folder:
-            found.append((opt, out, f"lies in the --images directory {images}, whose "
-                                    "images the check reads"))
+        if os.path.realpath(out) in taken:
+            found.append((opt, out, f"is the image of a scene in the --images directory "
+                                    f"{images}, which the check reads"))
             continue
         if not os.path.isfile(out):
             continue

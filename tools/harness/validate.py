@@ -97,11 +97,13 @@ def unique_stems(paths) -> dict:
     for p in paths:
         if out[p] in shared:
             out[p] = f"{Path(p).parent.name}__{out[p]}"
-    taken: dict = {}
-    for p in paths:
-        taken[out[p]] = taken.get(out[p], 0) + 1
-        if taken[out[p]] > 1:
-            out[p] = f"{out[p]}-{taken[out[p]]}"
+    used: set = set()
+    for p in paths:                     # (numbered where the folders agree too)
+        stem, k = out[p], 1
+        while out[p] in used:
+            k += 1
+            out[p] = f"{stem}-{k}"
+        used.add(out[p])
     return out
 
 
