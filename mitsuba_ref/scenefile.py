@@ -117,9 +117,10 @@ def read_text(text: str, code27: str = "auto") -> File:
     if after is not None and after.lower() in KEYWORDS:
         return _keyword(lines)
     # numeric: a code starts the next line, or the header alone with its words after the
-    # numbers ("8 6 window"), as rt_core's parser reads it
-    if got >= 5 and (k < len(lines) and _NUM.match(lines[k][1][0]) or
-                     k == len(lines) and worded):
+    # numbers ("8 6 window"), or more than five numbers before the first word (the keyword
+    # dialect would need a word there), as rt_core's parser reads it
+    if got > 5 or got >= 5 and (k < len(lines) and _NUM.match(lines[k][1][0]) or
+                                k == len(lines) and worded):
         try:
             return _numeric(lines, code27)
         except ValueError as first:
