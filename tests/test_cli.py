@@ -258,6 +258,19 @@ def test11_an_option_value_may_start_with_dashes(tmp_path):
     assert r.returncode != 64 and "unrecognized" not in r.stderr, r.stderr
 
 
+def test12b_dr_jit_loads_after_before_import():
+    """bench and report pick a fresh kernel cache in ``before_import``, which works only
+    while Dr.Jit is not loaded: main imported rt_core first for a while (its file tracking),
+    and their first calls reported the shared cache's hits as compilation (a review)."""
+    code = ("import sys, tools.cli as c, tools.cmd_bench as b\n"
+            "b.fresh_kernel_cache = lambda keep: print('drjit' in sys.modules)\n"
+            "b.run = lambda args: 0\n"
+            "c.main(['bench', '--objects', '1'])")
+    r = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0 and r.stdout.strip() == "False", r.stdout + r.stderr
+
+
 def test12_building_the_parser_loads_no_dr_jit():
     """`rtval --help` and the parser of every command load neither Dr.Jit nor Mitsuba (0.2 s
     and more at every start); tools.options' copy of --code27's choices is rt_core's."""

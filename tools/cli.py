@@ -185,13 +185,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    from rt_core.inputfile import tracking_inputs
     saved = sys.stdout
     if saved is not None:               # (None: standard output closed, print() skips it)
         sys.stdout = _Stdout(saved)
     try:
-        with tracking_inputs():         # (an output may not replace a file the run read)
-            return _main(argv)
+        return _main(argv)
     finally:
         sys.stdout = saved
 
@@ -208,6 +206,14 @@ def _main(argv) -> int:
         return 2
     if hasattr(args, "before_import"):      # e.g. pick Dr.Jit's kernel cache before it loads
         args.before_import(args)
+    # (rt_core loads Dr.Jit: imported only now, after before_import; bench and report chose
+    # no fresh kernel cache when it came first)
+    from rt_core.inputfile import tracking_inputs
+    with tracking_inputs():             # (an output may not replace a file the run read)
+        return _run(args)
+
+
+def _run(args) -> int:
     from rt_core.errors import USER_ERRORS
     from rt_core.outputs import cleanup
     _SIGNALLED.clear()                  # (this run's signals only: tests call main again)
