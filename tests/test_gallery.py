@@ -93,3 +93,38 @@ def test03_json(tmp_path):
     assert [s["reflection_bounces"] for s in data["scenes"]] == [0, 1]
     assert data["page"] == str(out / "index.html") and Path(data["contact_sheet"]).is_file()
     assert data["skipped"] == [] and data["meta"]["drjit"] and data["meta"]["columns"] == 20
+
+
+def test03_every_scene_its_own_png_and_working_links(tmp_path):
+    """A scene named contact, d1/s beside d1__s, and names with '#': each PNG was not its
+    own (the contact sheet replaced contact.png, d1__s.png held the other scene) and the
+    page's links broke on '#' (a review).  Each gets its own file, the page links each by
+    its URL-quoted name, and every link resolves."""
+    import html.parser
+    from urllib.parse import unquote
+    root = Path(__file__).resolve().parents[1] / "scenes"
+    for rel, src in (("contact.txt", "sphere.txt"), ("a#1.txt", "sphere.txt"),
+                     ("d1/s.txt", "plane.txt"), ("d2/s.txt", "sphere.txt"),
+                     ("d1__s.txt", "plane.txt")):
+        (tmp_path / rel).parent.mkdir(exist_ok=True)
+        (tmp_path / rel).write_text((root / src).read_text())
+    out = tmp_path / "OUT"
+    r = subprocess.run([sys.executable, "-m", "tools.cli", "gallery", "contact.txt", "a#1.txt",
+                        "d1/s.txt", "d2/s.txt", "d1__s.txt", "--columns", "16", "-o", str(out)],
+                       cwd=tmp_path, capture_output=True, text=True,
+                       env={**__import__("os").environ, "PYTHONPATH": str(root.parent)})
+    assert r.returncode == 0, r.stderr
+
+    class Imgs(html.parser.HTMLParser):
+        srcs: list = []
+
+        def handle_starttag(self, tag, attrs):
+            if tag == "img":
+                self.srcs.append(dict(attrs)["src"])
+    p = Imgs()
+    p.feed((out / "index.html").read_text())
+    files = [unquote(s) for s in p.srcs]
+    assert len(files) == 5 == len(set(files)) and "contact.png" not in files
+    assert all((out / f).is_file() for f in files)
+    scenes = {Image.open(out / f).text["rtval.scene"] for f in files}
+    assert len(scenes) == 5

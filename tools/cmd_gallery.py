@@ -9,6 +9,7 @@ from __future__ import annotations
 import html
 import sys
 from pathlib import Path
+from urllib.parse import quote
 
 from .options import add_code27, add_texture_dir, positive_int
 
@@ -82,6 +83,9 @@ def run(args) -> int:
     done, skipped = [], []
     # every PNG, the page and the sheet are renamed into place at the end, or none is (a
     # scene named on the command line that fails leaves no partial gallery)
+    # the PNGs' names: each its own, none the contact sheet's (a scene named contact, d1/s
+    # and d1__s wrote over each other: a review)
+    used = {"contact.png"}
     with together():
         for name, path in scene_files(args.scenes):
             note = ""
@@ -109,7 +113,13 @@ def run(args) -> int:
                 print(f"rtval gallery: skipped ({category}) {why}", file=sys.stderr)
                 continue
             pixels = quantize(np.stack([images[c] for c in "RGB"], -1))
-            file = name.replace("/", "__") + ".png"
+            stem = file = name.replace("/", "__")
+            k = 1
+            while file + ".png" in used:
+                k += 1
+                file = f"{stem}-{k}"
+            file += ".png"
+            used.add(file)
             write_png(str(outdir / file), pixels,
                       provenance(scene, cam, args.precision, "llvm", Rules(), shading="on",
                                  max_dist=repr(DEFAULT_MAX_DIST)))
@@ -142,7 +152,7 @@ def run(args) -> int:
 def _html(done, skipped, args) -> str:
     """One page: a figure per image, then the skipped files with their reason."""
     figs = "\n".join(
-        f'<figure><img src="{html.escape(f)}" alt="{html.escape(n)}">'
+        f'<figure><img src="{html.escape(quote(f))}" alt="{html.escape(n)}">'
         f"<figcaption>{html.escape(n)}<br>{p.shape[1]}×{p.shape[0]}, "
         f"{b} reflection bounces" + (f"<br><i>{html.escape(t)}</i>" if t else "")
         + "</figcaption></figure>" for n, f, p, b, t in done)
