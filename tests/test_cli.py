@@ -72,6 +72,9 @@ def test02_did_you_mean(args, said):
     (("bench", "--shaded", "--lights", 99999999), "--lights: at most 64"),
     (("validate", SPHERE, "--workers", 200), "--workers: at most 64 local worker processes"),
     (("stability", "--quick", "--seeds", 99999999999), "--seeds: at most 1000"),
+    # (a review: each was a TypeError traceback from Dask, exit 1)
+    (("stability", "--quick", "--scheduler", "tls://127.0.0.1:1"), "over tcp:// only"),
+    (("validate", SPHERE, "--scheduler", "ucx://127.0.0.1:1"), "over tcp:// only"),
     # an empty value was taken as not given: no report, exit 0
     (("check", SPHERE, SPHERE, "--report", ""), "argument --report: an empty value"),
     # one column or row under corner sampling: a usage error in every command (it was exit 2
@@ -85,7 +88,7 @@ def test02_did_you_mean(args, said):
     (("report", SPHERE, "--columns", 8, 1), "--columns: 1 column"),
     (("bench", "--command", "--command-columns", 1), "--command-columns: 1 column"),
 ], ids=["timeout-0", "timeout-negative", "texture-dir", "timeout-huge", "threads", "objects", "lights",
-        "workers", "seeds", "empty", "render-1-column", "render-1-row", "compare", "check", "convert",
+        "workers", "seeds", "tls", "ucx", "empty", "render-1-column", "render-1-row", "compare", "check", "convert",
         "validate", "report", "bench-command"])
 def test02b_invalid_option_values(args, said):
     r = rtval(*args)

@@ -72,6 +72,19 @@ def at_most(limit: int, why: str):
     return parse
 
 
+def scheduler_address(text: str) -> str:
+    """--scheduler: a Dask scheduler's address, tcp://HOST:PORT or HOST:PORT (rtval's
+    clusters speak plain TCP: tls:// needs certificates rtval does not take, ucx:// a
+    library it does not install; either was a TypeError traceback from Dask)."""
+    scheme, sep, _ = text.partition("://")
+    if sep and scheme != "tcp":
+        raise argparse.ArgumentTypeError(f"{text!r}: rtval connects to Dask schedulers over "
+                                         "tcp:// only; give tcp://HOST:PORT")
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty address; give tcp://HOST:PORT")
+    return text
+
+
 def worker_count(text: str) -> int:
     """--workers: 0 and up, at most MAX_WORKERS (each is a process of its own)."""
     v = count(text)
@@ -192,7 +205,7 @@ def add_parallel(p: argparse.ArgumentParser, what: str) -> None:
                         "this process); 0 or 1: in this process")
     x.add_argument("--serial", action="store_true",
                    help=f"run the {what} in this process, without Dask (= --workers 0)")
-    x.add_argument("--scheduler", metavar="ADDRESS",
+    x.add_argument("--scheduler", metavar="ADDRESS", type=scheduler_address,
                    help=f"run the {what} on the Dask cluster at ADDRESS (e.g. "
                         "tcp://HOST:8786, started with `dask scheduler` and `dask worker "
                         "ADDRESS`; its workers need the same rtval, Dr.Jit and Mitsuba)")
