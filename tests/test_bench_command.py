@@ -30,6 +30,10 @@ def test01_command_bench_splits_a_render_into_phases(tmp_path):
         assert c["largest"] in ("import", "parse", "kernel", "write")
     assert "largest" in r.stdout and "kernel" in r.stdout
     assert res["machine"]["backend"] == "llvm"
+    # its provenance, as every output's (it had the machine alone: a review)
+    import hashlib
+    assert res["scene_sha256"] == hashlib.sha256((REPO / res["scene"]).read_bytes()).hexdigest()
+    assert res["rtval"] and res["drjit"] and "python" in res
 
 
 def test02_shaded_bench_smoke(tmp_path):

@@ -128,3 +128,13 @@ def test03_every_scene_its_own_png_and_working_links(tmp_path):
     assert all((out / f).is_file() for f in files)
     scenes = {Image.open(out / f).text["rtval.scene"] for f in files}
     assert len(scenes) == 5
+    # --json names each PNG's scene and its hash (it named the PNG alone: a review)
+    r = subprocess.run([sys.executable, "-m", "tools.cli", "gallery", "a#1.txt", "--columns",
+                        "16", "-o", str(tmp_path / "J"), "--json"], cwd=tmp_path,
+                       capture_output=True, text=True,
+                       env={**__import__("os").environ, "PYTHONPATH": str(root.parent)})
+    import hashlib
+    import json
+    got = json.loads(r.stdout)["scenes"][0]
+    assert got["scene"] == "a#1.txt" and got["scene_sha256"] == hashlib.sha256(
+        (tmp_path / "a#1.txt").read_bytes()).hexdigest()

@@ -103,6 +103,7 @@ def test07_report_end_to_end(tmp_path):
     for r in res["rows"]:
         assert r["steady_ms"] > 0 and r["first_ms"] > 0
         assert r["sample"] == min(200, r["rays"])
+        assert r["scene_sha256"] == scenes[0].sha256 and len(r["scene_sha256"]) == 64
     rt = [r for r in res["rows"] if r["tracer"].startswith("rt_core")]
     assert all(r["mask_mismatch_unflagged"] == 0 for r in rt)
     assert all(r["depth_max_rel"] < 1e-5 for r in rt if r["precision"] == "f32")

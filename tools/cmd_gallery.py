@@ -86,6 +86,7 @@ def run(args) -> int:
     # the PNGs' names: each its own, none the contact sheet's (a scene named contact, d1/s
     # and d1__s wrote over each other: a review)
     used = {"contact.png"}
+    sources = {}                        # PNG -> (scene file, its sha256), for --json
     with together():
         for name, path in scene_files(args.scenes):
             note = ""
@@ -124,6 +125,7 @@ def run(args) -> int:
                       provenance(scene, cam, args.precision, "llvm", Rules(), shading="on",
                                  max_dist=repr(DEFAULT_MAX_DIST)))
             done.append((name, file, pixels, res.bounces, note))
+            sources[file] = (str(path), scene.sha256)
         page = outdir / "index.html"
         sheet = outdir / "contact.png"
         atomic_write(str(page), lambda tmp: Path(tmp).write_text(_html(done, skipped, args)))
@@ -138,7 +140,8 @@ def run(args) -> int:
             "meta": {"columns": args.columns, "precision": args.precision, "backend": "llvm",
                      **versions()},
             "page": str(page), "contact_sheet": str(sheet),
-            "scenes": [{"name": n, "png": str(outdir / f), "columns": int(p.shape[1]),
+            "scenes": [{"name": n, "png": str(outdir / f), "scene": sources[f][0],
+                        "scene_sha256": sources[f][1], "columns": int(p.shape[1]),
                         "rows": int(p.shape[0]), "reflection_bounces": int(b),
                         **({"texture_missing": t} if t else {})}
                        for n, f, p, b, t in done],

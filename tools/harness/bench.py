@@ -493,7 +493,10 @@ def command_bench(columns=COMMAND_COLUMNS, repeats: int = 3, scene: str | None =
         largest = max(COMMAND_PHASES, key=lambda k: stat[k]["median"])
         cases.append({"columns": c, "outputs": out, "runs": len(ps), "phases": stat,
                       "largest": largest})
+    from rt_core.inputfile import file_sha256
+    from rt_core.render import versions
     return {"mode": "command", "scene": os.path.relpath(os.path.abspath(scene), repo),
+            "scene_sha256": file_sha256(scene), **versions(),
             "machine": machine(backend_name), "cases": cases}
 
 
