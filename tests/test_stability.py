@@ -356,11 +356,15 @@ def test06_camera_far_offset(precision):
 def test07_cli_quick(tmp_path):
     from tools.cli import main
     out = tmp_path / "json"
-    rc = main(["stability", "--quick", "--families", "straddle", "size", "--json", str(out),
-               "-o", str(tmp_path)])
+    # (a family named twice runs once: a review saw its cases twice, their JUnit names too)
+    rc = main(["stability", "--quick", "--families", "straddle", "size", "straddle", "--json",
+               str(out), "-o", str(tmp_path)])
     assert rc == 0
     data = json.loads(out.read_text())
     assert set(data["summary"]) == {"straddle", "size"}
+    names = [(c["family"], c["label"]) if "label" in c else json.dumps(c, sort_keys=True)
+             for c in data["cases"]]
+    assert len(names) == len(set(names)), "a case ran twice"
     assert all(f["ok"] for f in data["summary"].values())
     assert (tmp_path / "stability.png").stat().st_size > 10000
     with pytest.raises(SystemExit) as e:             # a usage error (README "Exit codes")
