@@ -90,10 +90,32 @@ def fresh_kernel_cache(keep: bool) -> None:
         os.environ["DRJIT_CACHE_DIR"] = path
 
 
+def _not_used(args) -> list[str]:
+    """The options given that the chosen mode does not use (each option's help names its
+    mode): they were accepted and ignored, exit 0 (a review)."""
+    if args.whole_command:
+        mode = "--command"
+        unused = {"--objects": args.objects is not None, "--reps": args.reps is not None,
+                  "--threads": args.threads is not None, "--brute": args.brute,
+                  "--scenes": list(args.scenes) != list(SCENES),
+                  "--columns": args.columns != 1920}
+    else:
+        mode = "--shaded" if args.shaded else "the default mode (primary rays)"
+        unused = {"--command-columns": args.command_columns != [1920, 7680],
+                  "--scene": args.scene is not None, "--runs": args.runs != 3}
+    if not args.shaded:
+        unused.update({"--lights": args.lights != DEFAULT_LIGHTS,
+                       "--tracers": list(args.tracers) != list(SHADED_TRACERS)})
+    return [f"{', '.join(o for o, v in unused.items() if v)} not used by {mode}"] \
+        if any(unused.values()) else []
+
+
 def run(args) -> int:
     if args.shaded and (args.whole_command or args.brute):
         args.usage_error(f"--shaded and {'--command' if args.whole_command else '--brute'} "
                          "do not go together (--shaded is a mode of its own)")
+    for said in _not_used(args):
+        args.usage_error(said + " (each option's help names the mode it belongs to)")
     from rt_core.backend import require
     require(args.backend)       # no CUDA device: one line, exit 2, before any work
     if args.output:             # refused before the run, not after it
