@@ -135,9 +135,16 @@ def reach(scene, obj, p) -> float:
     object."""
     if kind(obj.kind).bounded:
         return 0.0
-    ax, ay, foot = stand_in_frame(obj, scene.viewpoint)
+    ax, ay, foot = _frame(obj, tuple(scene.viewpoint))
     rel = [p[i] - foot[i] for i in range(3)]
-    return max(abs(sum(r * a for r, a in zip(rel, ax))), abs(sum(r * a for r, a in zip(rel, ay))))
+    return max(abs(sum(r * a for r, a in zip(rel, ax))),
+               abs(sum(r * a for r, a in zip(rel, ay))))
+
+
+@functools.lru_cache(maxsize=256)
+def _frame(obj, viewpoint: tuple):
+    """``convert.stand_in_frame``, once per plane and viewpoint rather than once per hit."""
+    return stand_in_frame(obj, viewpoint)
 
 
 class _Alt:
@@ -309,9 +316,9 @@ def other_sides(scene, columns: int, rows: int, pixel: int, sampling: str = "cor
     verdict whose other side has no hit to take (a quadric's, a torus's, a sphere's missed
     by its discriminant), or one taken at t = 0 that the intensity divides by: then any
     colour is the caller's answer.  ``first``: the unflipped path from ``shade_pixels``
-    (its 'paths' entry, recorded at this ``limit``), not traced again.  ``limit``: a decision is near below this
-    margin (default float64's, ``_Alt.LIMIT``; a wider one asks what a tracer computing
-    in lower precision may take either way)."""
+    (its 'paths' entry, recorded at this ``limit``), not traced again.  ``limit``: a
+    decision is near below this margin (default float64's, ``_Alt.LIMIT``; a wider one asks
+    what a tracer computing in lower precision may take either way)."""
     colours, todo, done = set(), [frozenset()], set()
     while todo:
         flips = todo.pop()
@@ -586,10 +593,11 @@ def quantize(I: np.ndarray) -> np.ndarray:
 
 def flags(orc: dict, precision: str, u: float | None = None) -> dict:
     """Per-pixel flags (rows, columns) for a tracer in ``precision``: each discontinuous
-    decision that may flip ('geo', 'shadow', 'tile', 'maxdist', 'texel', together 'jump'); 'quant': a
-    channel within the intensity bound of an 8-bit level boundary (255·I near an integer),
-    'quant_rgb' which channels (rows, columns, 3): a one-level difference is rounding only
-    in a channel near its level; 'any'.  ``u``: the unit roundoff to take instead of the precision's."""
+    decision that may flip ('geo', 'shadow', 'tile', 'maxdist', 'texel', together 'jump');
+    'quant': a channel within the intensity bound of an 8-bit level boundary (255·I near
+    an integer), 'quant_rgb' which channels (rows, columns, 3): a one-level difference is
+    rounding only in a channel near its level; 'any'.  ``u``: the unit roundoff to take
+    instead of the precision's."""
     u = U[precision] if u is None else u
     out = {m: orc[m] < K_DECISION * u for m in MARGINS}
     q = 255.0 * orc["I"]

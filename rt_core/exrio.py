@@ -17,7 +17,8 @@ import struct
 import numpy as np
 import OpenEXR
 
-from .outputs import atomic_write, attr_text  # noqa: F401  (atomic_write re-exported: EXR writers use it)
+# (atomic_write re-exported: EXR writers use it)
+from .outputs import atomic_write, attr_text  # noqa: F401
 
 
 # Compression, chosen by measurement (README "Speed"): PIZ is lossless, read by every OpenEXR

@@ -90,9 +90,9 @@ def fresh_kernel_cache(keep: bool) -> None:
         os.environ["DRJIT_CACHE_DIR"] = path
 
 
-def _not_used(args) -> list[str]:
-    """The options given that the chosen mode does not use (each option's help names its
-    mode): they were accepted and ignored, exit 0 (a review)."""
+def _not_used(args) -> str | None:
+    """The options given that the chosen mode does not use, in words (each option's help
+    names its mode): they were accepted and ignored, exit 0 (a review)."""
     if args.whole_command:
         mode = "--command"
         unused = {"--objects": args.objects is not None, "--reps": args.reps is not None,
@@ -106,15 +106,16 @@ def _not_used(args) -> list[str]:
     if not args.shaded:
         unused.update({"--lights": args.lights != DEFAULT_LIGHTS,
                        "--tracers": list(args.tracers) != list(SHADED_TRACERS)})
-    return [f"{', '.join(o for o, v in unused.items() if v)} not used by {mode}"] \
-        if any(unused.values()) else []
+    given = [o for o, v in unused.items() if v]
+    return f"{', '.join(given)} not used by {mode}" if given else None
 
 
 def run(args) -> int:
     if args.shaded and (args.whole_command or args.brute):
         args.usage_error(f"--shaded and {'--command' if args.whole_command else '--brute'} "
                          "do not go together (--shaded is a mode of its own)")
-    for said in _not_used(args):
+    said = _not_used(args)
+    if said:
         args.usage_error(said + " (each option's help names the mode it belongs to)")
     from rt_core.backend import require
     require(args.backend)       # no CUDA device: one line, exit 2, before any work

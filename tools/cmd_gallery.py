@@ -68,6 +68,7 @@ def run(args) -> int:
     from rt_core.imageio import write_png
     from rt_core.memory import guard, render_bytes
     from tools.harness.agree import parse_agreed
+    from tools.harness.validate import free_name
     from rt_core.render import provenance, render_image, versions
     from rt_core.rules import Rules
     from rt_core.shading import DEFAULT_MAX_DIST
@@ -114,13 +115,7 @@ def run(args) -> int:
                 print(f"rtval gallery: skipped ({category}) {why}", file=sys.stderr)
                 continue
             pixels = quantize(np.stack([images[c] for c in "RGB"], -1))
-            stem = file = name.replace("/", "__")
-            k = 1
-            while file + ".png" in used:
-                k += 1
-                file = f"{stem}-{k}"
-            file += ".png"
-            used.add(file)
+            file = free_name(name.replace("/", "__"), used, ".png")
             write_png(str(outdir / file), pixels,
                       provenance(scene, cam, args.precision, "llvm", Rules(), shading="on",
                                  max_dist=repr(DEFAULT_MAX_DIST)))

@@ -95,7 +95,9 @@ def run(args) -> int:
         from rt_core.errors import InputError
         raise InputError(f"--shaded-columns {args.shaded_columns}: give 0 (off) or a width of "
                          "at least 2")
-    check_memory(scenes, args.columns, precisions, args.shaded_columns)    # (before the run)
+    # (validate() checks too, for its other callers; here it comes before evidence_run
+    # removes an earlier run's evidence)
+    check_memory(scenes, args.columns, precisions, args.shaded_columns)
     from tools.harness.validate import evidence_run
     with evidence_run(args.output):     # a run stopped while it reports leaves no evidence
         results = validate(scenes, args.columns, precisions, modes, args.output,

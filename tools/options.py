@@ -224,7 +224,9 @@ def outputs_over_inputs(args) -> list[tuple[str, str, str]]:
     """(option, output, why) for each output file option of ``args`` that names a file
     the command reads: writing it would replace the input (``rtval check S.txt I.ppm
     --junit S.txt`` replaced the scene, ``exr diff A B -o A`` the image A); with ``check
-    --images DIR``, a scene's image there (``--junit DIR/S.ppm`` replaced a submission)."""
+    --images DIR``, a scene's image there (``--junit DIR/S.ppm`` replaced a submission).
+    This is the refusal before any work; a file read on the way (a scene's texture) is
+    refused when the output is written (rt_core.inputfile.tracking_inputs)."""
     import os
     ins = []
     for dest in INPUT_DESTS:
@@ -238,7 +240,7 @@ def outputs_over_inputs(args) -> list[tuple[str, str, str]]:
     if isinstance(images, str) and os.path.isdir(images):
         from pathlib import Path
         taken = {os.path.realpath(os.path.join(images, Path(x).stem + ext))
-                 for x in ins for ext in (".ppm", ".pnm", ".png")}
+                 for x in ins for ext in (".ppm", ".pnm", ".png")}   # (check.IMAGE_SUFFIXES)
     found = []
     for dest in OUTPUT_DESTS:
         out = getattr(args, dest, None)

@@ -174,7 +174,8 @@ def measure(scene, columns: int, settings: Settings, progress=None) -> list[dict
     t0 = time.perf_counter()
     orc = oracle_pixels(scene, cam.columns, cam.rows, idx)
     oracle_s = time.perf_counter() - t0
-    base = {"scene": scene.path, "scene_sha256": scene.sha256, "columns": cam.columns, "rows": cam.rows, "rays": cam.size,
+    base = {"scene": scene.path, "scene_sha256": scene.sha256, "columns": cam.columns,
+            "rows": cam.rows, "rays": cam.size,
             "sample": len(idx), "oracle_s": round(oracle_s, 3), **({"note": note} if note else {})}
 
     calls, results, prep = {}, {}, {}

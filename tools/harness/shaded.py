@@ -5,15 +5,16 @@ Classes of a pixel (``SHADED_CLASSES``):
 
 * ``match``: the same three 8-bit values;
 * ``rounding``: no channel off by more than 1, and the float64 shading oracle
-  (mitsuba_ref/shade_oracle.py) puts a channel within float32's error bound of an 8-bit level
-  (255·I within K·u·err of an integer): the two floors may differ there;
+  (mitsuba_ref/shade_oracle.py) puts each channel that differs within float32's error bound
+  of an 8-bit level (255·I within K·u·err of an integer): the two floors may differ there;
 * ``boundary``: the oracle puts a decision of the pixel's rays (the primary or a reflection
   ray's closest hit, a shadow test, a tile's parity, the distance cut-off) within float32's
   bound of its threshold, and those decisions taken the other way give Mitsuba's colour
-  (``other_sides``, any colour where they cannot all be enumerated), or a hit of its path on an infinite or tiled plane (a closest
-  hit, or a shadow ray's blocker) beyond the square that stands in for the plane in
-  Mitsuba's scene (the oracle's ``reach`` over ``plane_extent``, the geometry classifier's
-  "extent" test: a reflection ray down a corridor of mirrors), or the geometry classifier
+  (``other_sides``, any colour where they cannot all be enumerated), or a hit of its path
+  on an infinite or tiled plane (a closest hit, or a shadow ray's blocker) beyond the
+  square that stands in for the plane in Mitsuba's scene (the oracle's ``reach`` over
+  ``plane_extent``, the geometry classifier's "extent" test: a reflection ray down a
+  corridor of mirrors), or the geometry classifier
   (mitsuba_ref/explain.py, as in ``rtval compare --mode rays``) explains the primary ray's
   disagreement (an edge, a tie, the clip, the stand-in plane's extent, a grazing or
   parallel ray);
@@ -140,7 +141,7 @@ def classify_shaded(scene: Scene, ours: np.ndarray, theirs: np.ndarray, sampling
     # asked where rounding excuses the pixel anyway: class boundary, as before
     asked = np.flatnonzero(f["jump"] & ~(small & quant))
     if len(asked):
-        want = theirs.reshape(-1, 3)[pix[asked]].astype(np.int16)
+        want = theirs.reshape(-1, 3)[pix[asked]]
         own = ours.reshape(-1, 3)[pix[asked]].tolist()
         sides = other_sides_of(scene, W, H, pix[asked], sampling, rules, max_dist,
                                firsts=[orc["paths"][i] for i in asked], limit=near)

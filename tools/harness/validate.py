@@ -5,6 +5,7 @@ import contextlib
 import os
 import sys
 import time
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -93,18 +94,25 @@ def unique_stems(paths) -> dict:
     would take each other's names."""
     paths = list(dict.fromkeys(str(p) for p in paths))
     out = {p: stem_of(p) for p in paths}
-    shared = {s for s in out.values() if list(out.values()).count(s) > 1}
+    count = Counter(out.values())
     for p in paths:
-        if out[p] in shared:
+        if count[out[p]] > 1:
             out[p] = f"{Path(p).parent.name}__{out[p]}"
     used: set = set()
     for p in paths:                     # (numbered where the folders agree too)
-        stem, k = out[p], 1
-        while out[p] in used:
-            k += 1
-            out[p] = f"{stem}-{k}"
-        used.add(out[p])
+        out[p] = free_name(out[p], used)
     return out
+
+
+def free_name(stem: str, used: set, suffix: str = "") -> str:
+    """``stem + suffix``, or ``stem-2 + suffix``, ``stem-3 + suffix``, ... : the first not in
+    ``used``, which it is added to."""
+    name, k = stem + suffix, 1
+    while name in used:
+        k += 1
+        name = f"{stem}-{k}{suffix}"
+    used.add(name)
+    return name
 
 
 def row_stem(row: dict) -> str:
