@@ -325,7 +325,8 @@ def test08_light_bins_list_nearest_first():
     centre = tuple(c - v for c, v in zip(scene.lights[0].center, scene.viewpoint))
     lb = lightbins.build(ks, "fplane", centre)
     near = np.asarray(lb.near.numpy())
-    off = np.asarray(lb.offsets.numpy()).astype(int)
+    cells = np.asarray(lb.cells.numpy()).astype(np.int64).reshape(-1, 4)
+    off = np.append(cells[:, 0], cells[-1, 1])
     rows = np.asarray(lb.rows.numpy()).reshape(len(near), -1)
     lo, hi = bvh.object_boxes("fplane", ks.by_kind["fplane"])
     ids = [c.id for c in ks.by_kind["fplane"]]
@@ -335,6 +336,11 @@ def test08_light_bins_list_nearest_first():
     listed = [pos[int(i)] for i in rows[:, bvh.ROW["fplane"].index("id")]]
     assert (near <= true[listed]).all()
     assert off[-1] == len(near) and (np.diff(off) >= 0).all()
+    assert (cells[:-1, 1] == cells[1:, 0]).all()
+    # each cell names the object of its first row (the nearest to the light), or none
+    first = np.where(cells[:, 0] < cells[:, 1], rows[np.minimum(cells[:, 0], len(near) - 1),
+                                                     bvh.ROW["fplane"].index("id")], -1)
+    assert (cells[:, 2].astype(np.uint32).view(np.int32) == first).all()
     for b in np.flatnonzero(np.diff(off) > 1):
         assert (np.diff(near[off[b]:off[b + 1]]) >= 0).all()
 
