@@ -26,11 +26,12 @@ OPEN = ("cylinder", "cone")
 
 def fields(o):
     """(centre, axis, radius, height) or (centre, semi-axes) of a quadric read by rt_core
-    (.axis, .radius, .height) or by mitsuba_ref.scenefile / exact (.centerline,
-    .radius_height): numbers as given."""
+    (.given_axis, .radius, .height) or by mitsuba_ref.scenefile / exact (.centerline,
+    .radius_height): numbers as given.  The centerline as written, never rt_core's reading of
+    it (its .axis): a zero one is the y axis here, by this rule of its own."""
     if o.kind == "ellipsoid":
         return tuple(o.center), tuple(o.axes)
-    axis = tuple(o.axis) if _has(o, "axis") else tuple(o.centerline)
+    axis = tuple(o.given_axis) if _has(o, "given_axis") else tuple(o.centerline)
     if all(c == 0 for c in axis):
         axis = tuple(type(axis[0])(c) for c in (0, 1, 0))
     big = max(abs(float(c)) for c in axis)

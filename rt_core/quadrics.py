@@ -45,6 +45,10 @@ class _OpenQuadric:
     form: str = field(default="", compare=False)
     extras: tuple = field(default=(), compare=False)
     note: str = field(default="", compare=False)   # how a degenerate field was read
+    # the centerline as written (``axis`` is what rt_core reads it as): the references read
+    # this one and apply their own rule (tools/harness/agree.py checks it against their
+    # reader's numbers)
+    given_axis: Vec3 = field(default=(), compare=False)
 
 
 class Cylinder(_OpenQuadric):
@@ -89,7 +93,8 @@ def make_cylinder(material: Material, center, axis, dims, line: int = 0) -> Cyli
     if not (r > 0 and h > 0):
         raise GeometryError(f"radius and height {fmt(dims)} must be positive")
     a, note = _axis_of("cylinder", axis)
-    return Cylinder(material, tuple(center), a, r, h, line, note=note)
+    return Cylinder(material, tuple(center), a, r, h, line, note=note,
+                    given_axis=tuple(axis))
 
 
 def make_cone(material: Material, center, axis, dims, line: int = 0) -> Cone:
@@ -97,7 +102,7 @@ def make_cone(material: Material, center, axis, dims, line: int = 0) -> Cone:
     if not (r > 0 and h > 0):
         raise GeometryError(f"radius and height {fmt(dims)} must be positive")
     a, note = _axis_of("cone", axis)
-    return Cone(material, tuple(center), a, r, h, line, note=note)
+    return Cone(material, tuple(center), a, r, h, line, note=note, given_axis=tuple(axis))
 
 
 def make_ellipsoid(material: Material, center, axes, line: int = 0) -> Ellipsoid:

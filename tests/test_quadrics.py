@@ -66,6 +66,24 @@ def test02_zero_centerline_is_the_y_axis_with_a_note():
     assert any("centerline (0, 0, 0)" in n and "y axis" in n for n in s.stand_ins())
 
 
+def test02b_the_references_read_a_zero_centerline_by_their_own_rule(monkeypatch):
+    """The references take the centerline as written (checked against their own reader) and
+    make a zero one the y axis themselves: with rt_core's rule broken (the x axis), the
+    comparison with Mitsuba fails instead of passing on rt_core's own axis (a review)."""
+    from rt_core import quadrics
+    from tools.harness.agree import agree
+    from tools.harness.compare import compare
+    text = "8 6\n0 0 5\n22\n" + M + "-1 -1 -4\n0 0 0\n0.8 2.5\n10\n8 8 8\n0 3 1\n"
+    ok = parse_text(text, "cyl0.txt")
+    assert ok.objects[0].given_axis == (0, 0, 0)
+    assert compare(ok, 40, None, "f64", "rays").ok
+    monkeypatch.setattr(quadrics, "Y_AXIS", (1.0, 0.0, 0.0))
+    bad = parse_text(text, "cyl0.txt")
+    assert bad.objects[0].axis == (1.0, 0.0, 0.0)
+    cmp = compare(bad, 40, None, "f64", "rays")
+    assert not cmp.ok and cmp.counts["unexplained"] > 20, cmp.counts
+
+
 @pytest.mark.parametrize("text, line, col", [
     ("8 6\n0 0 4\n22\n" + M + "0 0 -4\n0 1 0\n0 2\n", 9, 1),
     ("8 6\n0 0 4\n23\n" + M + "0 0 -4\n0 1 0\n1 -2\n", 9, 3),

@@ -84,7 +84,7 @@ def _field(o, name: str):
     if name == "axis" and o.kind == "torus":
         return o.given_axis
     if name == "centerline":
-        return (0, 0, 0) if o.note else o.axis
+        return o.given_axis
     if name == "radius_height":
         return (o.radius, o.height)
     if name in ("major", "minor", "theta"):
