@@ -130,9 +130,16 @@ def _read_ppm(path: str):
     magic = data[:2]
     if magic not in (b"P6", b"P3"):
         raise bad("the file does not start with P6 or P3" if data else "the file is empty")
+    # (the format's separators, as the references' reader requires them: whitespace or a
+    # comment after the magic number, and one whitespace byte, not a comment, after maxval)
+    if not (data[2:3].isspace() or data[2:3] == b"#"):
+        raise bad(f"no whitespace after {magic.decode()}")
     head, pos = _tokens(data, 3, 2)
     if len(head) < 3 or not all(t.isdigit() for t in head):
         raise bad("its header lacks the width, height and maxval")
+    if not data[pos:pos + 1].isspace():
+        raise bad("no whitespace byte after the maxval (a comment there is not allowed: the "
+                  "pixels start after one whitespace byte)")
     w, h, maxval = (int(t) for t in head)
     if w < 1 or h < 1 or not 1 <= maxval <= 65535:
         raise bad(f"width {w}, height {h}, maxval {maxval}")

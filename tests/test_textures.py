@@ -67,6 +67,29 @@ def test01_ppm_readers_give_value_over_maxval(tmp_path):
         textures.read_ppm(str(tmp_path / "grey.pgm"))
 
 
+@pytest.mark.parametrize("data, why", [
+    (b"P6 2 1 255#c\n" + bytes([10, 20, 30, 40, 50, 60]), "after the maxval"),
+    (b"P64 1 255\n" + bytes(12), "no whitespace after P6"),
+    (b"P3 1 1 9#c\n1 2 3\n", "after the maxval"),
+])
+def test01c_headers_the_references_refuse_are_errors(tmp_path, data, why):
+    """A header without the format's separators (none after the magic number; a comment,
+    not one whitespace byte, after maxval) is one line of error: rt_core read 'c\\n' as
+    texels, or a width of 4 from 'P64', where the references' reader refuses the file, so
+    `compare --shaded` ended in a traceback (a review).  Both readers agree on what they
+    accept: every case here is refused by both."""
+    from mitsuba_ref.ppm import texels
+    p = tmp_path / "t.ppm"
+    p.write_bytes(data)
+    with pytest.raises(ImageError, match=why):
+        textures.read_ppm(str(p))
+    with pytest.raises(ValueError):
+        texels(str(p))
+    ok = tmp_path / "ok.ppm"              # comments between the numbers stay allowed
+    ok.write_bytes(b"P6#a\n2 #b\n1\n#c\n255\n" + bytes([10, 20, 30, 40, 50, 60]))
+    assert np.array_equal(textures.read_ppm(str(ok)) * 255, texels(str(ok)) * 255)
+
+
 def test01b_the_references_reader_sees_a_rewritten_texture(tmp_path):
     """mitsuba_ref.ppm.texels keeps what it read, but reads a file again once it has changed
     (a long-lived validate worker); what it returns cannot be written to."""
