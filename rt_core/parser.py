@@ -601,9 +601,12 @@ def _parse(text: str, path: str, sha: str, code27: str = "auto") -> Scene:
                     continue
             else:
                 raise first from None
-    return Scene(window=tuple(window), viewpoint=tuple(viewpoint), lights=tuple(lights),
-                 objects=tuple(objects), path=path, dialect=dialect, sha256=sha,
-                 header_at=ctx.header_at, flags=ctx.flags, table=table)
+    scene = Scene(window=tuple(window), viewpoint=tuple(viewpoint), lights=tuple(lights),
+                  objects=tuple(objects), path=path, dialect=dialect, sha256=sha,
+                  header_at=ctx.header_at, flags=ctx.flags, table=table)
+    from .textures import check_mappings        # (numpy: imported when a scene is read)
+    check_mappings(scene)
+    return scene
 
 
 def parse_text(text: str | bytes, path: str = "<string>", code27: str = "auto") -> Scene:

@@ -23,7 +23,7 @@ import numpy as np
 
 from .imageio import ImageError
 from .inputfile import check_input
-from .scene import SceneError
+from .scene import SceneError, fmt
 from .usererror import InputError
 
 TEXTURED = ("texplane", "texsphere", "fplanetex", "sphere_pixmap")
@@ -169,11 +169,12 @@ def _mapping(scene, obj, word) -> dict:
             return {"mode": "fit", "scale": tuple(float(c) for c in obj.size)}
         if mode == 2:                       # repeat every window size in world units
             return {"mode": "repeat", "scale": tuple(float(c) for c in scene.window)}
-        raise err(f"texplane: tile mode {mode:g}; expected 1 (fit) or 2 (tile)")
+        raise err(f"texplane: tile mode {fmt((mode,))[1:-1]}; expected 1 (fit) or 2 (tile)")
     if obj.form == "fplanetex":
         size = tuple(float(c) for c in _field(obj, "texture size"))
         if not (size[0] > 0 and size[1] > 0):
-            raise err(f"fplanetex: texture size {size[0]:g} {size[1]:g} must be positive")
+            raise err(f"fplanetex: texture size {fmt(_field(obj, 'texture size'))} must be "
+                      "positive")
         return {"mode": "repeat", "scale": size,
                 "brightness": float(_field(obj, "brightness"))}
     if obj.form == "sphere_pixmap":
@@ -186,6 +187,15 @@ def _mapping(scene, obj, word) -> dict:
                 "side": (-f[2] / m, 0.0, f[0] / m),
                 "brightness": float(_field(obj, "brightness"))}
     return {"mode": "sphere"}                # texsphere: forward +z
+
+
+def check_mappings(scene) -> None:
+    """SceneError (one line) for the first textured object whose mapping fields are invalid
+    (a tile mode other than 1 or 2, a texture size <= 0, a forward along y): the parser
+    checks them as it reads the file, for every command, not only where textures are
+    applied (the texture files themselves are looked for only then)."""
+    for _, o in textured(scene):
+        _mapping(scene, o, _field(o, "texture"))
 
 
 def load(scene, obj, dirs=()) -> Texture:

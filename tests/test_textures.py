@@ -179,6 +179,34 @@ def test05_missing_texture_one_line_exit_2(tmp_path):
     assert r.returncode == 0, r.stderr
 
 
+@pytest.mark.parametrize("scene, old, new, says", [
+    ("textured.txt", "2 1.5            # texture size", "2 0 # texture size",
+     "fplanetex: texture size (2, 0) must be positive"),
+    ("textured_numeric.txt", "1           tile mode (fit)", "1.0000000001",
+     "texplane: tile mode 1.0000000001; expected 1 (fit) or 2 (tile)"),
+    ("textured_numeric.txt", "2           tile mode (repeat", "7 (",
+     "texplane: tile mode 7; expected"),
+])
+@pytest.mark.parametrize("command", [("render", "-o", "{out}.exr"), ("compare",)])
+def test05c_invalid_mapping_fields_are_errors_for_every_command(tmp_path, scene, old, new,
+                                                                   says, command):
+    """A texture size <= 0 or a tile mode other than 1 or 2 is one line and exit 2 when
+    the file is read, also for commands that trace geometry only (they exited 0: the fields
+    were checked only where textures are applied; a review); the number as written (a tile
+    mode of 1.0000000001 read "tile mode 1")."""
+    text = (REPO / "scenes" / scene).read_text()
+    assert old in text
+    path = tmp_path / scene
+    path.write_text(text.replace(old, new))
+    shutil.copytree(REPO / "scenes" / "textures", tmp_path / "textures")
+    args = [a.format(out=tmp_path / "out") for a in command]
+    r = cli(args[0], path, "--columns", 16, *args[1:])
+    assert r.returncode == 2, r.stdout + r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and says in lines[0] and str(path) in lines[0], lines
+    assert not list(tmp_path.glob("out*"))
+
+
 def test05b_texture_name_of_a_directory_says_so(tmp_path):
     """A texture name that names a directory is not reported missing: one line saying it is a
     directory, exit 2, nothing written."""
