@@ -23,8 +23,7 @@ from fractions import Fraction
 
 from rt_core.inputfile import read_input
 from rt_core.kinds import (CODE_TABLES, FORMS, HEADER_FLAGS, KEYWORDS, KINDS, LIGHTS,
-                           SHAPED_CODES, SHARED_CODES, form_of_code, form_of_keyword)
-from rt_core.kinds_planar import shaped_form
+                           SHARED_CODES, form_of_code, form_of_keyword)
 
 # number groups after the type token: (field, count); None = not geometry (materials)
 LAYOUT = {
@@ -136,7 +135,8 @@ def read_text(text: str, code27: str = "auto") -> File:
 
 
 def read(path, code27: str = "auto") -> File:
-    """``code27``: how code 27 is read ('auto': by the line shape; rt_core/kinds_planar.py)."""
+    """``code27``: how code 27 is read ('auto': by the line shape, this reader's own rule;
+    'triangle' or 'disk')."""
     return read_text(read_input(path, "scene").decode("utf-8", "replace"), code27)
 
 
@@ -255,13 +255,16 @@ def _numeric(lines, code27: str = "auto", table: dict | None = None, name: str =
             form, order = FORMS[table[code][0]], table[code][1]
         else:
             form, order = form_of_code(code), None
-        if table is None and code in SHAPED_CODES:   # 27: triangle, or nw's older disk
-            geo, _ = SHAPED_CODES[code]
-            at = idx + 3 + len(flags) + geo
+        if table is None and code == 27:    # nw's final triangle, or nw's older disk
+            # (this reader's own rule, not rt_core's: the line after the MAT's (and the
+            # flags') and the first point or centre has 3 numbers or more (point 2) in a
+            # triangle, 1 (the radius) in a disk; ``code27`` forces one)
+            at = idx + 3 + len(flags) + 1
             if at >= len(lines):
                 raise ValueError("truncated scene")
             count = len(list(_lead(lines[at][1])))
-            shaped = shaped_form(code, count, code27)
+            shaped = code27 if code27 in ("triangle", "disk") else \
+                "triangle" if count >= 3 else "disk" if count == 1 else None
             if shaped is None:
                 raise ValueError(f"line {lines[at][0]}: {count} numbers fit no layout of {code}")
             form = FORMS[shaped]

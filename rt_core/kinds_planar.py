@@ -1,6 +1,7 @@
 """The planar kinds triangle and disk in the course files: their numeric codes' two layouts.
 
-A pure table (shared by rt_core's parser and mitsuba_ref's reader, like rt_core/kinds.py).
+rt_core's parser's rule (the references' reader, mitsuba_ref/scenefile.py, has its own,
+and tools/harness/agree.py checks that the two read the same kind).
 
 Code 27 is a triangle in NickWilsonDev's final program (``triangle_init``: MAT, then three
 points, one a line) and a disk in an older file of the same course program (nw__disk1.txt:

@@ -201,3 +201,21 @@ def test08_both_readers_agree_on_every_scene():
         except SceneError as e:
             assert "read this file differently" not in str(e), e
     assert agreed >= 25
+
+
+def test05_code27_layout_rule_is_the_references_own(tmp_path, monkeypatch):
+    """The references' reader tells code 27's triangle from nw's older disk by a rule of its
+    own: with rt_core's rule swapped (3 numbers a disk), the two readers differ and the file
+    is refused (it passed every comparison, the triangle traced as a disk: a review)."""
+    from rt_core import kinds_planar
+    from rt_core.scene import SceneError
+    from tools.harness.agree import parse_agreed
+    path = tmp_path / "tri27.txt"
+    path.write_text("8 6\n0 0 5\n27\n1 1 0\n2 2 1\n0 0 0\n-2 -1 -3\n2 -1.5 -3\n0 1.5 -3\n"
+                    "10\n8 8 8\n0 3 1\n")
+    assert parse_agreed(path).objects[0].kind == "triangle"
+    for force in ("triangle", "disk"):
+        assert parse_agreed(path, force).objects[0].kind == force
+    monkeypatch.setitem(kinds_planar.SHAPED_CODES, 27, (1, {3: "disk", 1: "triangle"}))
+    with pytest.raises(SceneError, match="read this file differently"):
+        parse_agreed(path)
