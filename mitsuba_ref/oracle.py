@@ -449,7 +449,10 @@ def _edge_margin(c: Cand, ob: _Obj, base, d, rules: Rules) -> float:
     with q = point − base (the same predicate: only the sign of n·d, which t > t_min already
     tests, relates the two).  The larger margin counts: near n·d = 0 the first-order bound of
     the hit-point form is useless (u is huge either way), while the division-free form stays
-    well-conditioned."""
+    well-conditioned.  Unless the two forms' values fall on different sides: then float64
+    evaluations of the same predicate disagree, and the smaller margin counts (a ray through
+    a closed edge exactly, x·(n·d) = 0 computed exactly and u = −3e−16 from the hit point:
+    a tracer computing u as the notes do takes the other side, and was called wrong)."""
     u, v = c.newhit[0], c.newhit[1]
     w, h = ob.size
     nd = c.ndotd
@@ -458,11 +461,15 @@ def _edge_margin(c: Cand, ob: _Obj, base, d, rules: Rules) -> float:
     swu, shv = w * nd - su, h * nd - sv
     slacks = ((u.v, u.e, su), (w.v - u.v, u.e + w.e, swu),
               (v.v, v.e, sv), (h.v - v.v, v.e + h.e, shv))
+    sign = 1.0 if nd.v > 0.0 else -1.0              # x = slack · (n·d)
     if rules.edges == "closed":
         ok = [s >= 0.0 for s, _, _ in slacks]
+        free = [sign * x.v >= 0.0 for _, _, x in slacks]
     else:
         ok = [s > 0.0 for s, _, _ in slacks]
-    ms = [max(_margin(s, e), _margin(x.v, x.e)) for s, e, x in slacks]
+        free = [sign * x.v > 0.0 for _, _, x in slacks]
+    ms = [(max if good == other else min)(_margin(s, e), _margin(x.v, x.e))
+          for (s, e, x), good, other in zip(slacks, ok, free)]
     if all(ok):
         return min(ms)
     return max(m for m, good in zip(ms, ok) if not good)

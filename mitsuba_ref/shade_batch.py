@@ -350,8 +350,14 @@ def _edge_margin(g, cand, base, d, rules):
     swu, shv = sub(mul(w, nd), su), sub(mul(h, nd), sv)
     slacks = ((u.v, u.e, su), (w.v - u.v, u.e + w.e, swu),
               (v.v, v.e, sv), (h.v - v.v, v.e + h.e, shv))
+    sign = np.where(nd.v > 0.0, 1.0, -1.0)             # x = slack · (n·d)
     ok = [(s >= 0.0) if rules.edges == "closed" else (s > 0.0) for s, _, _ in slacks]
-    ms = [pmax(_margin(s, e), _margin(x.v, x.e)) for s, e, x in slacks]
+    free = [(sign * x.v >= 0.0) if rules.edges == "closed" else (sign * x.v > 0.0)
+            for _, _, x in slacks]
+    # the larger margin, or the smaller where the two forms fall on different sides
+    ms = [np.where(good == other, pmax(_margin(s, e), _margin(x.v, x.e)),
+                   pmin(_margin(s, e), _margin(x.v, x.e)))
+          for (s, e, x), good, other in zip(slacks, ok, free)]
     inside = ok[0] & ok[1] & ok[2] & ok[3]
     low = pmin(*ms)
     # max over the failed slacks, in their order: the first failed one, then larger ones

@@ -78,6 +78,23 @@ def test01_the_notes_build_passes(ctracer, scene, tmp_path):
     assert r.deviations == [], r.deviations
 
 
+@pytest.mark.parametrize("columns, rows", [(129, None), (5, 301)])
+def test01f_a_ray_exactly_through_a_closed_edge_is_boundary(ctracer, tmp_path, columns, rows):
+    """nw__model's finite plane meets x = 0 exactly on its edge u = 0, where the centre
+    column's primary rays (129 columns) and the shadow rays toward its lights in x = 0 (5 x
+    301) cross it: exactly a hit (closed edges, rt_core's answer), while u from the hit point
+    in float64 is -3e-16, a miss (the C tracer's).  The division-free form, exactly 0, gave
+    the decision an infinite margin: a correct tracer failed with 1 and 3 wrong pixels (a
+    review).  The forms disagreeing, the decision is near: boundary."""
+    scene = COURSE / "numeric" / "nw__model.txt"
+    if not scene.is_file():
+        pytest.skip("the course scenes are not here")
+    img = _render(ctracer / "course", scene, columns, tmp_path, rows)
+    r = check_image(scene, img)
+    assert r.status == "pass", (r.counts, r.worst)
+    assert r.counts["wrong"] == 0 and r.counts["boundary"] >= 1, r.counts
+
+
 def _course_sample():
     if not COURSE.is_dir():
         return []
