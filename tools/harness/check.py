@@ -603,6 +603,19 @@ def _can_matter(r: Renderer, name: str) -> bool:
                 if abs(sum(a * b for a, b in zip(n, q))) < 1e-4 * (1 + 1e-9):
                     return True
         return False
+    if name == "tile_add_first":
+        # floor((OFF + u)/w) = OFF/w + floor(u/w) where OFF/w is an integer, and of the same
+        # parity as floor(OFF + u/w) where it is even (and OFF/h): the two differ then only
+        # by rounding at tile borders, which a whole row or column can share, and a correct
+        # tracer's borders were named this deviation (tiles 1 x 1, 0.5 x 1; a review)
+        from fractions import Fraction
+        from rt_core.scene import exact
+        from rt_core.shading import TILE_OFF
+
+        def even(size) -> bool:
+            q = Fraction(TILE_OFF) / exact(size)
+            return q.denominator == 1 and q.numerator % 2 == 0
+        return any(not all(even(c) for c in o.size) for o in sc.objects if o.kind == "tplane")
     if name == "clip_spheres":
         # a sphere reaching z >= 0, where the clip cuts (shapes.clip_ok: z > 0 literally,
         # as the C programs do, whichever side the viewpoint is on: a viewpoint at
