@@ -66,6 +66,8 @@ FACING = K_DECISION * U["f32"]
 # per-pixel oracle took 1.08 s; with the batch from 8, 16, 32 or 64 pixels on, 0.37, 0.34,
 # 0.39 and 0.53 s
 BATCH_MIN = 16
+# paths ``reaches`` traces at most for one pixel
+REACH_RUNS = 256
 
 
 def _hit_margin(scene, h, base, d, skip, ties: bool = True, tmax: float = INF,
@@ -341,6 +343,43 @@ def other_sides(scene, columns: int, rows: int, pixel: int, sampling: str = "cor
         colours.add(colour)
         todo.extend(flips | {k} for k in new)
     return colours
+
+
+def reaches(scene, columns: int, rows: int, pixel: int, targets, sampling: str = "corners",
+            rules: Rules = Rules(), max_dist: float = 1000.0, first=None,
+            limit: float | None = None, runs: int = REACH_RUNS, tol: int = 0) -> bool | None:
+    """Do some of the pixel's near decisions, taken the other way, give each 8-bit colour of
+    ``targets`` (within ``tol`` levels in every channel)?  Where ``other_sides`` cannot
+    enumerate every combination (too many near decisions), a search for these colours only:
+    flip sets in order of size (one decision, then two, ...), at most ``runs`` paths.  True
+    as soon as every target is found, or a path has no colour to name (as other_sides' None:
+    a flip with no hit to take, a division by zero); False when every combination was
+    traced without; None when the budget ran out first (not decided).  ``first``, ``limit``: as
+    other_sides'."""
+    want = [tuple(int(c) for c in t) for t in targets]
+    found, done, level = set(), set(), [frozenset()]
+    while level:
+        nxt = []
+        for flips in level:
+            if flips in done:
+                continue
+            if len(done) >= runs:
+                return None
+            done.add(flips)
+            got = first if not flips and first is not None else \
+                _path(scene, columns, rows, pixel, sampling, rules, max_dist, flips, limit)
+            if got is None:
+                # a flip with no hit to take, or a path dividing by zero: not a colour this
+                # oracle can name, so any colour (as other_sides' None)
+                return True
+            colour, near, _ = got
+            found.update(k for k, t in enumerate(want)
+                         if max(abs(int(a) - b) for a, b in zip(colour, t)) <= tol)
+            if len(found) == len(want):
+                return True
+            nxt += [flips | {k} for k in near if k not in flips]
+        level = nxt
+    return False
 
 
 def _path(scene, columns: int, rows: int, pixel: int, sampling: str, rules: Rules,

@@ -330,9 +330,9 @@ class Boundary:
     def sides(self, pixels, rules, md: float) -> np.ndarray:
         """Which ``pixels`` have a colour (within a level) that their decisions within the
         float64 bound give taken either way, in some combination (the shading oracle's
-        ``other_sides``); where those cannot all be enumerated, any colour (README "What
-        boundary excuses")."""
-        from mitsuba_ref.shade_oracle import other_sides_of
+        ``other_sides``); where those cannot all be enumerated, a search for the image's
+        colour (``reaches``: found within its budget, or not excused)."""
+        from mitsuba_ref.shade_oracle import other_sides_of, reaches
         cam = self.r.cam
         pixels = np.asarray(pixels, np.int64).tolist()
         todo = [p for p in dict.fromkeys(pixels) if (rules, md, p) not in self.colours]
@@ -344,8 +344,16 @@ class Boundary:
         out = []
         for p in pixels:
             got = self.colours[(rules, md, p)]
-            out.append(got is None or any(np.abs(self.theirs[p] - np.array(c)).max() <= 1
-                                          for c in got))
+            if got is None:
+                key = (rules, md, p, "reach")
+                if key not in self.colours:
+                    self.colours[key] = reaches(
+                        self.r.scene, cam.columns, cam.rows, p, (self.theirs[p],),
+                        cam.sampling, rules, md, first=self.paths.get((rules, md, p)),
+                        tol=1) is True
+                out.append(self.colours[key])
+                continue
+            out.append(any(np.abs(self.theirs[p] - np.array(c)).max() <= 1 for c in got))
         return np.array(out, bool)
 
     def float32_sides(self, pixels, rules, md: float) -> np.ndarray:

@@ -115,7 +115,8 @@ def classify_shaded(scene: Scene, ours: np.ndarray, theirs: np.ndarray, sampling
                     rules: Rules, max_dist: float) -> np.ndarray:
     """SHADED_CODE per pixel (module docstring); the oracle runs on the differing pixels."""
     from mitsuba_ref.convert import plane_extent
-    from mitsuba_ref.shade_oracle import K_DECISION, U, flags, other_sides_of, shade_pixels
+    from mitsuba_ref.shade_oracle import (K_DECISION, U, flags, other_sides_of, reaches,
+                                          shade_pixels)
     H, W = ours.shape[:2]
     diff = np.abs(ours.astype(np.int16) - theirs.astype(np.int16)).max(-1)
     classes = np.zeros((H, W), np.int8)
@@ -134,19 +135,26 @@ def classify_shaded(scene: Scene, ours: np.ndarray, theirs: np.ndarray, sampling
     quant = ~(differs & ~f["quant_rgb"]).any(-1)
     small = diff.ravel()[pix] <= 1
     # a decision within float32's bound excuses Mitsuba's colour only where those decisions,
-    # taken the other way in some combination, give it exactly (other_sides; any colour
-    # where they cannot all be enumerated): a review scaled Mitsuba's green by 1.005 and 223
-    # of 268 boundary pixels had no such combination (134 were within a level of one).
-    # rt_core's own colour, the unflipped path's, is the rounding question (quant).  Not
-    # asked where rounding excuses the pixel anyway: class boundary, as before
+    # taken the other way in some combination, give it exactly (other_sides): a review
+    # scaled Mitsuba's green by 1.005 and 223 of 268 boundary pixels had no such
+    # combination (134 were within a level of one).  Not asked where rounding excuses the
+    # pixel anyway: class boundary, as before
     asked = np.flatnonzero(f["jump"] & ~(small & quant))
     if len(asked):
         want = theirs.reshape(-1, 3)[pix[asked]]
         own = ours.reshape(-1, 3)[pix[asked]].tolist()
         sides = other_sides_of(scene, W, H, pix[asked], sampling, rules, max_dist,
                                firsts=[orc["paths"][i] for i in asked], limit=near)
-        gives = np.array([s is None or any(list(c) == list(w) for c in s if list(c) != o)
-                          for w, o, s in zip(want.tolist(), own, sides)], bool)
+        # each pixel's two colours must both be ones its decisions give: Mitsuba's, and
+        # rt_core's too (it is the unflipped path's only where rt_core is right: a review's
+        # mutations of rt_core's shading, 1 to 250 levels off, passed as boundary); where the
+        # combinations cannot all be enumerated, a search for those two colours decides
+        # (REACH_RUNS paths; not found, or not within them: not excused)
+        gives = np.array([
+            (reaches(scene, W, H, int(pix[i]), (w, o), sampling, rules, max_dist,
+                     first=orc["paths"][i], limit=near) is True) if s is None else
+            (any(list(c) == list(w) for c in s) and any(list(c) == list(o) for c in s))
+            for i, w, o, s in zip(asked, want.tolist(), own, sides)], bool)
         jump[asked[~gives]] = beyond[asked[~gives]]
     code = np.where(jump, SHADED_CODE["boundary"],
                     np.where(small & quant, SHADED_CODE["rounding"], SHADED_CODE["wrong"]))
