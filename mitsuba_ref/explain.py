@@ -5,7 +5,9 @@ reference's) is within a float32 error bound of a decision boundary:
 
   edge        a finite plane's hit lies within the bound of its rectangle's border (a
               triangle's: of its edges; a disk's: of its rim)
-  tie         the two objects lie at the same depth within the bound
+  tie         the two objects lie at the same depth within the bound (two objects of the
+              same numbers tie exactly, where the tie rule decides: rt_core must take the
+              rule's object)
   clip        a plane hit within the bound of the window plane z = 0 (the screen clip)
   extent      our hit on an infinite/tiled plane lies beyond the reference's finite stand-in
   silhouette  the ray passes within the bound of a sphere's outline
@@ -14,8 +16,10 @@ reference's) is within a float32 error bound of a decision boundary:
 The bound on a position is ``K · 2⁻²⁴ · S / |cos θ|``: S the magnitude of the coordinates the
 float32 arithmetic works with (viewpoint, the object's anchor, the distance t, the object's
 size — for an infinite or tiled plane the half-size R of the reference's stand-in square,
-whose float32 vertices tilt and shift it by about 2⁻²⁴·R), θ the angle between ray and normal, and K = 16 rounding steps (vertex rounding, ray
-origin on the window, direction rounding, Embree's edge tests, our own float32 evaluation).
+whose float32 vertices tilt and shift it by about 2⁻²⁴·R, in the reference's bound only:
+rt_core traces the plane's equation), θ the angle between ray and normal, and K = 16
+rounding steps (vertex rounding, ray origin on the window, direction rounding, Embree's edge
+tests, our own float32 evaluation).
 """
 from __future__ import annotations
 
@@ -152,11 +156,27 @@ class ObjectEval:
             self.beyond = valid & (far > extent * (1 - 1e-6))
         self.valid = valid
         self.scale = origin + _norm(q) + size
+        if obj.kind in ("plane", "tplane"):
+            # rt_core traces the plane's equation: the stand-in square's half-size is the
+            # reference's term alone
+            self.own_scale = origin + _norm(q)
 
-    def bound(self, t=None):
+    def bound(self, t=None, own: bool = False):
         """Position error bound (world units) at distance t along the ray (default: the
-        object's own t)."""
-        return position_bound(self.scale, self.t if t is None else t, self.cos)
+        object's own t).  ``own``: of rt_core's hit, which for an infinite or tiled plane
+        leaves out the reference's stand-in square (its size term)."""
+        scale = getattr(self, "own_scale", self.scale) if own else self.scale
+        return position_bound(scale, self.t if t is None else t, self.cos)
+
+
+def _tie_key(obj):
+    """The numbers an object's t is computed from, as written: equal keys tie exactly in any
+    precision (as mitsuba_ref/oracle.py's keys); None for the other kinds."""
+    if obj.kind == "sphere":
+        return ("s", tuple(obj.center), obj.radius)
+    if obj.kind in ("plane", "fplane", "tplane"):
+        return ("p", tuple(normal(obj)), tuple(obj.point))
+    return None
 
 
 def position_bound(scale, t, cos):
@@ -198,14 +218,19 @@ def classify(scene: Scene, d: np.ndarray, ours: dict, ref: dict, rules: Rules,
 
     # per object along each disagreeing ray: distance t and its position error bound
     # (a last row of NaN for "no object": a miss on one side, never compared)
-    t_all = np.stack([ev.t for ev in evals] + [np.full(len(bad), np.nan)])
-    b_all = np.stack([ev.bound(ev.t) for ev in evals] + [np.full(len(bad), np.nan)])
+    # (rt_core's bounds, ``own``: an infinite plane's without the stand-in square's term,
+    # which only the reference's hit carries: a review dropped the road, a finite plane
+    # 1e-3 above the floor, and rt_core's floor 0.0035 behind it passed as a tie)
+    nan = [np.full(len(bad), np.nan)]
+    t_all = np.stack([ev.t for ev in evals] + nan)
+    b_ref = np.stack([ev.bound(ev.t) for ev in evals] + nan)
+    b_own = np.stack([ev.bound(ev.t, own=True) for ev in evals] + nan)
     cols = np.arange(len(bad))
     a, b = a_id[bad], b_id[bad]
     ia, ib = (np.where(x >= 0, row[np.maximum(x, 0)], -1) for x in (a, b))
-    ta, tb, ba, bb = t_all[ia, cols], t_all[ib, cols], b_all[ia, cols], b_all[ib, cols]
-    for side_ids, t_self, t_other, b_self, b_other in ((a, ta, tb, ba, bb),
-                                                       (b, tb, ta, bb, ba)):
+    ta, tb, ba, bb = t_all[ia, cols], t_all[ib, cols], b_own[ia, cols], b_ref[ib, cols]
+    for side_ids, t_self, t_other, b_self, b_other, b_all in ((a, ta, tb, ba, bb, b_own),
+                                                              (b, tb, ta, bb, ba, b_ref)):
         # a side's object explains the ray by its own decision only where it may be the
         # closest hit: not beyond the other side's object by more than their bounds (an
         # edge 6 units behind the object the other side hits firmly decides nothing; a
@@ -224,10 +249,17 @@ def classify(scene: Scene, d: np.ndarray, ours: dict, ref: dict, rules: Rules,
                 mark(involved & (ev.clip_margin <= b_all[j]), "clip")
                 mark(involved & (ev.cos <= K_ROUNDING * EPS32), "graze")
                 mark(involved & ev.beyond, "extent")
-    # ties: both hit, different objects, at the same depth within the bounds
+    # ties: both hit, different objects, at the same depth within the bounds; two objects of
+    # the same numbers (plane equation, or sphere) tie exactly in any precision, where the
+    # rule decides: rt_core's object must be the rule's (a review turned rt_core's ties to
+    # the last object and every such pixel passed as a tie)
     both = (a >= 0) & (b >= 0)
+    keys = np.empty(len(used) + 1, object)             # (filled: a tuple each, not an axis)
+    keys[:-1] = [_tie_key(scene.objects[i]) for i in used.tolist()]
+    same = both & (keys[ia] == keys[ib]) & (keys[ia] != None)      # noqa: E711
+    ruled = (a < b) if rules.ties == "first" else (a > b)
     with np.errstate(invalid="ignore"):
-        mark(both & (np.abs(ta - tb) <= ba + bb), "tie")
+        mark(both & (np.abs(ta - tb) <= ba + bb) & (~same | ruled), "tie")
     out[bad] = reason
     return out
 
