@@ -17,6 +17,8 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import dataclass
+from decimal import Decimal
+from fractions import Fraction
 from typing import Any as Scene         # a parsed course scene (duck-typed)
 from xml.sax.saxutils import quoteattr
 
@@ -180,19 +182,27 @@ def cylinder_shape(o) -> dict:
             "radius": float(r)}
 
 
-def mitsuba_subset(scene: Scene, keep=lambda kind: True):
+def mitsuba_subset(scene: Scene, keep=lambda kind: True, inside: bool = False):
     """(scene, note): the scene without the objects Mitsuba has no shape for (``oracle_only``)
-    and the kinds ``keep`` refuses, for a comparison with Mitsuba; the note names what was
-    left out ("" when nothing was)."""
+    and the kinds ``keep`` refuses, for a comparison with Mitsuba; with ``inside``, without
+    the spheres that hold the viewpoint too (shaded comparisons: rays from inside them, the
+    viewpoint's and others, miss them in the course and not in Mitsuba); the note names what
+    was left out ("" when nothing was)."""
     import dataclasses
     gone = [o for o in scene.objects if not keep(o.kind)
             or dispatch(_SHAPES, o.kind)(o, scene.viewpoint, 1.0, lambda m: m) is None]
-    if not gone:
+    held = [o for o in scene.objects
+            if inside and encloses_viewpoint(o, scene.viewpoint) and o not in gone]
+    if not gone and not held:
         return scene, ""
-    kept = tuple(o for o in scene.objects if all(o is not g for g in gone))
-    note = ("left out of this Mitsuba comparison (checked against rtval's oracles only): "
-            + ", ".join(f"line {o.line} {o.kind}" for o in gone))
-    return dataclasses.replace(scene, objects=kept), note
+    kept = tuple(o for o in scene.objects if all(o is not g for g in gone + held))
+    notes = []
+    if gone:
+        notes.append("left out of this Mitsuba comparison (checked against rtval's oracles "
+                     "only): " + ", ".join(f"line {o.line} {o.kind}" for o in gone))
+    notes += [f"line {o.line} sphere left out of this comparison: it {INSIDE_NOTE}"
+              for o in held]
+    return dataclasses.replace(scene, objects=kept), "; ".join(notes)
 
 
 PROVENANCE = "rtval.provenance"
@@ -236,6 +246,23 @@ def read_provenance(xml_text: str) -> dict:
         return {}
 
 
+def encloses_viewpoint(obj, viewpoint) -> bool:
+    """A sphere that holds the viewpoint (|V − C|² <= r², exactly, on the numbers as
+    written): the course takes a sphere's near root only, t > 0, so a ray from the viewpoint
+    never hits it (both roots of a ray from inside are not > 0 together with the near one),
+    where Mitsuba's sphere returns its exit."""
+    if obj.kind != "sphere":
+        return False
+    q = [_written(v) - _written(c) for v, c in zip(viewpoint, obj.center)]
+    return sum(x * x for x in q) <= _written(obj.radius) ** 2
+
+
+def _written(v) -> Fraction:
+    """A scene number exactly as written (its decimal text where the reader kept it)."""
+    text = getattr(v, "text", None)
+    return Fraction(Decimal(text)) if text is not None else Fraction(v)
+
+
 def oracle_only(scene: Scene) -> list:
     """One line per object left out of the Mitsuba scene: no Mitsuba equivalent (compared
     against the oracles only; the ``course`` integrator shades every shape the scene has)."""
@@ -245,6 +272,10 @@ def oracle_only(scene: Scene) -> list:
             out.append(f"line {o.line}: {o.kind} has no Mitsuba shape; left out of the "
                        "Mitsuba scene (checked against rtval's oracles only)")
     return out
+
+
+INSIDE_NOTE = ("holds the viewpoint: the course never hits it from there (its near root "
+               "only), Mitsuba's sphere would (its exit)")
 
 
 def stand_in_frame(obj, viewpoint):
@@ -520,6 +551,8 @@ def scene_dict(scene: Scene, columns: int, rows: int | None = None, sampling: st
         if only is not None and o.kind not in only:
             continue
         sid = shape_id(oid, o.kind)
+        if not shading and encloses_viewpoint(o, scene.viewpoint):
+            continue                # rays from the viewpoint: invisible (INSIDE_NOTE)
         shape = dispatch(_SHAPES, o.kind)(o, scene.viewpoint, R, T)
         if shape is None:                   # oracle_only() says so
             continue
@@ -720,7 +753,11 @@ def scene_xml(scene: Scene, columns: int, rows: int | None = None, sampling: str
                               "option, or register them with mitsuba_ref.convert.mitsuba())"))
     if s.note and mode == "sensor":     # (the course integrator samples the course's grid)
         lines.append(_comment(f"WARNING: {s.note}"))
+    held = [o for o in scene.objects if encloses_viewpoint(o, scene.viewpoint)]
     lines += [_comment(note) for note in oracle_only(scene) + scene.stand_ins()]
+    lines += [_comment(f"line {o.line}: the sphere {INSIDE_NOTE}: " + (
+        "this course image differs from the course's wherever a ray from inside it meets it"
+        if shading else "left out of this scene (rays from the viewpoint)")) for o in held]
     lines.append('<scene version="3.0.0">')
     for k, v in d.items():
         if k != "type":

@@ -568,8 +568,9 @@ PANEL = "fplane\n0 0 0\n1 1 1\n0 0 0\n0 0 1\n-1 -1 -3\n1 0 0\n2 2\n"
 
 
 @pytest.mark.parametrize("objs, why", [
-    # a number beyond float32
-    ("sphere\n0 0 0\n1 1 1\n0 0 0\n0 0 -3\n1e39\n" + PANEL, "needs the number 1e+39"),
+    # a number beyond float32 (a sphere not holding the viewpoint: one that does is left out
+    # of the shaded comparison, test21j)
+    ("sphere\n0 0 0\n1 1 1\n0 0 0\n0 0 -1e39\n1e38\n" + PANEL, "needs the number 1e+39"),
     # every number within float32, but |o − c|² − r² from the viewpoint is not: Mitsuba's
     # rays all missed it (a porting user's review); rt_core f64 sees the panel in front
     ("sphere\n0 0 0\n1 1 1\n0 0 0\n0 0 -3e20\n2e20\n" + PANEL, "squares 5e+20"),
@@ -732,3 +733,44 @@ def test21h_rt_cores_plane_hit_carries_no_stand_in_term(monkeypatch):
     monkeypatch.setattr(accel, "_range", short)
     broken = compare(scene, 64, None, "f64", "rays")
     assert not broken.ok and broken.counts["unexplained"] > 100, broken.counts
+
+
+INSIDE = """8 6
+0 0 5
+sphere 1 1 1  2 2 2  0 0 0   0 0 5  2
+sphere 0.5 0.5 1  3 3 3  0 0 0   1 0 -3  1.5
+plane 0.3 0.3 0.3  1 1 1  0 0 0   0 0 1  0 0 -6
+pointlight 5 5 5  2 3 1
+"""
+
+
+@pytest.mark.parametrize("precision", ["f32", "f64"])
+@pytest.mark.parametrize("mode", ["rays", "camera"])
+def test21i_a_sphere_holding_the_viewpoint_is_not_in_mitsubas_primary_scene(precision, mode):
+    """The course takes a sphere's near root only (t > 0), so rays from a viewpoint inside a
+    sphere never hit it; Mitsuba's sphere returns its exit.  The correct rt_core failed on
+    every pixel (and a far-root bug passed: a review).  Mitsuba's scene for rays from the
+    viewpoint leaves such a sphere out; rt_core traces it, and must miss it."""
+    from mitsuba_ref.convert import encloses_viewpoint
+    scene = parse_text(INSIDE, "inside.txt")
+    assert [encloses_viewpoint(o, scene.viewpoint) for o in scene.objects] == \
+        [True, False, False]
+    cmp = compare(scene, 48, None, precision, mode)
+    assert cmp.ok and cmp.counts["unexplained"] == 0, cmp.counts
+    assert (cmp.ours["object.id"] != 0).all()       # rt_core misses it everywhere
+    xml = scene_xml(scene, 48)
+    assert "obj0_sphere" not in xml and "holds the viewpoint" in xml
+
+
+def test21j_a_sphere_holding_the_viewpoint_leaves_the_shaded_comparison():
+    """Rays from inside it miss it in the course (the viewpoint's, and shadow or reflection
+    rays from points inside), not in Mitsuba: the shaded comparison leaves it out on both
+    sides, saying so; a sphere touching the viewpoint (|V - C| = r exactly) counts."""
+    from tools.harness.shaded import compare_shaded
+    from mitsuba_ref.convert import encloses_viewpoint
+    cmp = compare_shaded(parse_text(INSIDE, "inside.txt"), 48)
+    assert cmp.ok and "line 3 sphere left out" in cmp.note and "holds the viewpoint" in cmp.note
+    touching = parse_text(INSIDE.replace("0 0 5  2\n", "0 0 3  2\n"), "t.txt")
+    assert encloses_viewpoint(touching.objects[0], touching.viewpoint)
+    off = parse_text(INSIDE.replace("0 0 5  2\n", "0 0 2.999999  2\n"), "t.txt")
+    assert not encloses_viewpoint(off.objects[0], off.viewpoint)

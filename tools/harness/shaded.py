@@ -174,7 +174,7 @@ def compare_shaded(scene: Scene, columns: int, rows: int | None = None,
     with sw("other"):
         # the kinds compared: those below (cones, ellipsoids, the torus have no Mitsuba shape)
         from mitsuba_ref.convert import mitsuba_subset
-        scene, note = mitsuba_subset(scene, lambda k: k in SHADED_KINDS)
+        scene, note = mitsuba_subset(scene, lambda k: k in SHADED_KINDS, inside=True)
         cam = make_camera(scene, columns, rows, sampling, rules)
         if not guarded:
             guard(lambda px: compare_bytes(px, "shaded"), "compare --shaded", cam.columns,
