@@ -3,7 +3,7 @@
 A shadow ray runs from a hit point H to a light at C: every point of it lies, seen from C,
 in the direction −L.  So, as the camera's rays share the viewpoint (rt_core/accel.py's
 screen-space bins), a light's shadow rays share C: a cube of directions around C (6 faces,
-each an nb × nb grid) lists in each cell the objects of a kind whose bounding box, seen from
+each a SIDE × SIDE grid) lists in each cell the objects of a kind whose bounding box, seen from
 C, covers the cell; a shadow ray tests the objects of its cell only, with the kind's own hit
 function on the same constants and the same skip rule as the plain loop (a blocker anywhere
 counts, so the order does not matter).  In the benchmark scenes a cell lists a few objects
@@ -45,7 +45,6 @@ rounding noise, which these bins (stopping at rows beyond the light) need not re
 from __future__ import annotations
 
 import functools
-import math
 from dataclasses import dataclass
 
 import drjit as dr
@@ -55,12 +54,13 @@ from .bvh import _upload, object_boxes, row_view, rows as packed_rows
 from .shapes import directed
 from .accel import blocks, device_array, tested
 
-BINS_PER_OBJECT = 16        # cells per object on its face (the grid side: sqrt of that × N)
-MAX_SIDE = 256              # cells along a face side at most
-# ... and at least (below 256 objects): finer cells more often start with the surface a ray
-# leaves.  Shaded bench, 16 objects, one process, time against 1 (then 16 cells a side):
-# 32 0.94-0.95, 64 0.94-0.96, 128 0.94-0.99; one object: even; 4 lights' cells 1.6 MB
-MIN_SIDE = 64
+# cells along a face side, whatever the object count.  Finer cells more often start with the
+# surface a ray leaves (which it then starts past); coarser ones keep the cells' table in
+# cache.  Shaded bench, one process, images identical, time against 16·√N cells a side
+# (which this replaced, at most 256): 16 objects (side 16) 0.94-0.96 with 64, one object
+# even; 1024 (128) 0.98; 4096 (256) 0.91 (128: 0.94-0.96).  6·64² cells of 16 bytes: 0.4 MB
+# a light and kind
+SIDE = 64
 MARGIN = 2.0 ** -8          # face units each cell range is widened by
 NEAR = 2.0 ** -7            # R0 = NEAR · S: objects this near the light are in every cell
 NEAR_SLACK = 2.0 ** -10     # relative slack on a row's distance from the light
@@ -76,7 +76,7 @@ class LightBins:
                                 # nearest to the light first
     near: object                # Float[entries]: a lower bound of each row's distance from
                                 # the light (a ray ends its cell at a row beyond its length)
-    cells: object               # UInt32[6·nb² × 4]: cell b's first row, its end, the id of
+    cells: object               # UInt32[6·side² × 4]: cell b's first row, its end, the id of
                                 # its first row's object (2³² − 1 for none) and 0 (a packet)
     dmax: float                 # rays longer than this take the BVH
     counts: np.ndarray          # host: rows per cell (tests, statistics)
@@ -201,7 +201,7 @@ def build(ks, kind: str, center) -> LightBins:
     R0 = NEAR * S
     nearest = np.clip(0.0, lo, hi)
     near = np.sqrt((nearest ** 2).sum(1)) <= R0
-    side = int(min(MAX_SIDE, max(MIN_SIDE, round(math.sqrt(BINS_PER_OBJECT * n)))))
+    side = SIDE
     cells_per_face = side * side
     nbins = 6 * cells_per_face
     items, bins = cube_cells(lo, hi, side, R0 / 2, keep=~near)
