@@ -139,23 +139,28 @@ def classify_shaded(scene: Scene, ours: np.ndarray, theirs: np.ndarray, sampling
     # scaled Mitsuba's green by 1.005 and 223 of 268 boundary pixels had no such
     # combination (134 were within a level of one).  Not asked where rounding excuses the
     # pixel anyway: class boundary, as before
-    asked = np.flatnonzero(f["jump"] & ~(small & quant))
+    asked = np.flatnonzero((f["jump"] | beyond) & ~(small & quant))
     if len(asked):
-        want = theirs.reshape(-1, 3)[pix[asked]]
+        want = theirs.reshape(-1, 3)[pix[asked]].tolist()
         own = ours.reshape(-1, 3)[pix[asked]].tolist()
         sides = other_sides_of(scene, W, H, pix[asked], sampling, rules, max_dist,
                                firsts=[orc["paths"][i] for i in asked], limit=near)
         # each pixel's two colours must both be ones its decisions give: Mitsuba's, and
         # rt_core's too (it is the unflipped path's only where rt_core is right: a review's
         # mutations of rt_core's shading, 1 to 250 levels off, passed as boundary); where the
-        # combinations cannot all be enumerated, a search for those two colours decides
-        # (REACH_RUNS paths; not found, or not within them: not excused)
-        gives = np.array([
-            (reaches(scene, W, H, int(pix[i]), (w, o), sampling, rules, max_dist,
-                     first=orc["paths"][i], limit=near) is True) if s is None else
-            (any(list(c) == list(w) for c in s) and any(list(c) == list(o) for c in s))
-            for i, w, o, s in zip(asked, want.tolist(), own, sides)], bool)
-        jump[asked[~gives]] = beyond[asked[~gives]]
+        # combinations cannot all be enumerated, a search for them decides (REACH_RUNS
+        # paths; not found, or not within them: not excused).  A path beyond the stand-in
+        # square excuses Mitsuba's colour (its scene cannot see there), not rt_core's: the
+        # oracle traces the plane itself
+        gives = []
+        for i, w, o, s, far in zip(asked, want, own, sides, beyond[asked]):
+            targets = (o,) if far else (w, o)
+            if s is None:
+                gives.append(reaches(scene, W, H, int(pix[i]), targets, sampling, rules,
+                                     max_dist, first=orc["paths"][i], limit=near) is True)
+            else:
+                gives.append(all(any(list(c) == list(t) for c in s) for t in targets))
+        jump[asked] = np.array(gives, bool)
     code = np.where(jump, SHADED_CODE["boundary"],
                     np.where(small & quant, SHADED_CODE["rounding"], SHADED_CODE["wrong"]))
     classes.ravel()[pix] = code
