@@ -253,11 +253,11 @@ def encloses_viewpoint(obj, viewpoint) -> bool:
     where Mitsuba's sphere returns its exit."""
     if obj.kind != "sphere":
         return False
-    q = [_written(v) - _written(c) for v, c in zip(viewpoint, obj.center)]
-    return sum(x * x for x in q) <= _written(obj.radius) ** 2
+    q = [written_value(v) - written_value(c) for v, c in zip(viewpoint, obj.center)]
+    return sum(x * x for x in q) <= written_value(obj.radius) ** 2
 
 
-def _written(v) -> Fraction:
+def written_value(v) -> Fraction:
     """A scene number exactly as written (its decimal text where the reader kept it)."""
     text = getattr(v, "text", None)
     return Fraction(Decimal(text)) if text is not None else Fraction(v)
@@ -533,14 +533,17 @@ def scene_dict(scene: Scene, columns: int, rows: int | None = None, sampling: st
                shading: bool = False, integrator: bool = True, only=None,
                clip: bool = True, rules: Rules | None = None,
                max_dist: float = DEFAULT_MAX_DIST, aovs: bool = False,
-               meshes: bool = True) -> dict:
+               meshes: bool = True, from_viewpoint: bool = False) -> dict:
     """The Mitsuba 3 scene as a dict for ``mi.load_dict(d, optimize=False)``.
 
     ``only``: a set of object kinds to include (default all); ``clip``: whether the sensor
     applies the course's screen clip (see ``sensor_setup``).  ``shading``: each shape gets
     its ``course_material``, the lights become emitters, and the integrator is ``course``
     (the course image, ``rules`` and ``max_dist`` as in ``rtval render``).  ``aovs``: the same,
-    with the integrator in its AOV mode (rtval's geometry channels of the primary rays)."""
+    with the integrator in its AOV mode (rtval's geometry channels of the primary rays).
+    ``from_viewpoint``: the scene is for rays from the viewpoint only (a primary-ray
+    comparison, a sensor's scene): spheres that hold the viewpoint are left out
+    (``encloses_viewpoint``); rays from surfaces (shadow, reflection) keep them."""
     mi = loaded()
     shading = shading or aovs
     rules = Rules() if rules is None else rules
@@ -551,7 +554,7 @@ def scene_dict(scene: Scene, columns: int, rows: int | None = None, sampling: st
         if only is not None and o.kind not in only:
             continue
         sid = shape_id(oid, o.kind)
-        if not shading and encloses_viewpoint(o, scene.viewpoint):
+        if from_viewpoint and not shading and encloses_viewpoint(o, scene.viewpoint):
             continue                # rays from the viewpoint: invisible (INSIDE_NOTE)
         shape = dispatch(_SHAPES, o.kind)(o, scene.viewpoint, R, T)
         if shape is None:                   # oracle_only() says so
@@ -722,7 +725,7 @@ def scene_xml(scene: Scene, columns: int, rows: int | None = None, sampling: str
     ``<stem>.obj<id>_texture.exr`` (their texels, float32: a PPM's maxval need not be 255),
     added to ``files`` (name -> text, or the texture's mi.Bitmap) for the caller to write."""
     d = scene_dict(scene, columns, rows, sampling, shading, rules=rules, max_dist=max_dist,
-                   aovs=aovs, meshes=False)
+                   aovs=aovs, meshes=False, from_viewpoint=True)
     plys = {**convert_planar.ply_files(d, stem), **_texture_files(d, stem)}
     if plys and files is None:
         raise ValueError("this scene has triangles or textures: pass files= to receive the "

@@ -31,8 +31,8 @@ from rt_core.kinds import kind
 from rt_core.rules import Rules
 
 from . import quadric
-from .convert import kept, stand_in_frame
-from .geometry import frame, normal, unit
+from .convert import kept, stand_in_frame, written_value
+from .geometry import frame, given_normal, normal, unit
 from .oracle_planar import points, triangle_normal
 
 K_ROUNDING = 16.0
@@ -170,12 +170,15 @@ class ObjectEval:
 
 
 def _tie_key(obj):
-    """The numbers an object's t is computed from, as written: equal keys tie exactly in any
-    precision (as mitsuba_ref/oracle.py's keys); None for the other kinds."""
+    """The numbers an object's t is computed from, exactly as written: equal keys tie
+    exactly in any precision (two numbers that round to the same float are not equal here:
+    a float64 tracer deciding on the numbers as written tells them apart); None for the other
+    kinds."""
+    ex = lambda v: tuple(written_value(c) for c in v)
     if obj.kind == "sphere":
-        return ("s", tuple(obj.center), obj.radius)
+        return ("s", ex(obj.center), written_value(obj.radius))
     if obj.kind in ("plane", "fplane", "tplane"):
-        return ("p", tuple(normal(obj)), tuple(obj.point))
+        return ("p", ex(given_normal(obj)), ex(obj.point))
     return None
 
 

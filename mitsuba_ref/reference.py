@@ -32,7 +32,8 @@ class Group:
     def __init__(self, scene: Scene, columns, rows, sampling, kinds, clip: bool, aovs: str):
         mi = mitsuba()
         import drjit as dr
-        d = scene_dict(scene, columns, rows, sampling, only=kinds, clip=clip)
+        d = scene_dict(scene, columns, rows, sampling, only=kinds, clip=clip,
+                       from_viewpoint=True)
         d["integrator"] = {"type": "aov", "aovs": aovs}
         self.clip = clip
         self.mi_scene = mi.load_dict(d, optimize=False)

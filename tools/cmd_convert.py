@@ -44,7 +44,8 @@ def run(args) -> int:
     from rt_core.exrio import atomic_write
     from rt_core.outputs import together
     from tools.harness.agree import parse_agreed
-    from mitsuba_ref.convert import DEFAULT_MAX_DIST, oracle_only, scene_xml, sensor_setup
+    from mitsuba_ref.convert import (DEFAULT_MAX_DIST, INSIDE_NOTE, encloses_viewpoint,
+                                      oracle_only, scene_xml, sensor_setup)
 
     from rt_core.outputs import check_file_target
     if not args.output.lower().endswith(".xml"):
@@ -67,6 +68,13 @@ def run(args) -> int:
                     aovs=args.aovs, files=plys, stem=Path(args.output).name)
     left_out = oracle_only(scene)
     said += [f"rtval convert: note: {note}" for note in left_out + scene.stand_ins()]
+    # a sphere that holds the viewpoint: out of the sensor's scene, kept in the course image's
+    held = [o for o in scene.objects if encloses_viewpoint(o, scene.viewpoint)]
+    said += [f"rtval convert: note: line {o.line}: the sphere {INSIDE_NOTE}: " + (
+        "this course image differs from the course's wherever a ray from inside it meets it"
+        if course else "left out of this scene (rays from the viewpoint)") for o in held]
+    if not course:
+        left_out = left_out + held
     with together():                        # the XML and its side files, or none of them
         for name, data in plys.items():
             if isinstance(data, str):
