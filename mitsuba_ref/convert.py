@@ -191,8 +191,8 @@ def mitsuba_subset(scene: Scene, keep=lambda kind: True, inside: bool = False):
     import dataclasses
     gone = [o for o in scene.objects if not keep(o.kind)
             or dispatch(_SHAPES, o.kind)(o, scene.viewpoint, 1.0, lambda m: m) is None]
-    held = [o for o in scene.objects
-            if inside and encloses_viewpoint(o, scene.viewpoint) and o not in gone]
+    held = [o for o in scene.objects if inside and encloses_viewpoint(o, scene.viewpoint)
+            and all(o is not g for g in gone)]
     if not gone and not held:
         return scene, ""
     kept = tuple(o for o in scene.objects if all(o is not g for g in gone + held))
@@ -276,6 +276,15 @@ def oracle_only(scene: Scene) -> list:
 
 INSIDE_NOTE = ("holds the viewpoint: the course never hits it from there (its near root "
                "only), Mitsuba's sphere would (its exit)")
+
+
+def inside_notes(scene: Scene, shading: bool) -> list:
+    """One line per sphere holding the viewpoint, as ``scene_dict`` treats it: left out of a
+    sensor's scene, kept (and differing) in the course image's."""
+    return [f"line {o.line}: the sphere {INSIDE_NOTE}: " + (
+        "this course image differs from the course's wherever a ray from inside it meets it"
+        if shading else "left out of this scene (rays from the viewpoint)")
+        for o in scene.objects if encloses_viewpoint(o, scene.viewpoint)]
 
 
 def stand_in_frame(obj, viewpoint):
@@ -756,11 +765,8 @@ def scene_xml(scene: Scene, columns: int, rows: int | None = None, sampling: str
                               "option, or register them with mitsuba_ref.convert.mitsuba())"))
     if s.note and mode == "sensor":     # (the course integrator samples the course's grid)
         lines.append(_comment(f"WARNING: {s.note}"))
-    held = [o for o in scene.objects if encloses_viewpoint(o, scene.viewpoint)]
-    lines += [_comment(note) for note in oracle_only(scene) + scene.stand_ins()]
-    lines += [_comment(f"line {o.line}: the sphere {INSIDE_NOTE}: " + (
-        "this course image differs from the course's wherever a ray from inside it meets it"
-        if shading else "left out of this scene (rays from the viewpoint)")) for o in held]
+    lines += [_comment(note) for note in oracle_only(scene) + scene.stand_ins()
+              + inside_notes(scene, shading or aovs)]
     lines.append('<scene version="3.0.0">')
     for k, v in d.items():
         if k != "type":

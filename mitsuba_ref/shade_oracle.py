@@ -309,8 +309,7 @@ def ray_trace(scene, base, d, total_dist, skip, rules: Rules, max_dist: float, p
 
 def other_sides(scene, columns: int, rows: int, pixel: int, sampling: str = "corners",
                 rules: Rules = Rules(), max_dist: float = 1000.0, runs: int = 32,
-                bounces: int = 64, first=None, limit: float | None = None,
-                colourless: set | None = None):
+                bounces: int = 64, first=None, limit: float | None = None):
     """The 8-bit colours of one pixel (index in image order, row 0 the top) that its
     decisions within their float64 bound can give, taken either way in every combination
     (``_Alt``): a float64 tracer may take any of them.  None where they cannot all be
@@ -321,9 +320,7 @@ def other_sides(scene, columns: int, rows: int, pixel: int, sampling: str = "cor
     colour is the caller's answer.  ``first``: the unflipped path from ``shade_pixels``
     (its 'paths' entry, recorded at this ``limit``), not traced again.  ``limit``: a
     decision is near below this margin (default float64's, ``_Alt.LIMIT``; a wider one asks
-    what a tracer computing in lower precision may take either way).  ``colourless``: a set
-    the pixel is added to where a path it traced had no colour to name (so that a caller
-    need not search again: any colour)."""
+    what a tracer computing in lower precision may take either way)."""
     colours, todo, done = set(), [frozenset()], set()
     while todo:
         flips = todo.pop()
@@ -332,13 +329,11 @@ def other_sides(scene, columns: int, rows: int, pixel: int, sampling: str = "cor
         if len(done) >= runs:
             return None
         done.add(flips)
-        got = first if not flips and first is not None else \
-            _path(scene, columns, rows, pixel, sampling, rules, max_dist, flips, limit)
+        got = _flipped(scene, columns, rows, pixel, sampling, rules, max_dist, flips, first,
+                       limit)
         if got is None:
             # no hit to take, or a hit taken at t = 0 that the intensity divides by (a
             # course program's inf or NaN: not a colour to name)
-            if colourless is not None:
-                colourless.add(pixel)
             return None
         colour, near, went = got
         bounces -= went + 1
@@ -371,8 +366,8 @@ def reaches(scene, columns: int, rows: int, pixel: int, targets, sampling: str =
             if len(done) >= runs:
                 return None
             done.add(flips)
-            got = first if not flips and first is not None else \
-                _path(scene, columns, rows, pixel, sampling, rules, max_dist, flips, limit)
+            got = _flipped(scene, columns, rows, pixel, sampling, rules, max_dist, flips,
+                           first, limit)
             if got is None:
                 # a flip with no hit to take, or a path dividing by zero: not a colour this
                 # oracle can name, so any colour (as other_sides' None)
@@ -385,6 +380,13 @@ def reaches(scene, columns: int, rows: int, pixel: int, targets, sampling: str =
             nxt += [flips | {k} for k in near if k not in flips]
         level = nxt
     return False
+
+
+def _flipped(scene, columns, rows, pixel, sampling, rules, max_dist, flips, first, limit):
+    """``_path`` with ``flips``, the unflipped one being ``first`` where the caller has it."""
+    if not flips and first is not None:
+        return first
+    return _path(scene, columns, rows, pixel, sampling, rules, max_dist, flips, limit)
 
 
 def _path(scene, columns: int, rows: int, pixel: int, sampling: str, rules: Rules,
@@ -402,21 +404,20 @@ def _path(scene, columns: int, rows: int, pixel: int, sampling: str, rules: Rule
 
 def other_sides_of(scene, columns: int, rows: int, pixels, sampling: str = "corners",
                    rules: Rules = Rules(), max_dist: float = 1000.0, runs: int = 32,
-                   bounces: int = 64, firsts=None, limit: float | None = None,
-                   colourless: set | None = None) -> list:
+                   bounces: int = 64, firsts=None, limit: float | None = None) -> list:
     """``other_sides`` of each of ``pixels`` (``firsts``: their unflipped paths or None), the
     same answers.  Where shade_batch covers the scene, the pixels' paths are traced
     together, a round at a time: each round, every pixel's paths not traced yet (its near
     decisions taken the other way, in every combination found so far).  A pixel's answer
     depends only on the set of its paths, which every order reaches whole: the colours, or
     None where one path raises, there are more than ``runs``, their bounces exceed
-    ``bounces`` or one has more than 8 near decisions.  ``colourless``: as other_sides'."""
+    ``bounces`` or one has more than 8 near decisions."""
     from mitsuba_ref import shade_batch
     pixels = [int(p) for p in pixels]
     firsts = list(firsts) if firsts is not None else [None] * len(pixels)
     if len(pixels) < BATCH_MIN or not shade_batch.supported(scene):
         return [other_sides(scene, columns, rows, p, sampling, rules, max_dist, runs, bounces,
-                            f, limit, colourless) for p, f in zip(pixels, firsts)]
+                            f, limit) for p, f in zip(pixels, firsts)]
     todo = [[frozenset()] for _ in pixels]
     done = [set() for _ in pixels]
     left = [bounces] * len(pixels)
@@ -444,8 +445,6 @@ def other_sides_of(scene, columns: int, rows: int, pixels, sampling: str = "corn
                 continue
             if got is None:
                 answer[k] = None
-                if colourless is not None:
-                    colourless.add(pixels[k])
                 continue
             colour, near, went = got
             left[k] -= went + 1

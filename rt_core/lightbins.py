@@ -9,8 +9,9 @@ function on the same constants and the same skip rule as the plain loop (a block
 counts, so the order does not matter).  In the benchmark scenes a cell lists a few objects
 whatever N, against ~30 steps of a BVH walk.  A cell's rows are nearest to the light first,
 and the first is often the surface the ray leaves (which its test skips): each cell names
-that row's object, and a ray leaving it starts past it (shaded bench, 16 objects: loop
-iterations a ray 1.6–1.9 → 1.1–1.5 for finite planes, 1.3 → 0.6 for spheres).  Built on
+that row's object, and a ray leaving it starts past it (shaded bench, 16 objects, with
+``SIDE``: loop iterations a ray 1.6–1.9 → 0.9–1.2 for finite planes, 1.3 → 0.3 for
+spheres).  Built on
 the host once per KernelScene, kind and light (numpy); the rows are copies, in the packet
 layout of rt_core/bvh.py.
 

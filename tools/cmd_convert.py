@@ -44,8 +44,8 @@ def run(args) -> int:
     from rt_core.exrio import atomic_write
     from rt_core.outputs import together
     from tools.harness.agree import parse_agreed
-    from mitsuba_ref.convert import (DEFAULT_MAX_DIST, INSIDE_NOTE, encloses_viewpoint,
-                                      oracle_only, scene_xml, sensor_setup)
+    from mitsuba_ref.convert import (DEFAULT_MAX_DIST, inside_notes, oracle_only, scene_xml,
+                                      sensor_setup)
 
     from rt_core.outputs import check_file_target
     if not args.output.lower().endswith(".xml"):
@@ -69,12 +69,9 @@ def run(args) -> int:
     left_out = oracle_only(scene)
     said += [f"rtval convert: note: {note}" for note in left_out + scene.stand_ins()]
     # a sphere that holds the viewpoint: out of the sensor's scene, kept in the course image's
-    held = [o for o in scene.objects if encloses_viewpoint(o, scene.viewpoint)]
-    said += [f"rtval convert: note: line {o.line}: the sphere {INSIDE_NOTE}: " + (
-        "this course image differs from the course's wherever a ray from inside it meets it"
-        if course else "left out of this scene (rays from the viewpoint)") for o in held]
-    if not course:
-        left_out = left_out + held
+    held = inside_notes(scene, course)
+    said += [f"rtval convert: note: {note}" for note in held]
+    shapes = len(scene.objects) - len(left_out) - (0 if course else len(held))
     with together():                        # the XML and its side files, or none of them
         for name, data in plys.items():
             if isinstance(data, str):
@@ -86,6 +83,6 @@ def run(args) -> int:
         atomic_write(args.output, lambda tmp: Path(tmp).write_text(xml))
     for line in said:
         print(line, file=sys.stderr)
-    print(f"{args.output}: {len(scene.objects) - len(left_out)} shapes, "
+    print(f"{args.output}: {shapes} shapes, "
           f"{setup.columns}x{setup.rows}", file=sys.stderr)
     return 0

@@ -337,11 +337,9 @@ class Boundary:
         pixels = np.asarray(pixels, np.int64).tolist()
         todo = [p for p in dict.fromkeys(pixels) if (rules, md, p) not in self.colours]
         if todo:
-            colourless = set()      # (a path with no colour: any colour, no search)
             got = other_sides_of(self.r.scene, cam.columns, cam.rows, todo, cam.sampling,
                                  rules, md, firsts=[self.paths.get((rules, md, p))
-                                                    for p in todo], colourless=colourless)
-            self.colours.update({(rules, md, p, "reach"): True for p in colourless})
+                                                    for p in todo])
             self.colours.update({(rules, md, p): g for p, g in zip(todo, got)})
         out = []
         for p in pixels:

@@ -143,10 +143,8 @@ def classify_shaded(scene: Scene, ours: np.ndarray, theirs: np.ndarray, sampling
     if len(asked):
         want = theirs.reshape(-1, 3)[pix[asked]].tolist()
         own = ours.reshape(-1, 3)[pix[asked]].tolist()
-        colourless = set()          # (a path with no colour: any colour, no search)
         sides = other_sides_of(scene, W, H, pix[asked], sampling, rules, max_dist,
-                               firsts=[orc["paths"][i] for i in asked], limit=near,
-                               colourless=colourless)
+                               firsts=[orc["paths"][i] for i in asked], limit=near)
         # each pixel's two colours must both be ones its decisions give: Mitsuba's, and
         # rt_core's too (it is the unflipped path's only where rt_core is right: a review's
         # mutations of rt_core's shading, 1 to 250 levels off, passed as boundary); where the
@@ -157,9 +155,7 @@ def classify_shaded(scene: Scene, ours: np.ndarray, theirs: np.ndarray, sampling
         gives = []
         for i, w, o, s, far in zip(asked, want, own, sides, beyond[asked]):
             targets = (o,) if far else (w, o)
-            if s is None and int(pix[i]) in colourless:
-                gives.append(True)
-            elif s is None:
+            if s is None:
                 gives.append(reaches(scene, W, H, int(pix[i]), targets, sampling, rules,
                                      max_dist, first=orc["paths"][i], limit=near) is True)
             else:
