@@ -408,14 +408,16 @@ def other_sides_of(scene, columns: int, rows: int, pixels, sampling: str = "corn
     """``other_sides`` of each of ``pixels`` (``firsts``: their unflipped paths or None), the
     same answers.  Where shade_batch covers the scene, the pixels' paths are traced
     together, a round at a time: each round, every pixel's paths not traced yet (its near
-    decisions taken the other way, in every combination found so far).  A pixel's answer
-    depends only on the set of its paths, which every order reaches whole: the colours, or
-    None where one path raises, there are more than ``runs``, their bounces exceed
-    ``bounces`` or one has more than 8 near decisions."""
+    decisions taken the other way, in every combination found so far), on arrays where
+    they are BATCH_MIN or more (``_paths``), however few the pixels: a handful of pixels
+    can have dozens of paths.  A pixel's answer depends only on the set of its paths, which
+    every order reaches whole: the colours, or None where one path raises, there are more
+    than ``runs``, their bounces exceed ``bounces`` or one has more than 8 near
+    decisions."""
     from mitsuba_ref import shade_batch
     pixels = [int(p) for p in pixels]
     firsts = list(firsts) if firsts is not None else [None] * len(pixels)
-    if len(pixels) < BATCH_MIN or not shade_batch.supported(scene):
+    if not shade_batch.supported(scene):
         return [other_sides(scene, columns, rows, p, sampling, rules, max_dist, runs, bounces,
                             f, limit) for p, f in zip(pixels, firsts)]
     todo = [[frozenset()] for _ in pixels]

@@ -260,15 +260,19 @@ def test11_paths_with_decisions_flipped(limit):
 
 @pytest.mark.parametrize("limit,rules", [(None, Rules()), (F32_LIMIT, VARIANTS[0]),
                                          (F32_LIMIT, VARIANTS[3])], ids=["f64", "f32-a", "f32-b"])
-def test12_other_sides_of(limit, rules):
+def test12_other_sides_of(limit, rules, monkeypatch):
     """other_sides_of (the paths of many pixels traced together, a round at a time) gives
-    other_sides' answer for each pixel: its colours, or None."""
-    answers = set()
+    other_sides' answer for each pixel: its colours, or None; also for fewer pixels than
+    BATCH_MIN, whose rounds may still hold BATCH_MIN paths (``few``: such rounds ran)."""
+    answers, few = set(), 0
+    calls = []
+    shade = shade_batch.shade
+    monkeypatch.setattr(shade_batch, "shade", lambda *a, **k: calls.append(1) or shade(*a, **k))
     for scene in SCENES[1::2]:
         W = 12
         H = scene.default_rows(W)
         pick, got = _near_pixels(scene, W, H, rules, limit)
-        if len(pick) < shade_oracle.BATCH_MIN:
+        if not pick:
             continue
         firsts = None
         if limit is None:
@@ -279,7 +283,15 @@ def test12_other_sides_of(limit, rules):
             assert a == shade_oracle.other_sides(scene, W, H, p, "corners", rules, 1000.0,
                                                  limit=limit), (scene.path, p)
             answers.add("none" if a is None else "several" if len(a) > 1 else "one")
-    assert answers == {"none", "several", "one"}
+        # the same pixels a few at a time: the same answers
+        for k in range(0, len(pick), 5):
+            calls.clear()
+            some = shade_oracle.other_sides_of(scene, W, H, pick[k:k + 5], "corners", rules,
+                                               1000.0, firsts=firsts and firsts[k:k + 5],
+                                               limit=limit)
+            assert some == many[k:k + 5], (scene.path, pick[k:k + 5])
+            few += bool(calls)
+    assert answers == {"none", "several", "one"} and few > 0
 
 
 def test13_other_sides_of_limits():
