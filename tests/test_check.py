@@ -1002,8 +1002,10 @@ def test12_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
     scene = REPO / "scenes" / "seed_fplane.txt"
     missing = tmp_path / "nope.ppm"
     assert main(["check", str(scene), str(missing)]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert err[-1].startswith("rtval check: ") and "nope.ppm" in err[-1]
+    out, err = capsys.readouterr()
+    # one line, said once (not also as a report of one scene on stdout)
+    assert out == "" and len(err.strip().splitlines()) == 1, (out, err)
+    assert err.startswith("rtval check: ") and "nope.ppm" in err
     trunc = tmp_path / "t.ppm"
     trunc.write_bytes(b"P6 40 30 255\n" + b"\0" * 100)
     assert main(["check", str(scene), str(trunc)]) == 2

@@ -116,11 +116,13 @@ def run(args) -> int:
                              "images, named after the scenes)")
         results = [check_image(args.inputs[0], args.inputs[1], columns=args.columns,
                                rows=args.rows, hits_path=args.hits, **kw)]
+    many = args.run is not None or args.images is not None
+    single = len(results) == 1 and not many
     if args.json:                       # (strict JSON: a t of NaN in a hit dump as "nan")
         from rt_core.outputs import json_text
         sys.stdout.write(json_text([r.summary() for r in results]))
-    else:
-        print(text_report(results))
+    elif not (single and results[0].status in ("error", "refused")):
+        print(text_report(results))     # (one image it could not check: its one line below)
     from rt_core.outputs import together
     page = None
     with together():                    # the JUnit and the report: both or neither
@@ -138,8 +140,6 @@ def run(args) -> int:
                                 **kw)
     if page:
         print(f"report: {page}", file=sys.stderr)
-    many = args.run is not None or args.images is not None
-    single = len(results) == 1 and not many
     if single and results[0].status in ("error", "refused"):
         print(f"rtval check: {results[0].reason}", file=sys.stderr)
         return 2
