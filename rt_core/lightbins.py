@@ -62,6 +62,14 @@ from .accel import blocks, device_array, tested
 # even; 1024 (128) 0.98; 4096 (256) 0.91 (128: 0.94-0.96).  6·64² cells of 16 bytes: 0.4 MB
 # a light and kind
 SIDE = 64
+# ... for images of SIDE²·RAYS_PER_CELL rays or more (2 M: 1920 columns).  The build's
+# numpy work grows with the cells, and a small image's render was mostly that build: a
+# 48-column course image (cbl__spec3, 5 lights) spent 32 of its 58 ms building 64 a side.
+# Fewer rays get the least power of two from MIN_SIDE whose cells hold RAYS_PER_CELL rays
+# or fewer (``side_for``); the cells only pick which objects a ray tests, so the answers
+# are the same at every side
+MIN_SIDE = 8
+RAYS_PER_CELL = 512
 MARGIN = 2.0 ** -8          # face units each cell range is widened by
 NEAR = 2.0 ** -7            # R0 = NEAR · S: objects this near the light are in every cell
 NEAR_SLACK = 2.0 ** -10     # relative slack on a row's distance from the light
@@ -186,9 +194,19 @@ def in_cone(v, L, R, which, cell, side: int):
     return whole | (cosang >= limit)
 
 
-def build(ks, kind: str, center) -> LightBins:
+def side_for(rays: int | None) -> int:
+    """Cells along a face side for bins that ``rays`` shadow rays will query first (None:
+    unknown, SIDE)."""
+    side = MIN_SIDE if rays is not None else SIDE
+    while side < SIDE and side * side * RAYS_PER_CELL < rays:
+        side *= 2
+    return side
+
+
+def build(ks, kind: str, center, side: int = SIDE) -> LightBins:
     """The bins of one kind around the light at ``center`` (relative to the viewpoint, host
-    float64; rounded here to the kernel's precision, as the shading rounds it)."""
+    float64; rounded here to the kernel's precision, as the shading rounds it), ``side``
+    cells along a face side."""
     T = ks.T
     consts = ks.by_kind[kind]
     n = len(consts)
@@ -202,7 +220,6 @@ def build(ks, kind: str, center) -> LightBins:
     R0 = NEAR * S
     nearest = np.clip(0.0, lo, hi)
     near = np.sqrt((nearest ** 2).sum(1)) <= R0
-    side = SIDE
     cells_per_face = side * side
     nbins = 6 * cells_per_face
     items, bins = cube_cells(lo, hi, side, R0 / 2, keep=~near)
@@ -251,12 +268,13 @@ def build(ks, kind: str, center) -> LightBins:
                      max(dmax, 0.0), counts)
 
 
-def light_bins(ks, kind: str, center) -> LightBins:
-    """The kind's LightBins around ``center`` (built once per KernelScene)."""
+def light_bins(ks, kind: str, center, rays: int | None = None) -> LightBins:
+    """The kind's LightBins around ``center`` (built once per KernelScene, as fine as the
+    ``rays`` of its first query ask: ``side_for``)."""
     cache = ks.__dict__.setdefault("_accel", {}).setdefault("lightbins", {})
     key = (kind, tuple(float(c) for c in center))
     if key not in cache:
-        cache[key] = build(ks, kind, center)
+        cache[key] = build(ks, kind, center, side_for(rays))
     return cache[key]
 
 
@@ -295,7 +313,7 @@ def occluded_kind(ks, kind: str, d, o, maxt, rules, skip, blocked, center):
     from . import bvh
     T = ks.T
     U = T.UInt32
-    lb = light_bins(ks, kind, center)
+    lb = light_bins(ks, kind, center, dr.width(d))
     vz = ks.scene.viewpoint[2]
     far = ~(maxt <= dr.opaque(T.Float, lb.dmax))
     b = dr.select(far, U(0), cell(T, lb, d))

@@ -134,8 +134,20 @@ def course_sample() -> list[Path]:
 
 # --- images and secondary rays: the structures against the loop ------------------------------
 
+# the light bins' cells as fine as a small image's rays ask (lightbins.side_for), and as
+# fine as a 1920-column image's: the same answers
+SIDES = [None, lightbins.SIDE]
+
+
+def cells(monkeypatch, side):
+    if side is not None:
+        monkeypatch.setattr(lightbins, "side_for", lambda rays: side)
+
+
+@pytest.mark.parametrize("side", SIDES, ids=["rays", "finest"])
 @pytest.mark.parametrize("precision", PRECISIONS)
-def test01_bundled_scenes(precision, monkeypatch):
+def test01_bundled_scenes(precision, side, monkeypatch):
+    cells(monkeypatch, side)
     built = set()
     for path in BUNDLED:
         ks, _ = assert_identical(parse_scene(path), precision, monkeypatch)
@@ -155,13 +167,17 @@ def test02_course_scenes_sample(precision, monkeypatch):
         assert_identical(scene, precision, monkeypatch, columns=24)
 
 
+@pytest.mark.parametrize("side", SIDES, ids=["rays", "finest"])
 @pytest.mark.parametrize("precision", PRECISIONS)
 @pytest.mark.parametrize("make", [mirror_hall, crowd], ids=["hall", "crowd"])
-def test03_generated_scenes(make, precision, monkeypatch):
+def test03_generated_scenes(make, precision, side, monkeypatch):
+    cells(monkeypatch, side)
     for seed in range(2):
         scene = make(seed)
         ks, res = assert_identical(scene, precision, monkeypatch, columns=48)
         assert used(ks) == {"bvh", "lightbins", "reflectbins"}
+        built = ks.__dict__["_accel"]["lightbins"].values()
+        assert {lb.side for lb in built} == {side or lightbins.MIN_SIDE}   # (48 columns)
         assert res.bounces >= 2 and len(res.records) == 3
         # the secondary rays hit things and the shadow rays are blocked, some of them
         hits = res.records[1]["hit"]

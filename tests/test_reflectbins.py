@@ -285,10 +285,12 @@ def shadow_rays(ks, n: int, seed: int):
     return D / maxt[:, None], o, maxt
 
 
-def shadow_differences(precision: str, monkeypatch) -> int:
-    """Shadow rays whose verdict differs between the light bins and the BVH."""
+def shadow_differences(precision: str, monkeypatch, side: int = lightbins.SIDE) -> int:
+    """Shadow rays whose verdict differs between the light bins (``side`` cells a face
+    side) and the BVH."""
     from rt_core.tracer import occluded
     monkeypatch.setattr(accel, "UNROLL_MAX", 0)
+    monkeypatch.setattr(lightbins, "side_for", lambda rays: side)
     T = backend.types(precision)
     ks = prepare(edge_scene(), T)
     d, o, maxt = shadow_rays(ks, 60000, 8)
@@ -304,13 +306,33 @@ def shadow_differences(precision: str, monkeypatch) -> int:
     return int(np.count_nonzero(a != b))
 
 
-@pytest.mark.parametrize("precision", PRECISIONS)
-def test08_light_bins_border_rays_match_the_bvh(precision, monkeypatch):
-    assert shadow_differences(precision, monkeypatch) == 0
+SIDES = (lightbins.MIN_SIDE, lightbins.SIDE)     # the coarsest cells and the finest
 
 
+@pytest.mark.parametrize("side", SIDES)
 @pytest.mark.parametrize("precision", PRECISIONS)
-def test09_without_the_cones_margin_light_bins_differ(precision, monkeypatch):
+def test08_light_bins_border_rays_match_the_bvh(precision, side, monkeypatch):
+    assert shadow_differences(precision, monkeypatch, side) == 0
+
+
+def test08b_cells_as_fine_as_the_rays_ask():
+    """A light's bins get SIDE cells a face side for a 1920-column image (the bench's: as
+    before), coarser ones for fewer rays, never below MIN_SIDE, and SIDE when the count is
+    not known; a cell holds at most RAYS_PER_CELL rays where the side is below SIDE."""
+    side_for = lightbins.side_for
+    assert side_for(1920 * 1080) == side_for(None) == lightbins.SIDE
+    assert side_for(1) == side_for(48 * 36) == lightbins.MIN_SIDE
+    sides = [side_for(n) for n in (10 ** 3, 10 ** 4, 10 ** 5, 10 ** 6, 10 ** 7)]
+    assert sides == sorted(sides) and len(set(sides)) > 2
+    for n in (120000, 480000):
+        s = side_for(n)
+        assert lightbins.MIN_SIDE < s < lightbins.SIDE
+        assert s * s * lightbins.RAYS_PER_CELL >= n > (s // 2) ** 2 * lightbins.RAYS_PER_CELL
+
+
+@pytest.mark.parametrize("side", SIDES)
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test09_without_the_cones_margin_light_bins_differ(precision, side, monkeypatch):
     """The cells' angular radius halved in the cone test: test08's rays lose blockers.
     (MARGIN is left alone: without it every shadow ray is 'long' and walks the BVH.)"""
     centres = lightbins.cell_centres
@@ -319,7 +341,7 @@ def test09_without_the_cones_margin_light_bins_differ(precision, monkeypatch):
         c, rad = centres(side)
         return c, 0.5 * rad
     monkeypatch.setattr(lightbins, "cell_centres", half)
-    assert shadow_differences(precision, monkeypatch) > 0
+    assert shadow_differences(precision, monkeypatch, side) > 0
 
 
 # --- grazing tilted planes: t is rounding noise, and no row is stopped before ----------------------
