@@ -347,7 +347,8 @@ def other_sides(scene, columns: int, rows: int, pixel: int, sampling: str = "cor
 
 def reaches(scene, columns: int, rows: int, pixel: int, targets, sampling: str = "corners",
             rules: Rules = Rules(), max_dist: float = 1000.0, first=None,
-            limit: float | None = None, runs: int = REACH_RUNS, tol: int = 0) -> bool | None:
+            limit: float | None = None, runs: int = REACH_RUNS, tol: int = 0,
+            exclude=()) -> bool | None:
     """Do some of the pixel's near decisions, taken the other way, give each 8-bit colour of
     ``targets`` (within ``tol`` levels in every channel)?  Where ``other_sides`` cannot
     enumerate every combination (too many near decisions), a search for these colours only:
@@ -355,8 +356,10 @@ def reaches(scene, columns: int, rows: int, pixel: int, targets, sampling: str =
     as soon as every target is found, or a path has no colour to name (as other_sides' None:
     a flip with no hit to take, a division by zero); False when every combination was
     traced without; None when the budget ran out first (not decided).  ``first``, ``limit``: as
-    other_sides'."""
+    other_sides'.  A path whose colour is one of ``exclude`` finds nothing (rtval check:
+    rt_core's own colour, which is within a level of any one-level bug's)."""
     want = [tuple(int(c) for c in t) for t in targets]
+    exclude = {tuple(int(c) for c in e) for e in exclude}
     found, done, level = set(), set(), [frozenset()]
     while level:
         nxt = []
@@ -373,8 +376,9 @@ def reaches(scene, columns: int, rows: int, pixel: int, targets, sampling: str =
                 # oracle can name, so any colour (as other_sides' None)
                 return True
             colour, near, _ = got
-            found.update(k for k, t in enumerate(want)
-                         if max(abs(int(a) - b) for a, b in zip(colour, t)) <= tol)
+            if tuple(colour) not in exclude:
+                found.update(k for k, t in enumerate(want)
+                             if max(abs(int(a) - b) for a, b in zip(colour, t)) <= tol)
             if len(found) == len(want):
                 return True
             nxt += [flips | {k} for k in near if k not in flips]

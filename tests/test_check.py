@@ -321,6 +321,85 @@ def test04d_either_side_one_level_apart_is_boundary_not_systematic(tmp_path):
     assert r.hints == [] and r.deviations == []
 
 
+def test04dd_a_level_off_is_no_boundary_where_no_decision_gives_it(ctracer, tmp_path):
+    """A one-level difference at a pixel with a decision near its threshold is boundary only
+    where that decision taken the other way gives the image's colour (within a level), not
+    because rt_core's own colour is within a level of it.  A review: the pixel mapping one
+    off (a one-level error over most of a plane's gradient), with the clip inferred as >=
+    on clip_z0 (every wall pixel's shadow ray crosses the clipped plane z = 0 exactly) or
+    on a course scene of one plane in z = 0, passed as boundary: the other side there is
+    the shadowed wall or black, many levels away."""
+    both = tmp_path / "clip_ge_off_by_one"
+    subprocess.run(["cc", "-std=c99", "-O2", "-DCLIP_GE", "-DOFF_BY_ONE", "-o", str(both),
+                    str(CT / "course.c"), "-lm"], check=True, capture_output=True)
+    cases = [(both, CT / "scenes" / "clip_z0.txt")]
+    if COURSE.is_dir():
+        cases.append((ctracer / "course_off_by_one", COURSE / "numeric" / "m4__v1_a01.txt"))
+    for binary, scene in cases:
+        r = check_image(scene, _render(binary, scene, 65, tmp_path))
+        assert r.status == "fail" and r.counts["wrong"] > 400, (scene.name, r.counts)
+    # the variant alone still passes, its pixels named
+    scene = CT / "scenes" / "clip_z0.txt"
+    r = check_image(scene, _render(ctracer / "course_clip_ge", scene, 65, tmp_path))
+    assert r.status == "pass" and r.counts["variant"] > 1000, r.counts
+
+
+HOLE_Z0 = """8 6
+0 0 5
+pointlight 10 10 10  0 4 3
+plane 1 1 1  4 4 4  0 0 0  0 0 1  0 0 0
+sphere 2 1 1  6 3 3  0 0 0  0 0 -1  2.5
+"""
+
+
+def test04de_decisions_are_kept_per_path_rules():
+    """Boundary keeps each pixel's 'near a decision' flag per the rules its path depends on:
+    a sphere clipped at the window opens a hole onto a plane lying in z = 0 (every hit
+    there at the clip's threshold), so asking under the notes' rules first must not answer
+    for clipped spheres (a review: the flags were kept per camera and cut-off only)."""
+    from rt_core.parser import parse_text
+    from rt_core.rules import Rules
+    from tools.harness.check import Boundary, Renderer
+    scene = parse_text(HOLE_Z0, "hole_z0.txt")
+    r = Renderer(scene, 32, 24)
+    clipped = Rules(clip_spheres=True)
+    img = r.image(clipped, 1000.0)
+    px = np.arange(32 * 24)
+    fresh = Boundary(r, 1000.0, img).of(px, clipped)
+    shared = Boundary(r, 1000.0, img)
+    notes = shared.of(px, Rules())
+    assert (fresh != notes).sum() > 100            # (the hole's pixels)
+    assert np.array_equal(shared.of(px, clipped), fresh)
+    # and the intensities' closeness to a level, likewise
+    assert np.array_equal(shared.levels(px, clipped, 1000.0)[1],
+                          Boundary(r, 1000.0, img).levels(px, clipped, 1000.0)[1])
+
+
+TILE_SWAP = """8 6
+0 0 5
+pointlight 10 10 10  0 4 0
+tplane 1 1 1  6 6 6  0 0 0  0 1 0  0 -2 0  1 0 0  3.2 2  3 1 1  6 2 2  0 0 0
+sphere 1 1 3  3 3 8  0 0 0  0 0 -6  1.5
+"""
+
+
+def test04df_a_deviation_that_only_swaps_the_tiles_says_so(ctracer, tmp_path):
+    """Tiles 3.2 x 2: OFF/w = 3125 and OFF/h = 5000, integers of odd sum, so adding the
+    offset first exchanges the tiles' colours everywhere, the image of a tracer that swaps
+    the two materials.  Named tile_add_first, the deviation says the swap gives it too (a
+    review: the bug was named this deviation and nothing else); where the sizes are not
+    such (shade_tiles.txt) it does not."""
+    scene = tmp_path / "tswap.txt"
+    scene.write_text(TILE_SWAP)
+    for build in ("course_tile_swap", "course_tile_add_first"):
+        r = check_image(scene, _render(ctracer / build, scene, 65, tmp_path))
+        assert r.status == "pass" and len(r.deviations) == 1, (build, r.counts)
+        assert "swapping the foreground and background" in r.deviations[0]
+    scene = REPO / "scenes" / "shade_tiles.txt"
+    r = check_image(scene, _render(ctracer / "course_tile_add_first", scene, 65, tmp_path))
+    assert r.deviations and not any("swapping" in d for d in r.deviations), r.deviations
+
+
 def test04e_two_deviations_together_are_both_found(ctracer, tmp_path):
     """A value is checked against the image once the search is over, with every other
     rule as found (checked at each step, a reflection rule blocked the cut-off that goes
@@ -1097,7 +1176,7 @@ def test04i_other_sides_of_a_pixel():
     """The colours a pixel's near decisions give: one where none is near; on clip_z0.txt the
     plane's and the wall's behind it (the '>=' clip's render has the latter); None where the
     paths are more than asked for."""
-    from mitsuba_ref.shade_oracle import other_sides, quantize, shade_pixels
+    from mitsuba_ref.shade_oracle import other_sides, quantize, reaches, shade_pixels
     from rt_core import backend
     from rt_core.camera import make_camera
     from rt_core.parser import parse_scene
@@ -1107,6 +1186,10 @@ def test04i_other_sides_of_a_pixel():
     mid = 18 * 48 + 24                          # the sphere's centre: nothing near
     want = tuple(int(c) for c in quantize(shade_pixels(scene, 48, 36, [mid])["I"][0]))
     assert other_sides(scene, 48, 36, mid) == {want}
+    # the search for a colour: the unflipped path gives its own, which ``exclude`` (rtval
+    # check: rt_core's colour) does not count; every path traced, none other: False
+    assert reaches(scene, 48, 36, mid, (want,)) is True
+    assert reaches(scene, 48, 36, mid, (want,), exclude=(want,)) is False
     scene = parse_scene(CT / "scenes" / "clip_z0.txt")
     ge = Rules(screen_clip=">=")
     imgs, _ = render_image(scene, make_camera(scene, 64, 48), backend.types("f64"), ge,

@@ -254,11 +254,21 @@ def _config(rules, max_dist, name, value):
     return dataclasses.replace(rules, **{name: value}), max_dist
 
 
+def _decisions(rules) -> tuple:
+    """The rules a pixel's path, and so its decisions' margins, depend on: all but the
+    edges, the screen clip and ties, whose variants differ from the notes only where a
+    decision's value lies exactly at its threshold (a margin of 0: near under each of them),
+    and the reflection's division, which moves no decision.  t_min and clipped spheres
+    change paths far from any threshold (a review: a wall lit or shadowed, a hole through a
+    sphere), and the tile rules move the tiles' borders."""
+    return rules.rows, rules.t_min, rules.clip_spheres, rules.tile_add_first, \
+        rules.tile_project
+
+
 def _shading(rules) -> tuple:
-    """The rules a pixel's intensity depends on away from the decisions (which the hit
-    rules move: there the pixel's 'jump' flag is set anyway): the camera, the division,
-    the tile parity."""
-    return rules.rows, rules.reflect, rules.tile_add_first, rules.tile_project
+    """The rules a pixel's intensity depends on away from the decisions: those of its path
+    (``_decisions``) and the reflection's division."""
+    return _decisions(rules) + (rules.reflect,)
 
 
 def _near_where_differs(near, ours, theirs) -> bool:
@@ -273,11 +283,11 @@ def _near_where_differs(near, ours, theirs) -> bool:
 class Boundary:
     """Which pixels are ``boundary``: a decision of one of their rays within the float64
     shading oracle's bound (mitsuba_ref/shade_oracle.py), under the given rules.  The
-    margins are properties of the rays and the scene, not of the hit rules' variants (the
+    margins are properties of the rays' paths and the scene, which not every rule moves (the
     edges' or the clip's threshold is where it is for every variant), so they are computed
-    once per pixel, camera (rows shifted or not) and cut-off, lazily; the intensity's
-    closeness to an 8-bit level ('quant') once per pixel, cut-off and the rules it depends
-    on (``_shading``)."""
+    once per pixel, cut-off and the rules a path depends on (``_decisions``), lazily; the
+    intensity's closeness to an 8-bit level ('quant') once per pixel, cut-off and the rules
+    it depends on (``_shading``)."""
 
     SAMPLE = 60              # above this many pixels, a sample decides the count
     THIN = 0.05              # boundary pixels lie on curves: a set of more than this
@@ -286,8 +296,9 @@ class Boundary:
     def __init__(self, r: Renderer, max_dist: float, theirs: np.ndarray):
         self.r, self.max_dist = r, max_dist
         self.theirs = theirs.reshape(-1, 3).astype(np.int16)     # the image checked
-        self.known = {}          # (rows, max_dist, pixel) -> bool
-        self.quant = {}          # (rules, max_dist, pixel) -> per channel, near a level
+        self.known = {}          # (_decisions(rules), max_dist, pixel) -> bool
+        self.quant = {}          # (_shading(rules), max_dist, pixel) -> per channel, near
+                                 # a level
         self.colours = {}        # (rules, max_dist, pixel) -> colours its decisions give
         self.paths = {}          # (rules, max_dist, pixel) -> the oracle's unflipped path
         # one fixed random order of the pixels: every sample takes the first ones in it, so
@@ -304,7 +315,7 @@ class Boundary:
         orc = shade_pixels(self.r.scene, cam.columns, cam.rows, todo, cam.sampling, rules, md)
         f = flags(orc, "f64")
         for p, j, q, path in zip(todo, f["jump"], f["quant_rgb"], orc["paths"]):
-            self.known.setdefault((rules.rows, md, p), bool(j))
+            self.known.setdefault((_decisions(rules), md, p), bool(j))
             self.quant[(_shading(rules), md, p)] = tuple(bool(c) for c in q)
             self.paths[(rules, md, p)] = path       # (sides: its first path, not again)
 
@@ -313,10 +324,11 @@ class Boundary:
         ``md``, default the first one's)."""
         md = self.max_dist if md is None else md
         pixels = np.asarray(pixels, np.int64)
-        todo = [int(p) for p in pixels if (rules.rows, md, int(p)) not in self.known]
+        key = _decisions(rules)
+        todo = [int(p) for p in pixels if (key, md, int(p)) not in self.known]
         if todo:
             self._oracle(todo, rules, md)
-        return np.array([self.known[(rules.rows, md, int(p))] for p in pixels], bool)
+        return np.array([self.known[(key, md, int(p))] for p in pixels], bool)
 
     def excuses(self, pixels, rules, md: float | None = None) -> np.ndarray:
         """Which ``pixels`` are boundary: a decision within its float64 bound (``of``) and
@@ -331,9 +343,15 @@ class Boundary:
         """Which ``pixels`` have a colour (within a level) that their decisions within the
         float64 bound give taken either way, in some combination (the shading oracle's
         ``other_sides``); where those cannot all be enumerated, a search for the image's
-        colour (``reaches``: found within its budget, or not excused)."""
+        colour (``reaches``: found within its budget, or not excused).  rt_core's own colour
+        is not one of them: a pixel a level off it is what any one-level bug gives (a pixel
+        mapping one off, floor(256 I)), and a decision near its threshold does not excuse
+        that unless taking it the other way gives the image's colour (a review: the off-by-one
+        build passed a course scene of a plane in z = 0, every pixel at the clip's
+        threshold, whose other side is black)."""
         from mitsuba_ref.shade_oracle import other_sides_of, reaches
         cam = self.r.cam
+        ours = self.r.image(rules, md).reshape(-1, 3)
         pixels = np.asarray(pixels, np.int64).tolist()
         todo = [p for p in dict.fromkeys(pixels) if (rules, md, p) not in self.colours]
         if todo:
@@ -343,6 +361,7 @@ class Boundary:
             self.colours.update({(rules, md, p): g for p, g in zip(todo, got)})
         out = []
         for p in pixels:
+            own = tuple(int(c) for c in ours[p])
             got = self.colours[(rules, md, p)]
             if got is None:
                 key = (rules, md, p, "reach")
@@ -350,10 +369,11 @@ class Boundary:
                     self.colours[key] = reaches(
                         self.r.scene, cam.columns, cam.rows, p, (self.theirs[p],),
                         cam.sampling, rules, md, first=self.paths.get((rules, md, p)),
-                        tol=1) is True
+                        tol=1, exclude=(own,)) is True
                 out.append(self.colours[key])
                 continue
-            out.append(any(np.abs(self.theirs[p] - np.array(c)).max() <= 1 for c in got))
+            out.append(any(np.abs(self.theirs[p] - np.array(c)).max() <= 1 for c in got
+                           if tuple(c) != own))
         return np.array(out, bool)
 
     def float32_sides(self, pixels, rules, md: float) -> np.ndarray:
@@ -397,7 +417,7 @@ class Boundary:
         if todo:
             self._oracle(todo, rules, md)
         ours = self.r.image(rules, md).reshape(-1, 3)
-        return (np.array([self.known[(rules.rows, md, p)] for p in pixels], bool),
+        return (np.array([self.known[(_decisions(rules), md, p)] for p in pixels], bool),
                 np.array([_near_where_differs(self.quant[(key, md, p)], ours[p],
                                               self.theirs[p]) for p in pixels], bool))
 
@@ -588,6 +608,28 @@ def infer(r: Renderer, theirs: np.ndarray, start_rules, start_max_dist: float, f
     return rules, md, findings, bnd
 
 
+def _tile_quotients(o) -> list:
+    """OFF/w and OFF/h of a tiled plane, exactly (Fractions)."""
+    from fractions import Fraction
+    from rt_core.scene import exact
+    from rt_core.shading import TILE_OFF
+    return [Fraction(TILE_OFF) / exact(c) for c in o.size]
+
+
+def _alike(scene, rule: str, value) -> str:
+    """What else gives a deviation's image on this scene, in words ('' for nothing known).
+    Adding the tile offset first shifts each parity by OFF/w (and OFF/h): where every tiled
+    plane's are integers it only exchanges the two colours, which a tracer swapping the
+    foreground and background materials does too (a review: that bug was named this
+    deviation)."""
+    if (rule, value) == ("tile_add_first", True) and all(
+            q.denominator == 1 for o in scene.objects if o.kind == "tplane"
+            for q in _tile_quotients(o)):
+        return ("; with these tile sizes that only exchanges the tiles' two colours, as "
+                "swapping the foreground and background materials would")
+    return ""
+
+
 def _can_matter(r: Renderer, name: str) -> bool:
     """Whether a rule's variants can change this scene's image at all, decided on the host
     (so that no render is spent on a rule the scene cannot tell apart)."""
@@ -616,14 +658,8 @@ def _can_matter(r: Renderer, name: str) -> bool:
         # parity as floor(OFF + u/w) where it is even (and OFF/h): the two differ then only
         # by rounding at tile borders, which a whole row or column can share, and a correct
         # tracer's borders were named this deviation (tiles 1 x 1, 0.5 x 1; a review)
-        from fractions import Fraction
-        from rt_core.scene import exact
-        from rt_core.shading import TILE_OFF
-
-        def even(size) -> bool:
-            q = Fraction(TILE_OFF) / exact(size)
-            return q.denominator == 1 and q.numerator % 2 == 0
-        return any(not all(even(c) for c in o.size) for o in sc.objects if o.kind == "tplane")
+        return any(not all(q.denominator == 1 and q.numerator % 2 == 0
+                           for q in _tile_quotients(o)) for o in sc.objects if o.kind == "tplane")
     if name == "clip_spheres":
         # a sphere reaching z >= 0, where the clip cuts (shapes.clip_ok: z > 0 literally,
         # as the C programs do, whichever side the viewpoint is on: a viewpoint at
@@ -713,8 +749,8 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
     res.classes, res.variant_counts, unasked = classify(r, img, final_rules, md, notes, bnd)
     res.unasked, res.unasked_pixels = len(unasked), unasked
     res.counts = {c: int((res.classes == i).sum()) for i, c in enumerate(CLASSES)}
-    res.deviations = [WORDS[(f.rule, f.value)] for f in res.findings
-                      if (f.rule, f.value) in WORDS and f.determined]
+    res.deviations = [WORDS[(f.rule, f.value)] + _alike(scene, f.rule, f.value)
+                      for f in res.findings if (f.rule, f.value) in WORDS and f.determined]
     if hits_path:
         try:
             res.hits = check_hits(r, final_rules, hits_path)
@@ -1034,6 +1070,10 @@ def classify(r: Renderer, theirs: np.ndarray, rules, md: float, notes, bnd: Boun
         def judge(pick):
             jump, quant = bnd.levels(pick, rules, md)
             edge = jump & ~quant
+            if edge.any():
+                # and the decisions taken the other way give the image's colour (sides: not
+                # rt_core's own, a level off any one-level bug's)
+                edge[edge] = bnd.sides(pick[edge], rules, md)
             return quant, (edge & variant[pick]) if systematic else edge
         pick = bnd.sample(one)
         rnd, edge = judge(pick)
