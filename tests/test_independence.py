@@ -187,6 +187,42 @@ def test07_a_parser_bug_does_not_pass_a_comparison(command, monkeypatch, tmp_pat
         out.out + out.err, out
 
 
+def test07b_a_course_file_read_differently_fails_validate(monkeypatch):
+    """A parser bug that only course files show (a review: numbers written '-.5' read as
+    '.5'): validate skipped the files it broke as malformed and passed.  A course file the
+    two readers read differently, or that rt_core refuses while the references' reader
+    reads it, is a failure of the run ('disagree'); the four files both refuse stay
+    skipped as malformed."""
+    import rt_core.parser as P
+    from rt_core.scene import Num
+    from tools.harness.validate import (default_scene_paths, failed_reading, load_supported,
+                                        skip_case)
+    if not (REPO.parent / "shared" / "course-scenes").is_dir():
+        pytest.skip("../shared/course-scenes is not here")
+    paths = default_scene_paths()
+    _, before = load_supported(paths, explicit=False)
+    assert not failed_reading(before) and len(before) == 4, before
+    monkeypatch.setattr(P, "Num", lambda text: Num(text.replace("-.", ".")))
+    _, after = load_supported(paths, explicit=False)
+    failed = failed_reading(after)
+    assert len(failed) >= 10, [s.category for s in after]
+    assert {s.path for s in after} - {s.path for s in failed} == {s.path for s in before}
+    assert all(skip_case(s).failure for s in failed)
+    # a parser that refuses such numbers instead: its errors are no 'malformed' skip either
+    number = P._Ctx.number
+
+    def refuse(self, tok, what):
+        if tok.text.startswith("-."):
+            raise self.error(f"{what}: no such number", tok)
+        return number(self, tok, what)
+    monkeypatch.setattr(P, "Num", Num)
+    monkeypatch.setattr(P._Ctx, "number", refuse)
+    _, refused = load_supported(paths, explicit=False)
+    failed = failed_reading(refused)
+    assert len(failed) >= 10 and all("no such number" in s.reason for s in failed)
+    assert {s.path for s in refused} - {s.path for s in failed} == {s.path for s in before}
+
+
 def test08_both_readers_agree_on_every_scene():
     """Every bundled, test and course scene: the same numbers, kinds and forms to both."""
     from rt_core.scene import SceneError

@@ -82,7 +82,8 @@ def run(args) -> int:
     precisions = ("f32", "f64") if args.precision == "both" else (args.precision,)
     modes = ("rays", "camera") if args.mode == "both" else (args.mode,)
     for s in skipped:
-        print(f"skipped ({s.category}): {s.reason}", file=sys.stderr)
+        print(f"{'FAILED' if s.category == 'disagree' else 'skipped'} ({s.category}): "
+              f"{s.reason}", file=sys.stderr)
     total = len(scenes) * (len(precisions) * len(modes) + (args.shaded_columns > 0)) \
         - sum(s.category == "texture" for s in skipped)
     plan = plan_of(args).resolve(total, seconds_per_comparison(args.columns), SERIAL_BUSY_CORES)
@@ -123,7 +124,9 @@ def run(args) -> int:
                                           meta=meta)
     if page:
         print(f"report: {page}", file=sys.stderr)
-    bad = [r for r in results if not r["ok"]]
+    # (a file the two readers read differently fails the run as a failed comparison does)
+    from tools.harness.validate import failed_reading
+    bad = [r for r in results if not r["ok"]] + failed_reading(skipped)
     from tools.harness.timing import split_line, time_split
     summary = (f"{len(results)} comparisons on {len(scenes)} scenes (skipped: "
                f"{skip_counts(skipped)}): {len(bad)} failed. Report: {md}, {js}\n"

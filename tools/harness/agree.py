@@ -65,10 +65,29 @@ def agree(scene, path, code27: str = "auto") -> None:
                     raise _differ(path, o.line, f"{what}: {ex!r} against {tuple(r.extras)!r}")
 
 
+class ReadersDiffer(SceneError):
+    """The two readers read one file differently: a defect of one of them, not of the
+    file (``category`` 'disagree': validate counts it failed, not skipped)."""
+
+    @property
+    def category(self) -> str:
+        return "disagree"
+
+
 def _differ(path, line, what: str) -> SceneError:
-    return SceneError(f"rt_core's parser and the references' own reader read this file "
-                      f"differently ({what}); rtval cannot check a tracer against references "
-                      "that read another scene: please report the file", str(path), line)
+    return ReadersDiffer(f"rt_core's parser and the references' own reader read this file "
+                         f"differently ({what}); rtval cannot check a tracer against "
+                         "references that read another scene: please report the file",
+                         str(path), line)
+
+
+def references_read(path, code27: str = "auto") -> bool:
+    """Does the references' own reader read the file at ``path``?"""
+    try:
+        scenefile.read(path, code27)
+    except (ValueError, OSError):
+        return False
+    return True
 
 
 def _field(o, name: str):

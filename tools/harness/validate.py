@@ -42,11 +42,13 @@ def skip_counts(skipped) -> str:
     if not skipped:
         return "none"
     n = {c: sum(s.category == c for s in skipped)
-         for c in ("unsupported", "malformed", "texture")}
+         for c in ("unsupported", "malformed", "texture", "disagree")}
     return (f"{n['unsupported']} course files unsupported (object kinds rtval does not "
             f"implement), {n['malformed']} malformed (errors in the file itself)"
             + (f", {n['texture']} shaded comparisons without their texture file"
-               if n["texture"] else ""))
+               if n["texture"] else "")
+            + (f", {n['disagree']} read differently by rt_core and the references (FAILED)"
+               if n["disagree"] else ""))
 
 
 def attach_textures(scenes, dirs=()):
@@ -75,8 +77,12 @@ def lacks_texture(scene) -> bool:
 def load_supported(paths, explicit: bool, code27: str = "auto"):
     """(scenes, skipped): in the default list, course files rtval cannot read (an object kind
     it does not implement: "unsupported"; an error in the file itself: "malformed") are
-    skipped and listed; a bundled scene or a scene named explicitly must parse (its error is
-    raised)."""
+    skipped and listed, and so are files that rt_core's parser and the references' own
+    reader read differently, or that rt_core refuses as malformed where the references'
+    reader reads them ("disagree": a failure, ``failed_reading``; a review broke the
+    parser's reading of '-.5' and validate skipped 22 course files and passed); a bundled
+    scene or a scene named explicitly must parse (its error is raised)."""
+    from .agree import references_read
     scenes, skipped = [], []
     for p in paths:
         try:
@@ -84,8 +90,17 @@ def load_supported(paths, explicit: bool, code27: str = "auto"):
         except SceneError as e:
             if explicit or not is_course_scene(p):
                 raise
-            skipped.append(Skipped(str(p), str(e), e.category))
+            category, reason = e.category, str(e)
+            if category == "malformed" and references_read(p, code27):
+                category = "disagree"
+                reason += " (the references' own reader reads this file)"
+            skipped.append(Skipped(str(p), reason, category))
     return scenes, skipped
+
+
+def failed_reading(skipped) -> list:
+    """The skipped files the two readers read differently: failures of the run."""
+    return [s for s in skipped if s.category == "disagree"]
 
 
 def unique_stems(paths) -> dict:
@@ -457,4 +472,6 @@ def skip_case(s):
     """A skipped file's JUnit case: skipped, as the run passes without it (an error made CI
     red on a run that exited 0 and said PASS)."""
     from tools.harness.junit import Case
+    if s.category == "disagree":        # (a defect of a reader: a failure)
+        return Case(s.path, "rtval.validate.skipped", failure=s.reason)
     return Case(s.path, "rtval.validate.skipped", skipped=f"{s.category}: {s.reason}")
