@@ -332,12 +332,19 @@ class _Grid:
     sy: float
 
 
+def reference_rows(scene, columns: int) -> int:
+    """The notes' default row count, int(h/w·columns), computed here rather than by
+    rt_core."""
+    ww, wh = scene.window
+    return int(wh / ww * columns)
+
+
 def _grid(scene, columns: int, rows: int | None, sampling: str) -> _Grid:
     """The course's sample grid (notes: rows = int(h/w·columns) by default; corner samples
     are ww/(W−1) apart, centre samples ww/W), computed here rather than by rt_core."""
     ww, wh = scene.window
     if rows is None:
-        rows = int(wh / ww * columns)
+        rows = reference_rows(scene, columns)
     least = 2 if sampling == "corners" else 1
     if columns < least or rows < least:
         raise InputError(f"image {columns}x{rows} is too small for {sampling} sampling")

@@ -223,6 +223,22 @@ def test07b_a_course_file_read_differently_fails_validate(monkeypatch):
     assert {s.path for s in refused} - {s.path for s in failed} == {s.path for s in before}
 
 
+@pytest.mark.parametrize("command", ["compare", "compare --shaded", "validate"])
+def test07c_the_references_count_the_rows_themselves(command, monkeypatch, tmp_path, capsys):
+    """rt_core's default row count (its window's width and height swapped in the notes'
+    int(h/w·columns), a review) was handed to both sides, and validate passed; the
+    references' own rule now has to agree (exit 2, one line, where it does not)."""
+    from rt_core.scene import Scene
+    from tools.cli import main
+    monkeypatch.setattr(Scene, "default_rows",
+                        lambda self, columns: int(self.window[0] / self.window[1] * columns))
+    scene = str(REPO / "scenes" / "sphere.txt")
+    code = main(COMMANDS[command](scene, str(tmp_path / "x")))
+    out = capsys.readouterr()
+    assert code == 2 and "rt_core's camera gives 16 columns 21 rows where the references' " \
+        "own rule gives 12" in out.err, out
+
+
 def test08_both_readers_agree_on_every_scene():
     """Every bundled, test and course scene: the same numbers, kinds and forms to both."""
     from rt_core.scene import SceneError

@@ -125,3 +125,16 @@ def _x(v):
 def _show(v) -> str:
     return "(" + ", ".join(_show(c) if isinstance(c, tuple) else str(c) for c in v) + ")" \
         if isinstance(v, tuple) else str(v)
+
+
+def same_rows(scene, columns: int, rows, cam) -> None:
+    """ReadersDiffer where rows were not given and rt_core's camera (``cam``) has another
+    count than the references' own rule for the scene's window (mitsuba_ref.convert, the
+    notes' int(h/w·columns)): both sides would otherwise be handed rt_core's (a review: its
+    window's width and height swapped in that rule passed validate)."""
+    from mitsuba_ref.convert import reference_rows
+    if rows is None and cam.rows != reference_rows(scene, columns):
+        raise ReadersDiffer(f"rt_core's camera gives {columns} columns {cam.rows} rows where "
+                            f"the references' own rule gives "
+                            f"{reference_rows(scene, columns)}: please report the file",
+                            str(scene.path))

@@ -14,6 +14,7 @@ import numpy as np
 
 from rt_core import backend
 from rt_core.camera import make_camera
+from .agree import same_rows
 from rt_core.memory import compare_bytes, guard
 from rt_core.render import (DIRECTION_CHANNELS, provenance, to_images, trace_geometry,
                             write_images)
@@ -94,6 +95,7 @@ def compare(scene: Scene, columns: int, rows: int | None = None, precision: str 
         # kinds without a Mitsuba shape (cone, ellipsoid, torus) are left out on both sides
         scene, subset_note = mitsuba_subset(scene)
         cam = make_camera(scene, columns, rows, sampling)
+        same_rows(scene, columns, rows, cam)
         if not guarded:
             guard(lambda px: compare_bytes(px, precision), "compare", cam.columns, cam.rows)
         note = ""

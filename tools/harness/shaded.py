@@ -42,6 +42,7 @@ from rt_core.render import render_image
 from rt_core.rules import Rules
 from rt_core.scene import Scene
 from rt_core.shading import DEFAULT_MAX_DIST, quantize
+from .agree import same_rows
 from .check import COLORS as CHECK_COLORS
 from .timing import Stopwatch
 
@@ -181,6 +182,7 @@ def compare_shaded(scene: Scene, columns: int, rows: int | None = None,
         from mitsuba_ref.convert import mitsuba_subset
         scene, note = mitsuba_subset(scene, lambda k: k in SHADED_KINDS, inside=True)
         cam = make_camera(scene, columns, rows, sampling, rules)
+        same_rows(scene, columns, rows, cam)
         if not guarded:
             guard(lambda px: compare_bytes(px, "shaded"), "compare --shaded", cam.columns,
                   cam.rows)
