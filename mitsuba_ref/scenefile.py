@@ -1,11 +1,12 @@
 """The course scene format's numbers as written, read independently of rt_core's parser.
 
 Both dialects (notes/course-format.md): the keyword dialect (``pointlight``, ``sphere``,
-``plane``, ``fplane``, ``tplane`` and the forms of rt_core.kinds.FORMS; ``#`` comments; groups
-may wrap lines) and the numeric one (codes on their own line; every line ``numbers [free
-text]``, one group a line; cd's 9000/9001 header flags add a number after every MAT; nw's
-refraction index may follow the code).  Only the forms table (names, codes, field counts) is
-shared with rt_core: a table, not arithmetic.  The references read a scene only through this module, so a bug in rt_core's parser or
+``plane``, ``fplane``, ``tplane`` and the forms of mitsuba_ref/layouts.py; ``#`` comments;
+groups may wrap lines) and the numeric one (codes on their own line; every line ``numbers
+[free text]``, one group a line; cd's 9000/9001 header flags add a number after every MAT;
+nw's refraction index may follow the code).  The forms and code tables are the references'
+own (layouts.py): only the kinds' names are shared with rt_core.  The references read a
+scene only through this module, so a bug in rt_core's parser or
 scene model cannot pass a comparison with them.  Files must already be valid (rt_core's
 parser reports errors with file, line and column); this reader only extracts numbers and
 raises ``ValueError`` on what it cannot read.
@@ -22,8 +23,9 @@ from decimal import Decimal
 from fractions import Fraction
 
 from rt_core.inputfile import read_input
-from rt_core.kinds import (CODE_TABLES, FORMS, HEADER_FLAGS, KEYWORDS, KINDS, LIGHTS,
-                           SHARED_CODES, form_of_code, form_of_keyword)
+from rt_core.kinds import KINDS, LIGHTS
+from .layouts import (CODE_TABLES, FORMS, HEADER_FLAGS, KEYWORDS, SHARED_CODES, form_of_code,
+                      form_of_keyword)
 
 # number groups after the type token: (field, count); None = not geometry (materials)
 LAYOUT = {
@@ -123,7 +125,7 @@ def read_text(text: str, code27: str = "auto") -> File:
         try:
             return _numeric(lines, code27)
         except ValueError as first:
-            # another course year's code table (rt_core.kinds.CODE_TABLES): the first that
+            # another course year's code table (layouts.CODE_TABLES): the first that
             # reads the whole file
             for name, table in CODE_TABLES.items():
                 try:

@@ -239,6 +239,27 @@ def test07c_the_references_count_the_rows_themselves(command, monkeypatch, tmp_p
         "own rule gives 12" in out.err, out
 
 
+def test07d_the_references_read_the_layouts_of_their_own_table(monkeypatch):
+    """The references' reader has its own forms and code tables (mitsuba_ref/layouts.py): a
+    wrong group order in rt_core's (a review: the geometry-first light's emissivity read
+    where its centre is) read both sides the same wrong scene, and nw__a3t7 passed all five
+    comparisons.  Now the readers differ there."""
+    import rt_core.kinds as K
+    from mitsuba_ref import scenefile
+    from tools.harness.agree import ReadersDiffer, parse_agreed
+    for name in ("CODE_TABLES", "FORMS", "HEADER_FLAGS", "SHARED_CODES"):
+        assert getattr(scenefile, name) is not getattr(K, name), name
+    path = REPO.parent / "shared" / "course-scenes" / "numeric" / "nw__a3t7.txt"
+    if not path.is_file():
+        pytest.skip("../shared/course-scenes is not here")
+    parse_agreed(path)
+    table = dict(K.CODE_TABLES["geometry-first"])
+    table[10] = ("pointlight", ("emissivity", "radius", "center"))
+    monkeypatch.setitem(K.CODE_TABLES, "geometry-first", table)
+    with pytest.raises(ReadersDiffer):
+        parse_agreed(path)
+
+
 def test08_both_readers_agree_on_every_scene():
     """Every bundled, test and course scene: the same numbers, kinds and forms to both."""
     from rt_core.scene import SceneError
