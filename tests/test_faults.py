@@ -695,6 +695,17 @@ def test15f_a_second_signal_during_cleanup_is_noted(first, monkeypatch, capsys):
     from tools import cli, cmd_exr
     import rt_core.outputs as outputs
     monkeypatch.setattr(cli, "_SIGNALLED", [])
+    # (a test run started in the background by a non-interactive shell inherits SIGINT
+    # ignored, and Python then installs no KeyboardInterrupt for it: this test's SIGINT is
+    # the interactive one)
+    inherited = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        _second_signal(first, cli, cmd_exr, outputs, monkeypatch, capsys)
+    finally:
+        signal.signal(signal.SIGINT, inherited)
+
+
+def _second_signal(first, cli, cmd_exr, outputs, monkeypatch, capsys):
     done = []
 
     def stopped(args):
