@@ -223,6 +223,25 @@ def test07b_a_course_file_read_differently_fails_validate(monkeypatch):
     assert {s.path for s in refused} - {s.path for s in failed} == {s.path for s in before}
 
 
+def test07bb_validate_exits_1_on_a_course_file_read_differently(monkeypatch, tmp_path,
+                                                                  capsys):
+    """The command: such files are failures on stderr and in JUnit, the run exits 1."""
+    import rt_core.parser as P
+    from rt_core.scene import Num
+    from tools.cli import main
+    if not (REPO.parent / "shared" / "course-scenes").is_dir():
+        pytest.skip("../shared/course-scenes is not here")
+    monkeypatch.setattr(P, "Num", lambda text: Num(text.replace("-.", ".")))
+    junit = tmp_path / "v.xml"
+    code = main(["validate", "--columns", "8", "--shaded-columns", "0", "--mode", "rays",
+                 "--precision", "f32", "-o", str(tmp_path / "v"), "--junit", str(junit)])
+    err = capsys.readouterr().err
+    failed = err.count("FAILED (disagree): ")
+    assert code == 1 and failed >= 10, err[-2000:]
+    assert f"read differently by rt_core and the references (FAILED)): {failed} failed" in err
+    assert junit.read_text().count("<failure") == failed
+
+
 @pytest.mark.parametrize("command", ["compare", "compare --shaded", "validate"])
 def test07c_the_references_count_the_rows_themselves(command, monkeypatch, tmp_path, capsys):
     """rt_core's default row count (its window's width and height swapped in the notes'

@@ -63,8 +63,9 @@ def run(args) -> int:
     from rt_core.render import versions
     from tools.harness.parallel import plan_of
     from tools.harness.validate import (SERIAL_BUSY_CORES, check_memory, default_scene_paths,
-                                        load_supported, seconds_per_comparison, skip_counts,
-                                        row_stem, validate, write_report)
+                                        failed_reading, load_supported,
+                                        seconds_per_comparison, skip_counts, row_stem,
+                                        validate, write_report)
 
     from rt_core.outputs import check_dir_target, check_file_target
     if args.report:                     # refused before the run, not after it
@@ -125,7 +126,6 @@ def run(args) -> int:
     if page:
         print(f"report: {page}", file=sys.stderr)
     # (a file the two readers read differently fails the run as a failed comparison does)
-    from tools.harness.validate import failed_reading
     bad = [r for r in results if not r["ok"]] + failed_reading(skipped)
     from tools.harness.timing import split_line, time_split
     summary = (f"{len(results)} comparisons on {len(scenes)} scenes (skipped: "

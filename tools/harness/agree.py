@@ -133,8 +133,10 @@ def same_rows(scene, columns: int, rows, cam) -> None:
     notes' int(h/w·columns)): both sides would otherwise be handed rt_core's (a review: its
     window's width and height swapped in that rule passed validate)."""
     from mitsuba_ref.convert import reference_rows
-    if rows is None and cam.rows != reference_rows(scene, columns):
+    if rows is not None:
+        return
+    own = reference_rows(scene, columns)
+    if cam.rows != own:
         raise ReadersDiffer(f"rt_core's camera gives {columns} columns {cam.rows} rows where "
-                            f"the references' own rule gives "
-                            f"{reference_rows(scene, columns)}: please report the file",
+                            f"the references' own rule gives {own}: please report the file",
                             str(scene.path))

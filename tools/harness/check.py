@@ -658,8 +658,9 @@ def _can_matter(r: Renderer, name: str) -> bool:
         # parity as floor(OFF + u/w) where it is even (and OFF/h): the two differ then only
         # by rounding at tile borders, which a whole row or column can share, and a correct
         # tracer's borders were named this deviation (tiles 1 x 1, 0.5 x 1; a review)
-        return any(not all(q.denominator == 1 and q.numerator % 2 == 0
-                           for q in _tile_quotients(o)) for o in sc.objects if o.kind == "tplane")
+        even = lambda q: q.denominator == 1 and q.numerator % 2 == 0      # noqa: E731
+        return any(not all(map(even, _tile_quotients(o)))
+                   for o in sc.objects if o.kind == "tplane")
     if name == "clip_spheres":
         # a sphere reaching z >= 0, where the clip cuts (shapes.clip_ok: z > 0 literally,
         # as the C programs do, whichever side the viewpoint is on: a viewpoint at
