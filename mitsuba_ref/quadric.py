@@ -220,14 +220,44 @@ def _float(p, q, r) -> float:
 
 
 class Prep:
-    """A quadric's exact numbers relative to the viewpoint (exact.trace_exact)."""
+    """A quadric's exact numbers relative to the viewpoint (exact.trace_exact), and what a
+    ray's terms need of them as integers: with a = aI/La, the form
+    f(x, y) = Σ m_i x_i y_i − c (x·a)(y·a) is F(x, y)/Lm, F's coefficients mI and
+    cI = c·Lm/La² integers, and w0 = W0I/Lw, so that along V + t·D/Dd (D integers)
+    α = F(D, D)/(Lm·Dd²) and β/2 = F(D, W0I)/(Lm·Lw·Dd) take one fraction each (the
+    Fractions' arithmetic term by term took most of trace_exact's time)."""
 
     def __init__(self, obj, V, rules):
         self.obj, self.kind = obj, obj.kind
         f = fields(obj)
-        self.form = _form(obj.kind, f)
+        self.form = m, c, a, e, hh = _form(obj.kind, f)
         self.W0 = tuple(Fraction(v) - Fraction(c) for v, c in zip(V, f[0]))   # base − P
         self.Vz = Fraction(V[2])
+        a = tuple(Fraction(x) for x in a)
+        self.La = _lcm(*(x.denominator for x in a))
+        self.aI = tuple(int(x * self.La) for x in a)
+        ca = Fraction(c) / (self.La * self.La)
+        self.Lm = _lcm(*(Fraction(x).denominator for x in m), ca.denominator)
+        self.mI = tuple(int(Fraction(x) * self.Lm) for x in m)
+        self.cI = int(ca * self.Lm)
+        self.Lw = _lcm(*(x.denominator for x in self.W0))
+        self.W0I = tuple(int(x * self.Lw) for x in self.W0)
+        self.C = _mul(m, c, a, self.W0, self.W0) - e          # the ray's γ: its origin's
+        self.Wa = _dot(self.W0, a)
+
+    def terms(self, D, Dd):
+        """(α, β/2, d·a) of the ray V + t·D/Dd, exactly."""
+        mI, cI, aI, W = self.mI, self.cI, self.aI, self.W0I
+        Da = _dot(D, aI)
+        A = mI[0] * D[0] * D[0] + mI[1] * D[1] * D[1] + mI[2] * D[2] * D[2] - cI * Da * Da
+        B = (mI[0] * D[0] * W[0] + mI[1] * D[1] * W[1] + mI[2] * D[2] * W[2]
+             - cI * Da * _dot(W, aI))
+        return (Fraction(A, self.Lm * Dd * Dd), Fraction(B, self.Lm * self.Lw * Dd),
+                Fraction(Da, self.La * Dd))
+
+
+def _lcm(*xs) -> int:
+    return math.lcm(*xs)
 
 
 DECISIONS = ("outline", "t", "axis>=0", "axis<=h", "clip")
@@ -236,13 +266,11 @@ DECISIONS = ("outline", "t", "axis>=0", "axis<=h", "clip")
 def evaluate(p: Prep, D, Dd, rules):
     """((tn, td) or None, {decision: (passed, margin)}) for the ray V + t·D/Dd; t's ratio is
     the float64 value of the exact root as a fraction (for ordering and depth)."""
-    d = tuple(Fraction(c, Dd) for c in D)
     m, c, a, e, hh = p.form
-    A = _mul(m, c, a, d, d)
-    Bh = _mul(m, c, a, d, p.W0)                 # β/2
-    C = _mul(m, c, a, p.W0, p.W0) - e
+    A, Bh, da = p.terms(D, Dd)                  # α, β/2, d·a
+    C = p.C
     X = Bh * Bh - A * C
-    dd = _dot(d, d)
+    dd = Fraction(_dot(D, D), Dd * Dd)
     norm = float(dd) ** 0.5
     tests = {"outline": (X > 0, float(X / dd) if X else 0.0)}
     closed = hh is None
@@ -266,8 +294,7 @@ def evaluate(p: Prep, D, Dd, rules):
         if closed:
             res["axis>=0"] = res["axis<=h"] = (True, math.inf)
         else:
-            Wa, da = _dot(p.W0, a), _dot(d, a)
-            ya, yb = Wa + al * da, be * da          # w·a = ya + yb√X
+            ya, yb = p.Wa + al * da, be * da        # w·a = ya + yb√X
             s_lo = _sgn(ya, yb, X)
             s_hi = _sgn2(ya, yb, X, -1, hh)
             na = math.sqrt(float(_dot(a, a)))
@@ -275,9 +302,10 @@ def evaluate(p: Prep, D, Dd, rules):
             res["axis>=0"] = (s_lo >= 0, y)
             res["axis<=h"] = (s_hi <= 0, math.sqrt(float(hh)) / na - y)
         if rules.clip_spheres and rules.screen_clip != "off":
-            z = _sgn(p.Vz + al * d[2], be * d[2], X)
+            d2 = Fraction(D[2], Dd)
+            z = _sgn(p.Vz + al * d2, be * d2, X)
             ok = z < 0 or (z == 0 and rules.screen_clip == ">")
-            res["clip"] = (ok, -(float(p.Vz) + tv * float(d[2])))
+            res["clip"] = (ok, -(float(p.Vz) + tv * float(d2)))
         else:
             res["clip"] = (True, math.inf)
         if first is None:
