@@ -470,25 +470,35 @@ class ObjectVerdicts:
     cond: dict = field(default_factory=dict)   # decision or 't' -> S (N,)
     representable: dict = field(default_factory=dict)  # u -> every input exact in that precision
 
-    def ratio(self, name: str, u: float) -> np.ndarray:
-        """|margin| / (K·u·S): <= 1 means the decision may flip in that precision."""
+    def ratio(self, name: str, u: float, rays_exact: bool = True) -> np.ndarray:
+        """|margin| / (K·u·S): <= 1 means the decision may flip in that precision.
+        ``rays_exact``: the rays are the tracer's own (False: the ideal rays, which a tracer
+        computes with rounding)."""
         m = np.abs(self.margin[name])
         with np.errstate(divide="ignore", invalid="ignore"):
             r = m / (K_ROUNDING * u * self.cond[name])
         # a margin of exactly 0 on inputs that precision u represents exactly is decided by
-        # the rule, not by rounding: never within reach of it
-        zero = np.inf if self.representable.get(u, False) else 0.0
+        # the rule, not by rounding: never within reach of it -- if the tracer had the rays
+        # themselves (the ideal ray through a corner exactly on an edge is, to a float32
+        # camera, a rounded ray on either side of it: rm768__bowling's gutters at 97 columns)
+        zero = np.inf if rays_exact and self.representable.get(u, False) else 0.0
         return np.where(np.isinf(m), np.inf, np.where(m == 0, zero, np.nan_to_num(r, nan=0.0)))
 
     def risk(self, u: float) -> np.ndarray:
         """Per ray, how far the verdict is from flipping (<= 1: at risk): the nearest
         decision of a valid hit; for a miss, the farthest failed decision (all must flip)."""
+        return self.risk_by(u)[0]
+
+    def risk_by(self, u: float, rays_exact: bool = True) -> tuple:
+        """``risk`` and, per ray, the name of the decision it is (that nearest, or that
+        farthest failed one); ``rays_exact`` as ``ratio``'s."""
         names = list(self.margin)
-        R = np.stack([self.ratio(k, u) for k in names])
+        R = np.stack([self.ratio(k, u, rays_exact) for k in names])
         P = np.stack([self.passed[k] for k in names])
-        lose = np.min(R, axis=0)
-        gain = np.max(np.where(P, 0.0, R), axis=0)
-        return np.where(self.valid, lose, gain)
+        lose = np.argmin(R, axis=0)
+        gain = np.argmax(np.where(P, 0.0, R), axis=0)
+        which = np.where(self.valid, lose, gain)
+        return R[which, np.arange(R.shape[1])], np.asarray(names, object)[which]
 
     @property
     def kappa_t(self) -> np.ndarray:
@@ -520,23 +530,34 @@ class ExactResult:
         precision u?  True where it agrees; where it does not, True if a decision of either
         object involved (the exact winner, the tracer's) is within K·u·S of its threshold, or
         the two lie at the same depth within their bounds (a tie)."""
+        return np.array([w is not None for w in self.reasons(other_id, u)], bool)
+
+    def reasons(self, other_id: np.ndarray, u: float, rays_exact: bool = True) -> np.ndarray:
+        """Per ray, why a tracer's answer ``other_id`` is within reach of rounding in
+        precision u (``explained``): "" where it agrees, else the name of the decision
+        within reach (of the exact winner first, then of the tracer's object), or "tie";
+        None where nothing excuses it.  ``rays_exact``: the rays traced here are the
+        tracer's own (False: the ideal rays, which its camera rounds)."""
         other_id = np.asarray(other_id).astype(np.int64)
-        ok = other_id == self.id
-        bad = np.nonzero(~ok)[0]
+        out = np.full(len(other_id), "", object)
+        bad = np.nonzero(other_id != self.id)[0]
         if not len(bad):
-            return ok
-        risks = [ob.risk(u) for ob in self.objects]
-        out = ok.copy()
+            return out
+        risks = [ob.risk_by(u, rays_exact) for ob in self.objects]
         for r in bad:
-            ids = {i for i in (int(self.id[r]), int(other_id[r])) if i >= 0}
-            if any(risks[i][r] <= 1.0 for i in ids):
-                out[r] = True
+            out[r] = None
+            ids = [i for i in dict.fromkeys((int(self.id[r]), int(other_id[r]))) if i >= 0]
+            if not ids or max(ids) >= len(self.objects):    # (no such object: unexcused)
+                continue
+            near = [risks[i][1][r] for i in ids if risks[i][0][r] <= 1.0]
+            if near:
+                out[r] = near[0]
                 continue
             if len(ids) == 2:
-                a, b = self.objects[int(self.id[r])], self.objects[int(other_id[r])]
+                a, b = self.objects[ids[0]], self.objects[ids[1]]
                 gap = abs(_tq_diff(a.tq[r], b.tq[r]))
                 if gap <= K_ROUNDING * u * (a.cond["t"][r] + b.cond["t"][r]):
-                    out[r] = True
+                    out[r] = "tie"
         return out
 
 

@@ -35,6 +35,11 @@ def add_parser(sub) -> None:
                    help="also compare each scene's shaded course image with Mitsuba's 'course' "
                         "integrator at N columns (rtval compare --shaded; default 48; 0: off; "
                         "about 2 s a scene, mostly Mitsuba's kernel launches)")
+    p.add_argument("--exact-columns", type=int, default=48, metavar="N",
+                   help="also compare each scene that has objects Mitsuba has no shape for "
+                        "(cone, ellipsoid, torus: left out of the Mitsuba comparisons), every "
+                        "object, with the exact oracle at N columns, in each precision (rtval "
+                        "compare --mode exact; default 48; 0: off; 0.4-1.2 s a scene)")
     p.add_argument("--evidence", choices=("failures", "all"), default="failures",
                    help="EXRs of the failing comparisons only (default), or also ours and "
                         "Mitsuba's of every passing one (under DIR/exr)")
@@ -85,29 +90,33 @@ def run(args) -> int:
     for s in skipped:
         print(f"{'FAILED' if s.category == 'disagree' else 'skipped'} ({s.category}): "
               f"{s.reason}", file=sys.stderr)
+    from tools.harness.exact_compare import needs_exact
+    exact = sum(map(needs_exact, scenes)) if args.exact_columns > 0 else 0
     total = len(scenes) * (len(precisions) * len(modes) + (args.shaded_columns > 0)) \
-        - sum(s.category == "texture" for s in skipped)
+        + exact * len(precisions) - sum(s.category == "texture" for s in skipped)
     plan = plan_of(args).resolve(total, seconds_per_comparison(args.columns), SERIAL_BUSY_CORES)
     if sys.stderr.isatty():
         bar = tqdm(total=total, file=sys.stderr, unit="cmp")
         progress, done = (lambda row: bar.update(1)), bar.close
     else:                       # a log (CI): a plain line every tenth of the way
         progress, done = _log_progress(total), (lambda: None)
-    if args.shaded_columns < 0 or args.shaded_columns == 1:
-        from rt_core.errors import InputError
-        raise InputError(f"--shaded-columns {args.shaded_columns}: give 0 (off) or a width of "
-                         "at least 2")
+    for option, cols in (("--shaded-columns", args.shaded_columns),
+                         ("--exact-columns", args.exact_columns)):
+        if cols < 0 or cols == 1:
+            from rt_core.errors import InputError
+            raise InputError(f"{option} {cols}: give 0 (off) or a width of at least 2")
     # (validate() checks too, for its other callers; here it comes before evidence_run
     # removes an earlier run's evidence)
-    check_memory(scenes, args.columns, precisions, args.shaded_columns)
+    check_memory(scenes, args.columns, precisions, args.shaded_columns, args.exact_columns)
     from tools.harness.validate import evidence_run
     with evidence_run(args.output):     # a run stopped while it reports leaves no evidence
         results = validate(scenes, args.columns, precisions, modes, args.output,
                            progress=progress, evidence=args.evidence,
                            shaded_columns=args.shaded_columns, pictures=bool(args.report),
-                           plan=plan)
+                           plan=plan, exact_columns=args.exact_columns, code27=args.code27)
         done()
         meta = dict(columns=args.columns, backend="llvm", reference="mitsuba llvm_ad_rgb",
+                    exact_columns=args.exact_columns,
                     **versions(), ran=plan.describe())
         from rt_core.outputs import together
         page = None

@@ -167,21 +167,28 @@ def compare(scene: Scene, columns: int, rows: int | None = None, precision: str 
                       + ("; rt_core shared with another mode" if shared else ""))
 
 
-EVIDENCE = ("ours", "mitsuba", "diff", "classes")
+EVIDENCE = ("ours", "reference", "diff", "classes")
 
 
 def write_evidence(cmp: Comparison, outdir: str, stem: str, which=EVIDENCE) -> list[str]:
     """EXRs of ours, the reference, their difference and the classes (or the ones named in
-    ``which``); returns the paths written."""
+    ``which``); returns the paths written.  The reference's file is named for it:
+    ``STEM.mitsuba.exr``, or ``STEM.exact.exr`` for a comparison with the exact oracle
+    (tools/harness/exact_compare.py)."""
     cam = make_camera(cmp.scene, cmp.columns, cmp.rows, cmp.sampling)
+    if cmp.mode == "exact":
+        from .exact_compare import REFERENCE
+        ref_name, reference = "exact", REFERENCE
+    else:
+        ref_name, reference = "mitsuba", "mitsuba " + _mitsuba_version() + " llvm_ad_rgb"
     attrs = provenance(cmp.scene, cam, cmp.precision, cmp.backend, cmp.rules, mode=cmp.mode,
-                       reference="mitsuba " + _mitsuba_version() + " llvm_ad_rgb")
+                       reference=reference)
     legend = ", ".join(f"{i}={c}" for i, c in enumerate(CLASSES))
     images = {
         "ours": (cmp.ours, {}),
-        "mitsuba": (cmp.ref, {}),
+        "reference": (cmp.ref, {}),
         "diff": ({k: np.abs(cmp.ours[k].astype(np.float64) - cmp.ref[k]) for k in cmp.ours},
-                 {"rtval.image": "|ours - mitsuba|"}),
+                 {"rtval.image": f"|ours - {ref_name}|"}),
         "classes": ({"class.id": cmp.classes,
                      "class.unexplained": cmp.classes == CLASS_CODE["unexplained"]},
                     {"rtval.classes": legend}),
@@ -189,6 +196,7 @@ def write_evidence(cmp: Comparison, outdir: str, stem: str, which=EVIDENCE) -> l
     paths = []
     for name in which:
         imgs, extra = images[name]
+        name = ref_name if name == "reference" else name
         path = os.path.join(outdir, f"{stem}.{name}.exr")
         write_images(path, imgs, {**attrs, "rtval.image": name, **extra})
         paths.append(path)

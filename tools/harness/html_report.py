@@ -73,7 +73,7 @@ def _check_palette():
 @functools.lru_cache(None)
 def palette(name: str) -> tuple:
     """The classes of a kind of comparison ("geometry", "shaded", "check") in code order."""
-    if name == "geometry":
+    if name in ("geometry", "exact"):
         from mitsuba_ref.explain import CLASSES
         assert tuple(c for c, *_ in GEOMETRY_PALETTE) == CLASSES
         return GEOMETRY_PALETTE
@@ -163,7 +163,7 @@ class Pictures:
 def comparison_pictures(cmp) -> Pictures:
     """The pictures of a ``compare`` comparison (tools/harness/compare.py: the geometry, in
     object colours) or a shaded one (tools/harness/shaded.py: the 8-bit course images);
-    the reference is Mitsuba's."""
+    the reference is Mitsuba's, or the exact oracle's (tools/harness/exact_compare.py)."""
     text = {"rtval.scene": str(cmp.scene.path), "rtval.scene_sha256": cmp.scene.sha256 or ""}
     if hasattr(cmp, "theirs"):                          # ShadedComparison
         return Pictures.make("shaded", cmp.theirs, cmp.ours, cmp.classes,
@@ -174,10 +174,13 @@ def comparison_pictures(cmp) -> Pictures:
           for im in (cmp.ref, cmp.ours)]
     ts = np.concatenate([t[np.isfinite(t) & (t > 0)] for t in ts])
     lo, hi = (float(ts.min()), float(ts.max())) if len(ts) else (1.0, 1.0)
-    return Pictures.make("geometry", geometry_picture(cmp.ref, lo, hi),
+    exact = cmp.mode == "exact"             # (tools/harness/exact_compare.py)
+    if exact:
+        from .exact_compare import REFERENCE
+    return Pictures.make("exact" if exact else "geometry", geometry_picture(cmp.ref, lo, hi),
                          geometry_picture(cmp.ours, lo, hi), cmp.classes,
                          {**text, "rtval.mode": cmp.mode, "rtval.precision": cmp.precision,
-                          "rtval.reference": "mitsuba llvm_ad_rgb",
+                          "rtval.reference": REFERENCE if exact else "mitsuba llvm_ad_rgb",
                           "rtval.picture": "object id colour, brighter nearer (log depth), "
                                            "black: miss"})
 
@@ -304,7 +307,8 @@ def comparison_row(row: dict, rows_given: int | None = None) -> Row:
                    f"{d['max_rel']:.3g} on {d['pixels']} same-object pixels, "
                    f"{d['over_bound']} over their bound")
         details = [row["note"]] if row.get("note") else []
-    details.append(f"rt_core {row['rt_core_ms']:.1f} ms, Mitsuba {row['mitsuba_ms']:.1f} ms")
+    reference = "the exact oracle" if row["mode"] == "exact" else "Mitsuba"
+    details.append(f"rt_core {row['rt_core_ms']:.1f} ms, {reference} {row['mitsuba_ms']:.1f} ms")
     return Row(title, "pass" if row["ok"] else "fail", summary, details,
                row.get("pictures"), counts, list(row.get("evidence", [])),
                compare_command(row, rows_given))
@@ -362,10 +366,13 @@ def check_rows(results, **command) -> tuple[list, list]:
 # --- the page ------------------------------------------------------------------------------------
 
 LEGEND_TITLES = {"geometry": "classes of the geometry comparisons (mask, object id, depth)",
+                 "exact": "classes of the comparisons with the exact oracle (mask, object "
+                          "id, depth)",
                  "shaded": "classes of the shaded comparisons (8-bit course image)",
                  "check": "classes of your tracer's pixels"}
 LABELS = {   # (reference, ours) per kind of comparison
     "geometry": ("Mitsuba (reference)", "rt_core (ours)"),
+    "exact": ("exact oracle (reference)", "rt_core (ours)"),
     "shaded": ("Mitsuba course integrator (reference)", "rt_core f64 (ours)"),
     "check": ("rt_core f64 (reference)", "your tracer (theirs)"),
 }

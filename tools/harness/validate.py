@@ -153,6 +153,7 @@ class Job:
     columns: int
     keep_all: bool = False
     pictures: bool = False       # the rows get their PNGs for the HTML report
+    code27: str = "auto"         # how the scene's file was read (the exact oracle reads it)
 
     @property
     def mode(self) -> str:
@@ -160,27 +161,37 @@ class Job:
 
 
 def jobs(scenes, columns: int, precisions, modes, evidence: str = "failures",
-         shaded_columns: int = 0, pictures: bool = False) -> list:
-    """The run's jobs: per scene, one per precision (its modes together), then the shaded
-    course image."""
+         shaded_columns: int = 0, pictures: bool = False, exact_columns: int = 0,
+         code27: str = "auto") -> list:
+    """The run's jobs: per scene, one per precision (its modes together), then, where the
+    scene has objects Mitsuba has no shape for, one per precision against the exact oracle
+    (tools/harness/exact_compare.py), then the shaded course image."""
+    from .exact_compare import needs_exact
     out = []
     for scene in scenes:
         for precision in precisions:
             out.append(Job(scene, tuple(modes), precision, columns,
                            evidence == "all" and precision == precisions[0], pictures))
+        if exact_columns and needs_exact(scene):
+            out += [Job(scene, ("exact",), precision, exact_columns,
+                        evidence == "all" and precision == precisions[0], pictures, code27)
+                    for precision in precisions]
         if shaded_columns and not lacks_texture(scene):
             out.append(Job(scene, ("shaded",), "f64", shaded_columns, pictures=pictures))
     return out
 
 
-def check_memory(scenes, columns: int, precisions, shaded_columns: int) -> None:
+def check_memory(scenes, columns: int, precisions, shaded_columns: int,
+                 exact_columns: int = 0) -> None:
     """The run's largest comparison of each kind against the memory there is: InputError
-    naming the option to lower (``--columns``, ``--shaded-columns``)."""
+    naming the option to lower (``--columns``, ``--shaded-columns``, ``--exact-columns``)."""
     from rt_core.camera import make_camera
     from rt_core.memory import compare_bytes, guard
+    top = "f64" if "f64" in precisions else "f32"
     for cols, key, what, option in (
-            (columns, "f64" if "f64" in precisions else "f32", "compare", "--columns"),
-            (shaded_columns, "shaded", "compare --shaded", "--shaded-columns")):
+            (columns, top, "compare", "--columns"),
+            (shaded_columns, "shaded", "compare --shaded", "--shaded-columns"),
+            (exact_columns, top, "compare --mode exact", "--exact-columns")):
         if cols > 0 and scenes:
             rows = max(make_camera(s, cols).rows for s in scenes)
             guard(lambda px: compare_bytes(px, key), what, cols, rows, option=option)
@@ -253,6 +264,10 @@ def run_job(job: Job) -> list:
         if mode == "shaded":
             from tools.harness.shaded import compare_shaded
             cmp = compare_shaded(job.scene, job.columns, guarded=guarded)
+        elif mode == "exact":
+            from tools.harness.exact_compare import compare_exact
+            cmp = compare_exact(job.scene, job.columns, job.precision, code27=job.code27,
+                                guarded=guarded)
         else:
             # one call a side: validate checks, rtval bench times (a second call of each
             # was a fifth of the run)
@@ -274,7 +289,7 @@ def run_job(job: Job) -> list:
 
 def validate(scenes, columns: int, precisions, modes, outdir: str, progress=None,
              evidence: str = "failures", shaded_columns: int = 0, plan=None,
-             pictures: bool = False):
+             pictures: bool = False, exact_columns: int = 0, code27: str = "auto"):
     """Run every comparison (``plan``: where, tools/harness/parallel.py; default in this
     process); write the evidence EXRs under ``outdir``: of every failing comparison (ours,
     Mitsuba, difference, classes, in ``failures/``) and, with ``evidence="all"``, ours and
@@ -284,6 +299,10 @@ def validate(scenes, columns: int, precisions, modes, outdir: str, progress=None
     ``shaded_columns`` > 0: each scene's course image is also compared with Mitsuba's
     (``rtval compare --shaded``, tools/harness/shaded.py) at that width; the evidence PNGs of
     a failing one go to ``failures/`` too.
+
+    ``exact_columns`` > 0: each scene with objects Mitsuba has no shape for (cone, ellipsoid,
+    torus) is also compared, every object, with the exact oracle at that width and each
+    precision (tools/harness/exact_compare.py; ``code27``: how its file was read).
 
     ``pictures``: each row also gets "pictures", its PNGs for the HTML report
     (tools/harness/html_report.py, made where the comparison ran; ``public`` drops them
@@ -296,12 +315,12 @@ def validate(scenes, columns: int, precisions, modes, outdir: str, progress=None
     The run's largest comparison of each kind is checked against the memory there is before
     any runs (InputError naming the option to lower); each comparison then skips its own
     check, but on a Dask worker."""
-    check_memory(scenes, columns, precisions, shaded_columns)
+    check_memory(scenes, columns, precisions, shaded_columns, exact_columns)
     _free()                 # (what an earlier run in this process left is not this run's)
     try:
         with evidence_run(outdir):
             return _validate(scenes, columns, precisions, modes, outdir, progress, evidence,
-                             shaded_columns, pictures, plan)
+                             shaded_columns, pictures, plan, exact_columns, code27)
     finally:
         _free()
 
@@ -333,10 +352,11 @@ def evidence_run(outdir: str):
 
 
 def _validate(scenes, columns, precisions, modes, outdir, progress, evidence, shaded_columns,
-              pictures, plan):
+              pictures, plan, exact_columns=0, code27="auto"):
     """``validate``'s comparisons, once the output directory is ready."""
     from tools.harness.parallel import SERIAL, run_cases
-    todo = jobs(scenes, columns, precisions, modes, evidence, shaded_columns, pictures)
+    todo = jobs(scenes, columns, precisions, modes, evidence, shaded_columns, pictures,
+                exact_columns, code27)
     stems = unique_stems([s.path for s in scenes])
 
     def each(i, outs):
@@ -355,7 +375,7 @@ def _validate(scenes, columns, precisions, modes, outdir, progress, evidence, sh
                 row["evidence"] = (write_evidence(cmp, os.path.join(outdir, "failures"), stem)
                                    if not cmp.ok else
                                    write_evidence(cmp, os.path.join(outdir, "exr"), stem,
-                                                  ("ours", "mitsuba")))
+                                                  ("ours", "reference")))
             row["seconds"]["write"] += round(time.perf_counter() - t0, 4)
             if progress:
                 progress(row)
@@ -365,8 +385,9 @@ def _validate(scenes, columns, precisions, modes, outdir, progress, evidence, sh
     done = run_cases(run_job, todo, plan or SERIAL, each,
                      seconds_per_case=per_job * seconds_per_comparison(columns),
                      busy_cores=SERIAL_BUSY_CORES)
-    # report order: per scene, every mode and precision (as given), then the shaded image
-    order = {m: k for k, m in enumerate((*modes, "shaded"))}
+    # report order: per scene, every mode and precision (as given), then the exact oracle's,
+    # then the shaded image
+    order = {m: k for k, m in enumerate((*modes, "exact", "shaded"))}
     prec = {p: k for k, p in enumerate(precisions)}
     keyed = [(n, order[r["mode"]], prec.get(todo[n].precision, 0), r)
              for n, rows in enumerate(done) for r in rows]
@@ -402,8 +423,12 @@ def write_report(results, skipped, outdir: str, meta: dict) -> tuple[str, str]:
              "Mitsuba intersects rt_core's exact rays; `camera` = Mitsuba's own perspective "
              "sensor. A disagreement is explained only within a float32 error bound of an edge,"
              " tie, the screen clip, a sphere outline or the reference plane's extent "
-             "(mitsuba_ref/explain.py). The times (ms) are of one call of each side, "
-             "finding (or compiling) its kernels included; `rtval bench` measures speed.", "",
+             "(mitsuba_ref/explain.py). Mode `exact`: scenes with objects Mitsuba has no "
+             "shape for (cone, ellipsoid, torus), every object against the exact oracle "
+             "(tools/harness/exact_compare.py; float64 must match it everywhere, float32 "
+             "within K·u·S of a decision); its reference ms are the oracle's. The times (ms) "
+             "are of one call of each side, finding (or compiling) its kernels included; "
+             "`rtval bench` measures speed.", "",
              " ".join(f"{k}={v}" for k, v in meta.items()), "",
              "| scene | mode | prec | pixels | explained | unexplained | depth max rel | "
              "over bound | rt_core ms | Mitsuba ms |",
