@@ -495,10 +495,12 @@ class ObjectVerdicts:
         names = list(self.margin)
         R = np.stack([self.ratio(k, u, rays_exact) for k in names])
         P = np.stack([self.passed[k] for k in names])
-        lose = np.argmin(R, axis=0)
-        gain = np.argmax(np.where(P, 0.0, R), axis=0)
+        G = np.where(P, -np.inf, R)         # (a miss: its failed decisions only)
+        lose, gain = np.argmin(R, axis=0), np.argmax(G, axis=0)
+        cols = np.arange(R.shape[1])
         which = np.where(self.valid, lose, gain)
-        return R[which, np.arange(R.shape[1])], np.asarray(names, object)[which]
+        return (np.where(self.valid, R[lose, cols], np.maximum(G[gain, cols], 0.0)),
+                np.asarray(names, object)[which])
 
     @property
     def kappa_t(self) -> np.ndarray:
@@ -532,12 +534,15 @@ class ExactResult:
         the two lie at the same depth within their bounds (a tie)."""
         return np.array([w is not None for w in self.reasons(other_id, u)], bool)
 
-    def reasons(self, other_id: np.ndarray, u: float, rays_exact: bool = True) -> np.ndarray:
+    def reasons(self, other_id: np.ndarray, u: float, rays_exact: bool = True,
+                reach: bool = False) -> np.ndarray:
         """Per ray, why a tracer's answer ``other_id`` is within reach of rounding in
         precision u (``explained``): "" where it agrees, else the name of the decision
         within reach (of the exact winner first, then of the tracer's object), or "tie";
         None where nothing excuses it.  ``rays_exact``: the rays traced here are the
-        tracer's own (False: the ideal rays, which its camera rounds)."""
+        tracer's own (False: the ideal rays, which its camera rounds).  ``reach``: the
+        tracer's answer itself must be what flips within reach give (``_reached``), not
+        merely an answer on a ray where some decision is near."""
         other_id = np.asarray(other_id).astype(np.int64)
         out = np.full(len(other_id), "", object)
         bad = np.nonzero(other_id != self.id)[0]
@@ -546,19 +551,57 @@ class ExactResult:
         risks = [ob.risk_by(u, rays_exact) for ob in self.objects]
         for r in bad:
             out[r] = None
-            ids = [i for i in dict.fromkeys((int(self.id[r]), int(other_id[r]))) if i >= 0]
-            if not ids or max(ids) >= len(self.objects):    # (no such object: unexcused)
+            i, j = int(self.id[r]), int(other_id[r])
+            if not -1 <= j < len(self.objects):             # (no such object: unexcused)
                 continue
-            near = [risks[i][1][r] for i in ids if risks[i][0][r] <= 1.0]
+            if reach:
+                out[r] = self._reached(r, j, risks, u)
+                continue
+            ids = [k for k in dict.fromkeys((i, j)) if k >= 0]
+            near = [risks[k][1][r] for k in ids if risks[k][0][r] <= 1.0]
             if near:
                 out[r] = near[0]
-                continue
-            if len(ids) == 2:
-                a, b = self.objects[ids[0]], self.objects[ids[1]]
-                gap = abs(_tq_diff(a.tq[r], b.tq[r]))
-                if gap <= K_ROUNDING * u * (a.cond["t"][r] + b.cond["t"][r]):
-                    out[r] = "tie"
+            elif len(ids) == 2 and self._tie(r, i, j, u):
+                out[r] = "tie"
         return out
+
+    def _tie(self, r: int, a: int, b: int, u: float) -> bool:
+        """Do objects a and b, both hit on ray r (exactly: a miss's t has no meaning, and
+        its condition near its outline is unbounded), lie at the same depth within their
+        bounds?"""
+        A, B = self.objects[a], self.objects[b]
+        if not (A.valid[r] and B.valid[r]) or A.tq[r] is None or B.tq[r] is None:
+            return False
+        gap = abs(_tq_diff(A.tq[r], B.tq[r]))
+        return bool(gap <= K_ROUNDING * u * (A.cond["t"][r] + B.cond["t"][r]))
+
+    def _reached(self, r: int, j: int, risks: list, u: float):
+        """The decision by which a tracer's answer j (−1: a miss) on ray r is within reach:
+        j, if it misses exactly, must be able to flip to a hit, and every object hit
+        exactly in front of j (all of them, for a miss) must be able to flip to a miss or
+        tie with j.  The first such decision in depth order (the exact winner's first);
+        None if one of them cannot."""
+        obs = self.objects
+        tj, own = math.inf, []
+        if j >= 0:
+            if not obs[j].valid[r]:
+                if risks[j][0][r] > 1.0:
+                    return None
+                own = [risks[j][1][r]]
+            if math.isfinite(obs[j].t[r]):
+                tj = obs[j].t[r]
+        front = sorted((obs[k].t[r], k) for k in range(len(obs))
+                       if k != j and obs[k].valid[r] and not obs[k].t[r] > tj)
+        why = []
+        for _, k in front:
+            if risks[k][0][r] <= 1.0:
+                why.append(risks[k][1][r])
+            elif j >= 0 and self._tie(r, k, j, u):
+                why.append("tie")
+            else:
+                return None
+        why += own
+        return why[0] if why else None
 
 
 def _representable(xs: XScene, obj: XObject, u: float) -> bool:

@@ -32,7 +32,8 @@ from tools.harness.exact_compare import compare_exact, needs_exact
 REPO = Path(__file__).resolve().parents[1]
 COURSE = REPO.parent / "shared" / "course-scenes"
 PRECISIONS = ["f32", "f64"]
-SCENES = [("scenes/torus.txt", "torus"), ("numeric/nw__conetest.txt", "cone"),
+SCENES = [("scenes/torus.txt", "torus"), ("scenes/cones.txt", "cone"),
+          ("numeric/nw__conetest.txt", "cone"),
           ("numeric/nw__cone-sphere.txt", "cone"), ("keyword/rm768__bowling.txt", "ellipsoid")]
 
 
@@ -109,6 +110,18 @@ def test03_a_fault_in_rt_cores_cone_kernel_fails(precision, monkeypatch):
     assert cmp.depth["over_bound"] > 0          # (the cone's pixels both sides hit)
 
 
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test03b_an_unnormalised_axis_in_rt_cores_frame_fails(precision, monkeypatch):
+    """A review's survivor: the course's scenes give their cones unit axes along x or y,
+    so a frame built from the centerline as written passed them all; scenes/cones.txt's
+    tilted, unnormalised centerlines do not."""
+    real = shapes_quadric._frame
+    monkeypatch.setattr(shapes_quadric, "_frame", lambda axis: (
+        *real(axis)[:2], tuple(float(c) for c in axis)))
+    cmp = compare_exact(parse_agreed(REPO / "scenes" / "cones.txt"), 48, precision)
+    assert not cmp.ok and cmp.counts["unexplained"] > 100, cmp.counts
+
+
 TANGENT = """8 6
 0 0 5
 
@@ -177,6 +190,87 @@ def test04b_float64_is_never_excused(tmp_path):
     assert classes["f64"][centre] == CLASS_CODE["unexplained"]
     for p in PRECISIONS:
         assert (np.delete(classes[p], centre) == CLASS_CODE["agree"]).all()
+
+
+def test04e_compare_asks_for_the_answers_own_reach(tmp_path, monkeypatch):
+    """compare_exact's float32 excuses are ``reasons`` for ideal rays with the tracer's
+    answer reachable (test04c, test04d), not the looser rule of a tracer's own rays."""
+    from mitsuba_ref.exact import ExactResult
+    path = _tangent(tmp_path)
+    scene = parse_agreed(path)
+    o = scene.objects[0]
+    seen = []
+    real = ExactResult.reasons
+
+    def spy(self, other_id, u, rays_exact=True, reach=False):
+        seen.append((rays_exact, reach))
+        return real(self, other_id, u, rays_exact, reach)
+    monkeypatch.setattr(ExactResult, "reasons", spy)
+    for grow in (1 - 1e-7, 1 + 1e-7):           # (one of them flips the tangent pixel)
+        flipped = dataclasses.replace(scene, objects=(dataclasses.replace(
+            o, axes=(o.axes[0] * grow, *o.axes[1:])),))
+        compare_exact(flipped, 9, "f32", rows=7)
+    assert seen == [(False, True)]
+
+
+def test04c_a_miss_is_never_a_tie():
+    """A review's false pass: an ellipsoid that rt_core hits where it exactly misses, far
+    from its outline, was excused as a "tie" with the floor behind it (a miss's t has an
+    unbounded condition near the outline: 1e149), so an outline test widened 2¹⁶-fold, or
+    dropped, passed float32 on both ellipsoid scenes.  A tie needs both objects hit."""
+    path = COURSE / "keyword" / "rm768__ellipsoid_bullets.txt"
+    _need(path)
+    xs = parse_exact(path.read_text())
+    scene = parse_agreed(path)
+    W, H = 48, scene.default_rows(48)
+    rays, d = ideal_rays(xs.window, xs.viewpoint, W, H, range(W * H))
+    ex = trace_exact(xs, d, rays=rays)
+    u = U["f32"]
+    checked = 0
+    for k, o in enumerate(xs.objects):
+        if o.kind != "ellipsoid":
+            continue
+        risk = ex.objects[k].risk_by(u, rays_exact=False)[0]
+        far = np.flatnonzero(~ex.objects[k].valid & (risk > 1) & (ex.id >= 0) & (ex.id != k))
+        other = ex.id.copy()
+        other[far] = k
+        why = ex.reasons(other, u, rays_exact=False, reach=True)
+        assert all(w is None for w in why[far]), set(why[far])
+        assert not ex.explained(other, u)[far].any()
+        checked += len(far)
+    assert checked > 1000
+
+
+def test04d_the_tracers_own_answer_must_be_reachable():
+    """A decision of the exact winner within reach excuses only the answers its flip can
+    give: the next object hit behind it, or a miss where nothing else is hit; not any
+    object at all.  (The bottom row of ellipsoid_bullets hits its floor exactly at z = 0,
+    the clip's threshold: the object behind is excused there, an object that misses the
+    ray by far is not.)"""
+    path = COURSE / "keyword" / "rm768__ellipsoid_bullets.txt"
+    _need(path)
+    xs = parse_exact(path.read_text())
+    scene = parse_agreed(path)
+    W, H = 48, scene.default_rows(48)
+    rays, d = ideal_rays(xs.window, xs.viewpoint, W, H, range(W * H))
+    ex = trace_exact(xs, d, rays=rays)
+    u = U["f32"]
+    risks = [ob.risk_by(u, rays_exact=False) for ob in ex.objects]
+    # rays whose exact winner may flip, the next object hit behind it firmly
+    near, behind, far = [], ex.id.copy(), ex.id.copy()
+    for r in range(W * H):
+        i = ex.id[r]
+        if i < 0 or risks[i][0][r] > 1:
+            continue
+        hits = sorted((ob.t[r], k) for k, ob in enumerate(ex.objects) if ob.valid[r])
+        misses = [k for k, ob in enumerate(ex.objects) if not ob.valid[r] and risks[k][0][r] > 1]
+        if len(hits) < 2 or risks[hits[1][1]][0][r] <= 1 or not misses:
+            continue
+        near.append(r)
+        behind[r], far[r] = hits[1][1], misses[0]
+    assert len(near) >= 10, len(near)
+    assert all(w is not None for w in ex.reasons(behind, u, False, reach=True)[near])
+    assert all(w is None for w in ex.reasons(far, u, False, reach=True)[near])
 
 
 def test05_a_failing_comparison_writes_the_exact_oracles_evidence(tmp_path):

@@ -114,7 +114,7 @@ def compare_exact(scene: Scene, columns: int, precision: str = "f32", rules: Rul
             classes[bad] = CLASS_CODE["unexplained"]
             if precision != "f64":      # float64 decides exactly: nothing to excuse
                 # (the ideal rays, not rt_core's rounded ones: a zero margin is within reach)
-                why = ex.reasons(ids, u, rays_exact=False)
+                why = ex.reasons(ids, u, rays_exact=False, reach=True)
                 for r in bad:
                     if why[r] is not None:
                         classes[r] = CLASS_CODE[DECISION_CLASS.get(why[r], "edge")]
