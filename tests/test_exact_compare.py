@@ -32,13 +32,13 @@ from tools.harness.exact_compare import compare_exact, needs_exact
 REPO = Path(__file__).resolve().parents[1]
 COURSE = REPO.parent / "shared" / "course-scenes"
 PRECISIONS = ["f32", "f64"]
-SCENES = [("scenes/torus.txt", "torus"), ("scenes/cones.txt", "cone"),
+SCENES = [("scenes/torus.txt", "torus"), ("tests/scenes/cones.txt", "cone"),
           ("numeric/nw__conetest.txt", "cone"),
           ("numeric/nw__cone-sphere.txt", "cone"), ("keyword/rm768__bowling.txt", "ellipsoid")]
 
 
 def _path(name: str) -> Path:
-    return REPO / name if name.startswith("scenes/") else COURSE / name
+    return REPO / name if name.startswith(("scenes/", "tests/")) else COURSE / name
 
 
 def _need(path: Path):
@@ -113,12 +113,13 @@ def test03_a_fault_in_rt_cores_cone_kernel_fails(precision, monkeypatch):
 @pytest.mark.parametrize("precision", PRECISIONS)
 def test03b_an_unnormalised_axis_in_rt_cores_frame_fails(precision, monkeypatch):
     """A review's survivor: the course's scenes give their cones unit axes along x or y,
-    so a frame built from the centerline as written passed them all; scenes/cones.txt's
-    tilted, unnormalised centerlines do not."""
+    so a frame built from the centerline as written passed them all; tests/scenes/cones.txt's
+    tilted, unnormalised centerlines do not.  (Not among the bundled scenes: the float64
+    oracles flag more of its pixels for float32 than their tests allow, README.)"""
     real = shapes_quadric._frame
     monkeypatch.setattr(shapes_quadric, "_frame", lambda axis: (
         *real(axis)[:2], tuple(float(c) for c in axis)))
-    cmp = compare_exact(parse_agreed(REPO / "scenes" / "cones.txt"), 48, precision)
+    cmp = compare_exact(parse_agreed(REPO / "tests" / "scenes" / "cones.txt"), 48, precision)
     assert not cmp.ok and cmp.counts["unexplained"] > 100, cmp.counts
 
 

@@ -173,7 +173,10 @@ def write_evidence(stem, ours, orc, fl) -> list[str]:
         ch[f"ours.{c}"] = ours[..., i]
         ch[f"oracle.{c}"] = orc["I"][..., i]
         ch[f"diff.{c}"] = np.abs(ours[..., i] - orc["I"][..., i])
-    ch.update({f"flag.{k}": v.astype(np.float32) for k, v in fl.items()})
+    for k, v in fl.items():            # (a per-channel flag: one EXR channel each)
+        v = np.asarray(v, np.float32)
+        ch.update({f"flag.{k}": v} if v.ndim == 2 else
+                  {f"flag.{k}.{c}": v[..., i] for i, c in enumerate("RGB")})
     path = os.path.join(d, f"{stem}.exr")
     write_exr(path, ch)
     return [path]
