@@ -531,7 +531,7 @@ class ExactResult:
         """Per ray: is a tracer's answer ``other_id`` (-1 = miss) within reach of rounding in
         precision u?  True where it agrees; where it does not, True if a decision of either
         object involved (the exact winner, the tracer's) is within K·u·S of its threshold, or
-        the two lie at the same depth within their bounds (a tie)."""
+        the two, both hit, lie at the same depth within their bounds (a tie)."""
         return np.array([w is not None for w in self.reasons(other_id, u)], bool)
 
     def reasons(self, other_id: np.ndarray, u: float, rays_exact: bool = True,
