@@ -470,18 +470,15 @@ class ObjectVerdicts:
     cond: dict = field(default_factory=dict)   # decision or 't' -> S (N,)
     representable: dict = field(default_factory=dict)  # u -> every input exact in that precision
 
-    def ratio(self, name: str, u: float, rays_exact: bool = True) -> np.ndarray:
-        """|margin| / (K·u·S): <= 1 means the decision may flip in that precision.
-        ``rays_exact``: the rays are the tracer's own (False: the ideal rays, which a tracer
-        computes with rounding)."""
+    def ratio(self, name: str, u: float) -> np.ndarray:
+        """|margin| / (K·u·S): <= 1 means the decision may flip in that precision."""
         m = np.abs(self.margin[name])
         with np.errstate(divide="ignore", invalid="ignore"):
             r = m / (K_ROUNDING * u * self.cond[name])
         # a margin of exactly 0 on inputs that precision u represents exactly is decided by
-        # the rule, not by rounding: never within reach of it -- if the tracer had the rays
-        # themselves (the ideal ray through a corner exactly on an edge is, to a float32
-        # camera, a rounded ray on either side of it: rm768__bowling's gutters at 97 columns)
-        zero = np.inf if rays_exact and self.representable.get(u, False) else 0.0
+        # the rule, not by rounding: never within reach of it (trace_exact: on the tracer's
+        # own rays only)
+        zero = np.inf if self.representable.get(u, False) else 0.0
         return np.where(np.isinf(m), np.inf, np.where(m == 0, zero, np.nan_to_num(r, nan=0.0)))
 
     def risk(self, u: float) -> np.ndarray:
@@ -489,11 +486,11 @@ class ObjectVerdicts:
         decision of a valid hit; for a miss, the farthest failed decision (all must flip)."""
         return self.risk_by(u)[0]
 
-    def risk_by(self, u: float, rays_exact: bool = True) -> tuple:
+    def risk_by(self, u: float) -> tuple:
         """``risk`` and, per ray, the name of the decision it is (that nearest, or that
-        farthest failed one); ``rays_exact`` as ``ratio``'s."""
+        farthest failed one)."""
         names = list(self.margin)
-        R = np.stack([self.ratio(k, u, rays_exact) for k in names])
+        R = np.stack([self.ratio(k, u) for k in names])
         P = np.stack([self.passed[k] for k in names])
         G = np.where(P, -np.inf, R)         # (a miss: its failed decisions only)
         lose, gain = np.argmin(R, axis=0), np.argmax(G, axis=0)
@@ -534,13 +531,11 @@ class ExactResult:
         the two, both hit, lie at the same depth within their bounds (a tie)."""
         return np.array([w is not None for w in self.reasons(other_id, u)], bool)
 
-    def reasons(self, other_id: np.ndarray, u: float, rays_exact: bool = True,
-                reach: bool = False) -> np.ndarray:
+    def reasons(self, other_id: np.ndarray, u: float, reach: bool = False) -> np.ndarray:
         """Per ray, why a tracer's answer ``other_id`` is within reach of rounding in
         precision u (``explained``): "" where it agrees, else the name of the decision
         within reach (of the exact winner first, then of the tracer's object), or "tie";
-        None where nothing excuses it.  ``rays_exact``: the rays traced here are the
-        tracer's own (False: the ideal rays, which its camera rounds).  ``reach``: the
+        None where nothing excuses it.  ``reach``: the
         tracer's answer itself must be what flips within reach give (``_reached``), not
         merely an answer on a ray where some decision is near."""
         other_id = np.asarray(other_id).astype(np.int64)
@@ -548,7 +543,7 @@ class ExactResult:
         bad = np.nonzero(other_id != self.id)[0]
         if not len(bad):
             return out
-        risks = [ob.risk_by(u, rays_exact) for ob in self.objects]
+        risks = [ob.risk_by(u) for ob in self.objects]
         for r in bad:
             out[r] = None
             i, j = int(self.id[r]), int(other_id[r])
@@ -631,7 +626,12 @@ def trace_exact(xs: XScene, d: np.ndarray, rules: Rules = Rules(), rays=None) ->
     """The exact closest hit of every ray from the viewpoint along ``d`` ((N, 3) float32 or
     float64, taken exactly as given), or along the exact ``rays`` (a list of integer
     triples D with a common denominator, as ``(D, Dd)``; ``d`` then only serves the
-    conditions: pass the rays rounded, see ``ideal_rays``)."""
+    conditions: pass the rays rounded, see ``ideal_rays``).  A decision exactly at its
+    threshold on numbers exact in a precision is the rule's only along the rays a tracer
+    traced itself (``d``): the exact ``rays`` are ideal ones, which a tracer's camera rounds
+    to either side of an edge they meet exactly (rm768__bowling's gutters at 97 columns),
+    so there no object counts as representable (ObjectVerdicts.ratio)."""
+    ideal = rays is not None
     d = np.asarray(d)
     n = len(d)
     V = xs.viewpoint
@@ -659,8 +659,8 @@ def trace_exact(xs: XScene, d: np.ndarray, rules: Rules = Rules(), rays=None) ->
         ov.cond = (torus_conditions(p, d.astype(np.float64)) if p.kind == "torus" else
                    _conditions(p.obj, V, d.astype(np.float64), rules))
         # (a quadric's decisions take square roots: exact inputs do not make them exact)
-        ov.representable = {u: _representable(xs, p.obj, u) and p.kind not in quadric.KINDS
-                            for u in U.values()}
+        ov.representable = {} if ideal else {
+            u: _representable(xs, p.obj, u) and p.kind not in quadric.KINDS for u in U.values()}
         verdicts.append(ov)
     hit = np.zeros(n, bool)
     ids = np.full(n, -1, np.int64)

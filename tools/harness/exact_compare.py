@@ -18,7 +18,7 @@ kernels is shared.
   silhouette, a rectangle's, rim's, triangle's or axial bound's or t's test an edge, the
   screen clip a clip, a plane parallel to the ray a graze).  Else ``unexplained``.  A
   margin of exactly 0 is within reach too: the ideal ray hits the edge exactly, but
-  rt_core's camera rounds it (``reasons(rays_exact=False)``).
+  rt_core's camera rounds it (``trace_exact`` on ideal rays).
 * depth: where both hit the same object, |t − t*|/t* <= K·u·κ_t (κ_t: the relative
   condition number of the exact t), else ``over_bound``.
 """
@@ -113,8 +113,9 @@ def compare_exact(scene: Scene, columns: int, precision: str = "f32", rules: Rul
         if len(bad):
             classes[bad] = CLASS_CODE["unexplained"]
             if precision != "f64":      # float64 decides exactly: nothing to excuse
-                # (the ideal rays, not rt_core's rounded ones: a zero margin is within reach)
-                why = ex.reasons(ids, u, rays_exact=False, reach=True)
+                # (on the ideal rays, not rt_core's rounded ones, a zero margin is within
+                # reach: trace_exact)
+                why = ex.reasons(ids, u, reach=True)
                 for r in bad:
                     if why[r] is not None:
                         classes[r] = CLASS_CODE[DECISION_CLASS.get(why[r], "edge")]
