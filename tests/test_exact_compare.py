@@ -329,3 +329,35 @@ def test07_compare_mode_exact(tmp_path):
     assert r.returncode == 0, r.stderr
     assert "exact  f64 12x9: agree=108" in r.stdout and r.stdout.rstrip().endswith(
         "1 comparison, no unexplained pixel, depth within its bound"), r.stdout
+
+
+def test08_a_job_carries_its_files_bytes(tmp_path):
+    """validate's exact jobs carry the scene file's bytes (a Dask worker elsewhere has no
+    file to read), and the comparison reads those; without them it reads the file (a file
+    gone: the OSError naming it, which the CLI reports in one line)."""
+    from tools.harness.validate import jobs, run_job
+    path = tmp_path / "torus.txt"
+    path.write_bytes((REPO / "scenes" / "torus.txt").read_bytes())
+    scene = parse_agreed(path)
+    todo = [j for j in jobs([scene], 16, ("f32", "f64"), ("rays",), exact_columns=12)
+            if j.modes == ("exact",)]
+    assert [j.precision for j in todo] == ["f32", "f64"]
+    assert all(j.source == path.read_bytes() for j in todo)
+    path.unlink()
+    (row, _), = run_job(todo[1])
+    assert row["mode"] == "exact" and row["ok"] and row["classes"]["agree"] == row["pixels"]
+    with pytest.raises(OSError) as info:
+        compare_exact(scene, 12, "f64", rows=9, sampling="centers")
+    assert str(path) in str(info.value)
+
+
+@pytest.mark.parametrize("args", [["validate", "scenes/torus.txt", "--exact-columns", "600"],
+                                  ["compare", "scenes/torus.txt", "--mode", "exact",
+                                   "--columns", "600"]])
+def test09_too_large_an_exact_image_is_refused_in_one_line(tmp_path, args):
+    """600 columns (270,000 pixels of torus.txt's 4:3 window) would keep the exact oracle's
+    rational arithmetic busy for minutes a scene: refused before any work, exit 2."""
+    r = _rtval(*args, "-o" if args[0] == "validate" else "--evidence", tmp_path / "o")
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip().count("\n") == 0 and "600 x 450 pixels" in r.stderr, r.stderr
+    assert not (tmp_path / "o").exists()

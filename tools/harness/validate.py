@@ -6,7 +6,7 @@ import os
 import sys
 import time
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from tools.harness.agree import parse_agreed
@@ -154,6 +154,7 @@ class Job:
     keep_all: bool = False
     pictures: bool = False       # the rows get their PNGs for the HTML report
     code27: str = "auto"         # how the scene's file was read (the exact oracle reads it)
+    source: bytes | None = field(default=None, repr=False)   # its bytes: the exact oracle
 
     @property
     def mode(self) -> str:
@@ -166,16 +167,17 @@ def jobs(scenes, columns: int, precisions, modes, evidence: str = "failures",
     """The run's jobs: per scene, one per precision (its modes together), then, where the
     scene has objects Mitsuba has no shape for, one per precision against the exact oracle
     (tools/harness/exact_compare.py), then the shaded course image."""
-    from .exact_compare import needs_exact
+    from .exact_compare import needs_exact, scene_source
     out = []
     for scene in scenes:
         for precision in precisions:
             out.append(Job(scene, tuple(modes), precision, columns,
                            evidence == "all" and precision == precisions[0], pictures))
         if exact_columns and needs_exact(scene):
+            source = scene_source(scene)
             out += [Job(scene, ("exact",), precision, exact_columns,
-                        evidence == "all" and precision == precisions[0], pictures, code27)
-                    for precision in precisions]
+                        evidence == "all" and precision == precisions[0], pictures, code27,
+                        source) for precision in precisions]
         if shaded_columns and not lacks_texture(scene):
             out.append(Job(scene, ("shaded",), "f64", shaded_columns, pictures=pictures))
     return out
@@ -183,8 +185,10 @@ def jobs(scenes, columns: int, precisions, modes, evidence: str = "failures",
 
 def check_memory(scenes, columns: int, precisions, shaded_columns: int,
                  exact_columns: int = 0) -> None:
-    """The run's largest comparison of each kind against the memory there is: InputError
-    naming the option to lower (``--columns``, ``--shaded-columns``, ``--exact-columns``)."""
+    """The run's largest comparison of each kind against the memory there is, and its
+    largest exact one against the exact oracle's pixels (exact_compare.check_size):
+    InputError naming the option to lower (``--columns``, ``--shaded-columns``,
+    ``--exact-columns``)."""
     from rt_core.camera import make_camera
     from rt_core.memory import compare_bytes, guard
     top = "f64" if "f64" in precisions else "f32"
@@ -195,6 +199,11 @@ def check_memory(scenes, columns: int, precisions, shaded_columns: int,
         if cols > 0 and scenes:
             rows = max(make_camera(s, cols).rows for s in scenes)
             guard(lambda px: compare_bytes(px, key), what, cols, rows, option=option)
+    from .exact_compare import check_size, needs_exact
+    exact = [s for s in scenes if needs_exact(s)] if exact_columns > 0 else []
+    if exact:
+        check_size(exact_columns, max(make_camera(s, exact_columns).rows for s in exact),
+                   "--exact-columns")
 
 
 def seconds_per_comparison(columns: int) -> float:
@@ -267,7 +276,7 @@ def run_job(job: Job) -> list:
         elif mode == "exact":
             from tools.harness.exact_compare import compare_exact
             cmp = compare_exact(job.scene, job.columns, job.precision, code27=job.code27,
-                                guarded=guarded)
+                                guarded=guarded, source=job.source)
         else:
             # one call a side: validate checks, rtval bench times (a second call of each
             # was a fifth of the run)
