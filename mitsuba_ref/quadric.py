@@ -234,30 +234,27 @@ class Prep:
         self.W0 = tuple(Fraction(v) - Fraction(c) for v, c in zip(V, f[0]))   # base − P
         self.Vz = Fraction(V[2])
         a = tuple(Fraction(x) for x in a)
-        self.La = _lcm(*(x.denominator for x in a))
+        self.La = math.lcm(*(x.denominator for x in a))
         self.aI = tuple(int(x * self.La) for x in a)
         ca = Fraction(c) / (self.La * self.La)
-        self.Lm = _lcm(*(Fraction(x).denominator for x in m), ca.denominator)
+        self.Lm = math.lcm(*(Fraction(x).denominator for x in m), ca.denominator)
         self.mI = tuple(int(Fraction(x) * self.Lm) for x in m)
         self.cI = int(ca * self.Lm)
-        self.Lw = _lcm(*(x.denominator for x in self.W0))
+        self.Lw = math.lcm(*(x.denominator for x in self.W0))
         self.W0I = tuple(int(x * self.Lw) for x in self.W0)
+        self.WaI = _dot(self.W0I, self.aI)
         self.C = _mul(m, c, a, self.W0, self.W0) - e          # the ray's γ: its origin's
         self.Wa = _dot(self.W0, a)
 
     def terms(self, D, Dd):
         """(α, β/2, d·a) of the ray V + t·D/Dd, exactly."""
-        mI, cI, aI, W = self.mI, self.cI, self.aI, self.W0I
-        Da = _dot(D, aI)
+        mI, cI, W = self.mI, self.cI, self.W0I
+        Da = _dot(D, self.aI)
         A = mI[0] * D[0] * D[0] + mI[1] * D[1] * D[1] + mI[2] * D[2] * D[2] - cI * Da * Da
         B = (mI[0] * D[0] * W[0] + mI[1] * D[1] * W[1] + mI[2] * D[2] * W[2]
-             - cI * Da * _dot(W, aI))
+             - cI * Da * self.WaI)
         return (Fraction(A, self.Lm * Dd * Dd), Fraction(B, self.Lm * self.Lw * Dd),
                 Fraction(Da, self.La * Dd))
-
-
-def _lcm(*xs) -> int:
-    return math.lcm(*xs)
 
 
 DECISIONS = ("outline", "t", "axis>=0", "axis<=h", "clip")
