@@ -6,7 +6,9 @@ For the ray V + t·d with d = D/Dd exactly (integers) and the numbers as written
 
     F(t) = |A|²·(|w|² + R² − r²)² − 4R²·(|A|²·|w|² − (w·A)²),
 
-has rational coefficients.  Its real roots in (0, ∞) are isolated on its square-free part by
+has rational coefficients; ``torus_poly`` computes a positive integer multiple of it in
+integers, and its square-free part is itself wherever a gcd modulo a prime shows it (no
+Fraction arithmetic on the common path).  Its real roots in (0, ∞) are isolated on its square-free part by
 bisection with Descartes' rule of signs (the sign variations of (1 + x)ⁿ·p((a + b·x)/(1 + x))
 count the roots in (a, b) up to an even number: 0 and 1 are exact answers).  The hit is the
 smallest t > 0 where F changes sign (a tangency, touching without crossing, is a miss).  It is
@@ -59,7 +61,8 @@ def _divmod(a, b):
 
 
 def _gcd(a, b):
-    a, b = _trim(a), _trim(b)
+    """The monic gcd (Fractions) of two polynomials (integer or rational coefficients)."""
+    a, b = _trim([Fraction(c) for c in a]), _trim([Fraction(c) for c in b])
     while any(b):
         a, b = b, _divmod(a, b)[1]
     return [c / a[-1] for c in a]
@@ -255,30 +258,77 @@ def _sep(a, b) -> int:
 
 
 def torus_poly(Q, A, R, r, D, Dd):
-    """F(t) along V + t·D/Dd (Q = centre − V, A the axis as written), lowest degree first."""
-    d = tuple(Fraction(c, Dd) for c in D)
-    AA = sum(c * c for c in A)
-    dd = sum(c * c for c in d)
-    qd = sum(q * c for q, c in zip(Q, d))
-    w2 = [sum(c * c for c in Q), -2 * qd, dd]                  # |w|²
-    wa = [-sum(q * a for q, a in zip(Q, A)), sum(c * a for c, a in zip(d, A))]   # w·A
-    s = _padd(w2, [R * R - r * r])
-    F = _padd([AA * c for c in _pmul(s, s)], [-4 * R * R * AA * c for c in w2],
-              [4 * R * R * c for c in _pmul(wa, wa)])
-    return _trim(F)
+    """F(t) along V + t·D/Dd (Q = centre − V, A the axis as written), lowest degree first, as
+    (G, K): integer coefficients G = K·F, K > 0 an integer (so G has F's roots and signs, and
+    G[i]/K is F's coefficient rounded once).  Computed in integers: with L clearing the
+    denominators of Q, R, r and La those of A, w' = L·w = σ·D − L·Q for σ = t·L/Dd, and
+    F'(σ) = L⁴·La²·F(t) has integer coefficients; G(t) = Dd⁴·F'(t·L/Dd)."""
+    L = 1
+    for c in (*Q, R, r):
+        L = math.lcm(L, Fraction(c).denominator)
+    La = 1
+    for c in A:
+        La = math.lcm(La, Fraction(c).denominator)
+    q = [int(c * L) for c in Q]
+    a = [int(c * La) for c in A]
+    R2, r2 = int(R * L) ** 2, int(r * L) ** 2
+    AA = sum(c * c for c in a)
+    w2 = [sum(c * c for c in q), -2 * sum(x * y for x, y in zip(q, D)),
+          sum(c * c for c in D)]                                    # |w'|² in σ
+    wa = [-sum(x * y for x, y in zip(q, a)), sum(x * y for x, y in zip(D, a))]  # w'·A'
+    s0 = w2[0] + R2 - r2
+    s = (s0, w2[1], w2[2])
+    ss = (s0 * s0, 2 * s0 * s[1], s[1] * s[1] + 2 * s0 * s[2], 2 * s[1] * s[2], s[2] * s[2])
+    wawa = (wa[0] * wa[0], 2 * wa[0] * wa[1], wa[1] * wa[1])
+    Fs = [AA * ss[i] - 4 * R2 * AA * (w2[i] if i < 3 else 0) +
+          4 * R2 * (wawa[i] if i < 3 else 0) for i in range(5)]
+    G = _trim([c * L ** i * Dd ** (4 - i) for i, c in enumerate(Fs)])
+    return G, Dd ** 4 * L ** 4 * La ** 2
+
+
+def _squarefree(G):
+    """The square-free part of the integer polynomial G (lowest degree first): G itself where
+    gcd(G, G') = 1, which its image modulo the prime P shows (P does not divide G's leading
+    coefficient, so a common factor over the rationals would stay one of the same degree
+    modulo P); else by Euclid in Fractions."""
+    lead = G[-1] % _P
+    if lead and len(_gcd_mod(G, [i * G[i] for i in range(1, len(G))])) == 1:
+        return G
+    dG = [i * G[i] for i in range(1, len(G))]
+    return _divmod([Fraction(c) for c in G], _gcd(G, dG))[0]
+
+
+_P = (1 << 61) - 1          # a prime
+
+
+def _gcd_mod(a, b):
+    """gcd of two integer polynomials modulo _P (monic, lowest degree first)."""
+    a, b = _trim([c % _P for c in a]), _trim([c % _P for c in b])
+    while any(b):
+        inv = pow(b[-1], -1, _P)
+        a = list(a)
+        while len(a) >= len(b) and any(a):
+            c = a[-1] * inv % _P
+            k = len(a) - len(b)
+            for i, y in enumerate(b):
+                a[i + k] = (a[i + k] - c * y) % _P
+            a.pop()
+            a = _trim(a) if a else [0]
+        a, b = b, a
+    return a
 
 
 def first_crossing(F):
     """The smallest t > 0 at which F changes sign, as a TorusT, or None."""
     if len(F) < 2:
         return None
-    dF = [i * F[i] for i in range(1, len(F))]
-    sf = _divmod(F, _gcd(F, dF))[0]
+    Fi = _ints(F)                                        # (a positive multiple: same roots)
+    sf = _squarefree(Fi)
     if len(sf) < 2:
         return None
-    bound = 1 + max(abs(c / sf[-1]) for c in sf[:-1])      # every root below it
+    bound = 1 + max(abs(Fraction(c) / sf[-1]) for c in sf[:-1])   # every root below it
     e = max(1, math.ceil(math.log2(bound)) + 1)
-    si, Fi = _ints(sf), _ints(F)
+    si = _ints(sf)
     q = [c << (e * i) for i, c in enumerate(si)]           # sf(2^e·x): roots in (0, 1)
     out = []
     _roots01(q, 0, 0, e, out)
@@ -321,9 +371,9 @@ def eval_torus(p, D, Dd, rules):
             p.torus_info = []
         p.torus_info.append((0.0, gap, 1.0, 0.0))
         return None, {"crossing": (False, -gap)}
-    F = torus_poly(Q, A, R, r, D, Dd)
-    hit = first_crossing(F)
-    margin, tc, cos = _margin(F, Q, A, R, r, D, Dd, hit)
+    G, K = torus_poly(Q, A, R, r, D, Dd)
+    hit = first_crossing(G)
+    margin, tc, cos = _margin([c / K for c in G], Q, A, R, r, D, Dd, hit)
     if not hasattr(p, "torus_info"):
         p.torus_info = []
     p.torus_info.append((tc, margin, cos, float(hit[0]) / hit[1] if hit is not None else 0.0))
@@ -343,7 +393,7 @@ def _margin(F, Q, A, R, r, D, Dd, hit):
     """(min |F(t_c)|/|∇F(t_c)| over F's critical points t_c in (0, hit), that t_c, the
     cosine of the hit's incidence), floats."""
     d = [c / Dd for c in D]
-    fF = [float(c) for c in F]
+    fF = [float(c) for c in F]      # (F: floats already, F's coefficients rounded once)
     crit = [float(z.real) for z in _np_roots(list(reversed(
         [i * fF[i] for i in range(1, len(fF))]))) if abs(z.imag) <= 1e-9 * (1 + abs(z))]
     th = float(hit[0]) / float(hit[1]) if hit is not None else math.inf

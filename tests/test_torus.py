@@ -214,6 +214,45 @@ def test08_exact_roots_compare_exactly():
     assert te.first_crossing(F([1, -1], [1, -1], [4, 1])) is None
 
 
+def test08b_oracle_polynomial_in_integers():
+    """mitsuba_ref/torus_exact.py computes F in integers (G = K·F, K > 0) and takes G as its
+    own square-free part where gcd(G, G') is 1 modulo a prime: G/K is the equation written
+    in Fractions, and the square-free part is Euclid's in Fractions, with repeated factors
+    and without."""
+    from mitsuba_ref import torus_exact as te
+    rnd = random.Random(8)
+
+    def dec():
+        return Fraction(rnd.randint(-3000, 3000), rnd.choice([1, 10, 100, 1000]))
+
+    for _ in range(200):
+        Q, A = tuple(dec() for _ in range(3)), tuple(dec() or 1 for _ in range(3))
+        R, r = abs(dec()) + 1, abs(dec()) / 7 + Fraction(1, 10)
+        D = tuple(rnd.randint(-2 ** 40, 2 ** 40) for _ in range(3))
+        Dd = rnd.randint(1, 2 ** 45)
+        d = [Fraction(c, Dd) for c in D]
+        w2 = [sum(c * c for c in Q), -2 * sum(q * c for q, c in zip(Q, d)),
+              sum(c * c for c in d)]
+        wa = [-sum(q * a for q, a in zip(Q, A)), sum(c * a for c, a in zip(d, A))]
+        AA = sum(c * c for c in A)
+        s = [w2[0] + R * R - r * r, w2[1], w2[2]]
+        want = [AA * c for c in _poly_product(s, s)]
+        for i in range(3):
+            want[i] += -4 * R * R * AA * w2[i] + 4 * R * R * _poly_product(wa, wa)[i]
+        G, K = te.torus_poly(Q, A, R, r, D, Dd)
+        assert K > 0 and all(isinstance(c, int) for c in G)
+        assert [Fraction(c, K) for c in G] == want
+    for factors in ([[1, -1], [1, -1], [-3, 1], [5, 1]], [[-2, 0, 1], [-5, 1], [1, 1]],
+                    [[7, 3], [7, 3], [7, 3], [-1, 2]], [[-2, 0, 1], [-2, 0, 1]]):
+        G = [int(c) for c in _poly_product(*factors)]
+        dG = [i * G[i] for i in range(1, len(G))]
+        want = te._divmod([Fraction(c) for c in G], te._gcd(G, dG))[0]
+        got = te._squarefree(G)
+        # the same polynomial up to a positive factor
+        assert len(got) == len(want) and all(
+            Fraction(g) * want[-1] == w * got[-1] for g, w in zip(got, want))
+
+
 def _poly_product(*factors):
     out = [Fraction(1)]
     for f in factors:
