@@ -682,24 +682,33 @@ def trace_exact(xs: XScene, d: np.ndarray, rules: Rules = Rules(), rays=None) ->
 
 def _offsets(window, viewpoint, columns: int, rows: int, pixels, sampling: str):
     """Exact world − viewpoint of the given pixels (image order, top row first) as integer
-    triples with one common positive denominator: (list of triples, denominator)."""
+    triples with one common positive denominator, the least (each component reduced): (list
+    of triples, denominator)."""
     ww, wh = (Fraction(c) for c in window)
     vx, vy, vz = (Fraction(c) for c in viewpoint)
+    # world − viewpoint is affine in the pixel's column x and row y: x·sx + ox, y·sy + oy
+    if sampling == "corners":
+        sx, sy = ww / (columns - 1), wh / (rows - 1)        # (one column: no corner grid)
+        ox, oy = -ww / 2 - vx, -wh / 2 - vy
+    else:
+        sx, sy = ww / columns, wh / rows
+        ox, oy = sx / 2 - ww / 2 - vx, sy / 2 - wh / 2 - vy
+    sx, sy, oz = Fraction(sx), Fraction(sy), -vz
+    # every value over M (integers), then over the least common denominator of the values
+    # present: M/g, g the gcd of M and every numerator
+    M = math.lcm(*(c.denominator for c in (sx, ox, sy, oy, oz)))
+    ax, bx, ay, by = (int(c * M) for c in (sx, ox, sy, oy))
+    z = int(oz * M)
     out = []
+    g = math.gcd(M, z)
     for i in pixels:
         r, x = divmod(int(i), columns)
-        y = rows - 1 - r
-        if sampling == "corners":
-            wx = Fraction(x, columns - 1) * ww - ww / 2
-            wy = Fraction(y, rows - 1) * wh - wh / 2
-        else:
-            wx = Fraction(2 * x + 1, 2 * columns) * ww - ww / 2
-            wy = Fraction(2 * y + 1, 2 * rows) * wh - wh / 2
-        out.append((wx - vx, wy - vy, -vz))
-    L = 1
-    for e in out:
-        L = math.lcm(L, *(c.denominator for c in e))
-    return [tuple(int(c * L) for c in e) for e in out], L
+        e = (x * ax + bx, (rows - 1 - r) * ay + by, z)
+        g = math.gcd(g, e[0], e[1])
+        out.append(e)
+    if g > 1:
+        out = [(a // g, b // g, c // g) for a, b, c in out]
+    return out, M // g
 
 
 def camera_offsets(window, viewpoint, columns: int, rows: int, sampling: str = "corners"):

@@ -110,6 +110,40 @@ def test03_edge_samples_are_exact(text, W, H, precision):
     assert (wy[0, :] == rnd(wh / 2 - vy) * scale).all()
 
 
+def test03c_ideal_rays_are_the_course_samples_over_their_least_denominator():
+    """The exact oracle's ideal rays (integers E over one L, computed affinely in integers)
+    are the course's samples written out in Fractions, world − viewpoint of each pixel, and
+    L is the least denominator of the values present: whole images and a few pixels, both
+    samplings, numbers as written (decimals, floats taken exactly, integers)."""
+    from fractions import Fraction as Fr
+    from math import lcm
+    rnd = random.Random(4)
+
+    def num():
+        return rnd.choice([Fr(rnd.randint(-900, 900), rnd.choice([1, 10, 100, 7, 3])),
+                           float(rnd.uniform(-5, 5)), rnd.randint(-4, 4)])
+
+    for k in range(60):
+        window, view = (abs(num()) + 1, abs(num()) + 1), (num(), num(), num())
+        W, H = rnd.randint(2, 30), rnd.randint(2, 30)
+        ww, wh = (Fr(c) for c in window)
+        vx, vy, vz = (Fr(c) for c in view)
+        pixels = range(W * H) if k % 2 else sorted(rnd.sample(range(W * H), 3))
+        for sampling in ("corners", "centers"):
+            want = []
+            for i in pixels:
+                r, x = divmod(i, W)
+                y = H - 1 - r
+                if sampling == "corners":
+                    wx, wy = Fr(x, W - 1) * ww - ww / 2, Fr(y, H - 1) * wh - wh / 2
+                else:
+                    wx, wy = Fr(2 * x + 1, 2 * W) * ww - ww / 2, Fr(2 * y + 1, 2 * H) * wh - wh / 2
+                want.append((wx - vx, wy - vy, -vz))
+            rays, _ = ideal_rays(window, view, W, H, pixels, sampling)
+            assert [tuple(Fr(c, L) for c in E) for E, L in rays] == want
+            assert rays[0][1] == lcm(*(c.denominator for e in want for c in e))
+
+
 def test03b_offsets_cache_keys_numbers_as_written():
     """primary_offsets' host numbers are kept per scene numbers *as written*: two windows
     that are the same float64 but different decimals give the offsets each gives with
