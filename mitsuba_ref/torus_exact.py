@@ -260,30 +260,43 @@ def _sep(a, b) -> int:
 def torus_poly(Q, A, R, r, D, Dd):
     """F(t) along V + t·D/Dd (Q = centre − V, A the axis as written), lowest degree first, as
     (G, K): integer coefficients G = K·F, K > 0 an integer (so G has F's roots and signs, and
-    G[i]/K is F's coefficient rounded once).  Computed in integers: with L clearing the
-    denominators of Q, R, r and La those of A, w' = L·w = σ·D − L·Q for σ = t·L/Dd, and
-    F'(σ) = L⁴·La²·F(t) has integer coefficients; G(t) = Dd⁴·F'(t·L/Dd)."""
+    G[i]/K is F's coefficient rounded once)."""
     L = 1
     for c in (*Q, R, r):
         L = math.lcm(L, Fraction(c).denominator)
     La = 1
     for c in A:
         La = math.lcm(La, Fraction(c).denominator)
-    q = [int(c * L) for c in Q]
-    a = [int(c * La) for c in A]
-    R2, r2 = int(R * L) ** 2, int(r * L) ** 2
-    AA = sum(c * c for c in a)
-    w2 = [sum(c * c for c in q), -2 * sum(x * y for x, y in zip(q, D)),
-          sum(c * c for c in D)]                                    # |w'|² in σ
-    wa = [-sum(x * y for x, y in zip(q, a)), sum(x * y for x, y in zip(D, a))]  # w'·A'
-    s0 = w2[0] + R2 - r2
-    s = (s0, w2[1], w2[2])
-    ss = (s0 * s0, 2 * s0 * s[1], s[1] * s[1] + 2 * s0 * s[2], 2 * s[1] * s[2], s[2] * s[2])
+    return _poly(_Ints([int(c * L) for c in Q], [int(c * La) for c in A], R, r, L, La), D, Dd)
+
+
+class _Ints:
+    """A torus's numbers relative to the viewpoint as integers: q = L·Q, a = La·A, R·L and
+    r·L (L clears the denominators of Q, R and r, La those of A)."""
+
+    def __init__(self, q, a, R, r, L, La):
+        self.q, self.a, self.L, self.La = tuple(q), tuple(a), L, La
+        RL, rL = int(R * L), int(r * L)
+        self.R2, self.r2, self.B2 = RL * RL, rL * rL, (RL + rL) ** 2
+        self.qq, self.AA = sum(c * c for c in q), sum(c * c for c in a)
+        self.qa = sum(x * y for x, y in zip(q, a))
+
+
+def _poly(c: _Ints, D, Dd):
+    """torus_poly in integers: w' = L·w = σ·D − q for σ = t·L/Dd, and F'(σ) = L⁴·La²·F(t)
+    has integer coefficients; G(t) = Dd⁴·F'(t·L/Dd), K = Dd⁴·L⁴·La²."""
+    R2, AA = c.R2, c.AA
+    w2 = (c.qq, -2 * sum(x * y for x, y in zip(c.q, D)), sum(x * x for x in D))   # |w'|²
+    wa = (-c.qa, sum(x * y for x, y in zip(D, c.a)))                               # w'·A'
+    s0 = w2[0] + R2 - c.r2
+    ss = (s0 * s0, 2 * s0 * w2[1], w2[1] * w2[1] + 2 * s0 * w2[2], 2 * w2[1] * w2[2],
+          w2[2] * w2[2])
     wawa = (wa[0] * wa[0], 2 * wa[0] * wa[1], wa[1] * wa[1])
     Fs = [AA * ss[i] - 4 * R2 * AA * (w2[i] if i < 3 else 0) +
           4 * R2 * (wawa[i] if i < 3 else 0) for i in range(5)]
-    G = _trim([c * L ** i * Dd ** (4 - i) for i, c in enumerate(Fs)])
-    return G, Dd ** 4 * L ** 4 * La ** 2
+    L = c.L
+    G = _trim([f * L ** i * Dd ** (4 - i) for i, f in enumerate(Fs)])
+    return G, Dd ** 4 * L ** 4 * c.La ** 2
 
 
 def _squarefree(G):
@@ -326,7 +339,8 @@ def first_crossing(F):
     sf = _squarefree(Fi)
     if len(sf) < 2:
         return None
-    bound = 1 + max(abs(Fraction(c) / sf[-1]) for c in sf[:-1])   # every root below it
+    bound = 1 + Fraction(max(abs(c) for c in sf[:-1]), abs(sf[-1])) if isinstance(
+        sf[-1], int) else 1 + max(abs(c / sf[-1]) for c in sf[:-1])  # every root below it
     e = max(1, math.ceil(math.log2(bound)) + 1)
     si = _ints(sf)
     q = [c << (e * i) for i, c in enumerate(si)]           # sf(2^e·x): roots in (0, 1)
@@ -354,28 +368,30 @@ def eval_torus(p, D, Dd, rules):
     world units) at F's critical points before the hit (all of them for a miss), signed.
     What ``conditions`` needs is kept per ray on ``p.torus_info``."""
     o = p.obj
-    Q = tuple(c - v for c, v in zip(o.center, p.V))
+    if not hasattr(p, "torus_info"):
+        p.torus_info = []
+        Q = tuple(c - v for c, v in zip(o.center, p.V))
+        R, r = o.size
+        L = math.lcm(p.L, R.denominator, r.denominator)        # (p.Q = (centre − V)·p.L)
+        p.torus = Q, _Ints([c * (L // p.L) for c in p.Q], p.N, R, r, L, p.Ln)
+    Q, c = p.torus
     A, (R, r) = o.normal, o.size
     # the bounding sphere (centre, R + r) holds the torus: a ray that misses it, or that
     # meets it only behind the viewpoint, misses (exact); its margin is the distance
-    # from the sphere, a lower bound of the distance from the torus
-    B = R + r
-    DD = sum(c * c for c in D)
-    QD = sum(q * c for q, c in zip(Q, D)) / Dd
-    QQ = sum(q * q for q in Q)
-    perp2 = QQ - QD * QD * Dd * Dd / DD                      # |Q × d̂|²
-    if perp2 > B * B or (QD < 0 and QQ > B * B):
-        gap = max(math.sqrt(float(perp2)) - float(B),
-                  math.sqrt(float(QQ)) - float(B) if QD < 0 else 0.0)
-        if not hasattr(p, "torus_info"):
-            p.torus_info = []
+    # from the sphere, a lower bound of the distance from the torus.  In integers, times
+    # L²·|D|²: |Q × d̂|² > (R + r)², Q·d < 0 and |Q|² > (R + r)²
+    DD = sum(x * x for x in D)
+    qD = sum(x * y for x, y in zip(c.q, D))
+    perp2 = c.qq * DD - qD * qD                              # |Q × d̂|²·L²·|D|²
+    if perp2 > c.B2 * DD or (qD < 0 and c.qq > c.B2):
+        B = float(R + r)
+        gap = max(math.sqrt(perp2 / (c.L * c.L * DD)) - B,
+                  math.sqrt(c.qq / (c.L * c.L)) - B if qD < 0 else 0.0)
         p.torus_info.append((0.0, gap, 1.0, 0.0))
         return None, {"crossing": (False, -gap)}
-    G, K = torus_poly(Q, A, R, r, D, Dd)
+    G, K = _poly(c, D, Dd)
     hit = first_crossing(G)
-    margin, tc, cos = _margin([c / K for c in G], Q, A, R, r, D, Dd, hit)
-    if not hasattr(p, "torus_info"):
-        p.torus_info = []
+    margin, tc, cos = _margin([g / K for g in G], Q, A, R, r, D, Dd, hit)
     p.torus_info.append((tc, margin, cos, float(hit[0]) / hit[1] if hit is not None else 0.0))
     return hit, {"crossing": (hit is not None, margin if hit is not None else -margin)}
 
