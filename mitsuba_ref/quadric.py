@@ -246,13 +246,19 @@ class Prep:
         self.C = _mul(m, c, a, self.W0, self.W0) - e          # the ray's γ: its origin's
         self.Wa = _dot(self.W0, a)
 
-    def terms(self, D, Dd):
-        """(α, β/2, d·a) of the ray V + t·D/Dd, exactly."""
+    def ints(self, D):
+        """The numerators (Ai, Bi, Da) of ``terms``: α = Ai/(Lm·Dd²), β/2 = Bi/(Lm·Lw·Dd),
+        d·a = Da/(La·Dd)."""
         mI, cI, W = self.mI, self.cI, self.W0I
         Da = _dot(D, self.aI)
         A = mI[0] * D[0] * D[0] + mI[1] * D[1] * D[1] + mI[2] * D[2] * D[2] - cI * Da * Da
         B = (mI[0] * D[0] * W[0] + mI[1] * D[1] * W[1] + mI[2] * D[2] * W[2]
              - cI * Da * self.WaI)
+        return A, B, Da
+
+    def terms(self, D, Dd):
+        """(α, β/2, d·a) of the ray V + t·D/Dd, exactly."""
+        A, B, Da = self.ints(D)
         return (Fraction(A, self.Lm * Dd * Dd), Fraction(B, self.Lm * self.Lw * Dd),
                 Fraction(Da, self.La * Dd))
 
@@ -264,18 +270,24 @@ def evaluate(p: Prep, D, Dd, rules):
     """((tn, td) or None, {decision: (passed, margin)}) for the ray V + t·D/Dd; t's ratio is
     the float64 value of the exact root as a fraction (for ordering and depth)."""
     m, c, a, e, hh = p.form
-    A, Bh, da = p.terms(D, Dd)                  # α, β/2, d·a
-    C = p.C
-    X = Bh * Bh - A * C
-    dd = Fraction(_dot(D, D), Dd * Dd)
-    norm = float(dd) ** 0.5
-    tests = {"outline": (X > 0, float(X / dd) if X else 0.0)}
+    # the discriminant X = (β/2)² − α·γ in integers: Xn/(Lm²·Lw²·Dd²·Cd), γ = Cn/Cd; a ray
+    # that misses (most of them) takes no Fraction but its t
+    Ai, Bi, Di = p.ints(D)
+    Cn, Cd, Lm, Lw = p.C.numerator, p.C.denominator, p.Lm, p.Lw
+    Xn = Bi * Bi * Cd - Ai * Cn * Lm * Lw * Lw
+    DD = _dot(D, D)
+    tests = {"outline": (Xn > 0, Xn / (Lm * Lm * Lw * Lw * Cd * DD) if Xn else 0.0)}  # X/|d|²
     closed = hh is None
-    if X <= 0 or A == 0 and Bh == 0:
-        t0 = -Bh / A if A else Fraction(0)
+    if Xn <= 0 or Ai == 0 and Bi == 0:
+        t0 = Fraction(-Bi * Dd, Lw * Ai) if Ai else Fraction(0)         # −(β/2)/α
         tests.update({"t": (False, 0.0), "axis>=0": (False, 0.0), "axis<=h": (False, 0.0),
                       "clip": (False, 0.0)})
         return (t0.numerator, t0.denominator), tests
+    A, Bh, da = (Fraction(Ai, Lm * Dd * Dd), Fraction(Bi, Lm * Lw * Dd),
+                 Fraction(Di, p.La * Dd))                    # α, β/2, d·a
+    C = p.C
+    X = Fraction(Xn, Lm * Lm * Lw * Lw * Dd * Dd * Cd)
+    norm = (DD / (Dd * Dd)) ** 0.5
     if A == 0:
         roots = [(-C / (2 * Bh), Fraction(0))]
     else:
