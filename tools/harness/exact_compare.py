@@ -110,7 +110,7 @@ def compare_exact(scene: Scene, columns: int, precision: str = "f32", rules: Rul
         ours = to_images(trace_geometry(scene, cam, T, rules), cam)
         ms_ours = (time.perf_counter() - t0) * 1e3
     n = cam.columns * cam.rows
-    with sw("classify"):            # (the phase of the oracles a comparison runs)
+    with sw("exact"):               # the reference's image (Mitsuba's phase elsewhere)
         t0 = time.perf_counter()
         key = (str(scene.path), scene.sha256, cam.columns, cam.rows, sampling, rules, code27)
         shared = _ORACLE[0] == key
@@ -125,6 +125,7 @@ def compare_exact(scene: Scene, columns: int, precision: str = "f32", rules: Rul
             _ORACLE[:] = [key, (ex, ex.t * length)]
         ex, t_ref = _ORACLE[1]
         ms_ref = (time.perf_counter() - t0) * 1e3
+    with sw("classify"):
         u = U[precision]
         ids = np.where(ours["hit.mask"].ravel() > 0, ours["object.id"].ravel(), -1)
         ids = ids.astype(np.int64)
