@@ -684,6 +684,8 @@ def _offsets(window, viewpoint, columns: int, rows: int, pixels, sampling: str):
     """Exact world − viewpoint of the given pixels (image order, top row first) as integer
     triples with one common positive denominator, the least (each component reduced): (list
     of triples, denominator)."""
+    if not len(pixels):
+        return [], 1
     ww, wh = (Fraction(c) for c in window)
     vx, vy, vz = (Fraction(c) for c in viewpoint)
     # world − viewpoint is affine in the pixel's column x and row y: x·sx + ox, y·sy + oy

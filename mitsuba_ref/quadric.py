@@ -272,6 +272,8 @@ def evaluate(p: Prep, D, Dd, rules):
     m, c, a, e, hh = p.form
     # the discriminant X = (β/2)² − α·γ in integers: Xn/(Lm²·Lw²·Dd²·Cd), γ = Cn/Cd; a ray
     # that misses (most of them) takes no Fraction but its t
+    if Dd == 0:
+        raise ZeroDivisionError("a ray of no direction")
     Ai, Bi, Di = p.ints(D)
     Cn, Cd, Lm, Lw = p.C.numerator, p.C.denominator, p.Lm, p.Lw
     Xn = Bi * Bi * Cd - Ai * Cn * Lm * Lw * Lw

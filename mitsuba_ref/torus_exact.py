@@ -336,6 +336,14 @@ def first_crossing(F):
     if len(F) < 2:
         return None
     Fi = _ints(F)                                        # (a positive multiple: same roots)
+    # a root at t = 0 (the viewpoint on the surface) is no hit: F/tᵐ has F's signs for t > 0
+    # and no root at 0 (with it, an isolating interval from 0 had a sign 0 at its end, and
+    # TorusT.make's bisection never ended)
+    while len(Fi) > 1 and Fi[0] == 0:
+        Fi = Fi[1:]
+    if len(Fi) < 2:
+        return None
+    F = Fi
     sf = _squarefree(Fi)
     if len(sf) < 2:
         return None
@@ -368,6 +376,10 @@ def eval_torus(p, D, Dd, rules):
     world units) at F's critical points before the hit (all of them for a miss), signed.
     What ``conditions`` needs is kept per ray on ``p.torus_info``."""
     o = p.obj
+    if Dd == 0 or not any(D):
+        raise ZeroDivisionError("a ray of no direction")
+    if Dd < 0:                                               # (the same ray, Dd > 0)
+        D, Dd = tuple(-c for c in D), -Dd
     if not hasattr(p, "torus_info"):
         p.torus_info = []
         Q = tuple(c - v for c, v in zip(o.center, p.V))

@@ -253,6 +253,28 @@ def test08b_oracle_polynomial_in_integers():
             Fraction(g) * want[-1] == w * got[-1] for g, w in zip(got, want))
 
 
+def test08c_oracle_viewpoint_on_the_torus_and_ray_signs():
+    """The exact oracle with the viewpoint on the torus (F(0) = 0: its bisection never ended,
+    a helper's fuzzing found) takes the next crossing; a ray whose denominator is negative
+    is the same ray; a ray of no direction is refused as before."""
+    from mitsuba_ref import torus_exact as te
+    from rt_core.rules import Rules
+    # R = 2, r = 1 about the z axis at (0, 0, -4); the viewpoint on the outer equator,
+    # looking in along -x: out of the tube at x = 1 (t = 2)
+    G, _ = te.torus_poly((Fraction(-3), 0, 0), (0, 0, 1), Fraction(2), Fraction(1),
+                         (-1, 0, 0), 1)
+    assert G[0] == 0
+    hit = te.first_crossing(G)
+    assert Fraction(hit[0], hit[1]) == 2 and hit.cmp(Fraction(2)) == 0
+    tor = parse_exact("8 6\n0 0 5\n25\n1 1 1\n1 1 1\n0 0 0\n0 0 -4\n0 1 0\n2\n0.5\n")
+    d = np.array([[0.0, 0.0, -1.0]])
+    a = trace_exact(tor, d, Rules(), rays=[((0, 0, -1), 1)])
+    b = trace_exact(tor, d, Rules(), rays=[((0, 0, 1), -1)])
+    assert a.hit[0] and b.hit[0] and a.t[0] == b.t[0] == 6.5
+    with pytest.raises(ZeroDivisionError):
+        trace_exact(tor, d, Rules(), rays=[((0, 0, 0), 1)])
+
+
 def _poly_product(*factors):
     out = [Fraction(1)]
     for f in factors:
