@@ -23,7 +23,7 @@ def add_parser(sub) -> None:
                         "perspective sensor (default: both); exact: every object (cones, "
                         "ellipsoids and the torus too, which Mitsuba lacks) against the exact "
                         "oracle, in rational arithmetic on the course's ideal rays (slow: "
-                        "0.1-0.7 s per 2,000 pixels of the course scenes with them)")
+                        "0.1-0.3 s per 2,000 pixels of the course scenes with them)")
     p.add_argument("--shaded", action="store_true",
                    help="compare the shaded 8-bit course image instead: rt_core (float64) "
                         "against Mitsuba's 'course' integrator, each pixel match, rounding "

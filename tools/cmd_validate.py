@@ -39,7 +39,7 @@ def add_parser(sub) -> None:
                    help="also compare each scene that has objects Mitsuba has no shape for "
                         "(cone, ellipsoid, torus: left out of the Mitsuba comparisons), every "
                         "object, with the exact oracle at N columns, in each precision (rtval "
-                        "compare --mode exact; default 48; 0: off; 0.1-0.7 s a scene)")
+                        "compare --mode exact; default 48; 0: off; 0.1-0.3 s a scene)")
     p.add_argument("--evidence", choices=("failures", "all"), default="failures",
                    help="EXRs of the failing comparisons only (default), or also ours and "
                         "Mitsuba's of every passing one (under DIR/exr)")

@@ -49,9 +49,9 @@ DECISION_CLASS = {"outline": "silhouette", "crossing": "silhouette", "clip": "cl
 REFERENCE = "exact oracle (mitsuba_ref/exact.py, rational arithmetic, ideal rays)"
 
 
-# The exact oracle's rational arithmetic takes 0.07-0.35 ms a pixel on the scenes with
-# these kinds (measured at 48 columns, this project's 2-core machine): an image of more
-# pixels than this (about 580 columns of a 4:3 window, up to ~90 s a scene) is refused
+# The exact oracle's rational arithmetic takes 0.03-0.18 ms a pixel on the scenes with
+# these kinds (measured at 48 and 160 columns, this project's 2-core machine): an image of more
+# pixels than this (about 580 columns of a 4:3 window, up to ~45 s a scene) is refused
 # rather than left to run for hours
 MAX_PIXELS = 250_000
 
@@ -71,7 +71,7 @@ def check_size(columns: int, rows: int, option: str = "--columns") -> None:
         from rt_core.errors import InputError
         raise InputError(f"{option} {columns}: {columns} x {rows} pixels is more than the "
                          f"exact oracle's {MAX_PIXELS:,} (its rational arithmetic takes up "
-                         "to 0.35 ms a pixel); give fewer columns")
+                         "to 0.18 ms a pixel); give fewer columns")
 
 
 def scene_source(scene: Scene) -> bytes:
