@@ -8,13 +8,14 @@ For the ray V + t·d with d = D/Dd exactly (integers) and the numbers as written
 
 has rational coefficients; ``torus_poly`` computes a positive integer multiple of it in
 integers, and its square-free part is itself wherever a gcd modulo a prime shows it (no
-Fraction arithmetic on the common path).  Its real roots in (0, ∞) are isolated on its square-free part by
-bisection with Descartes' rule of signs (the sign variations of (1 + x)ⁿ·p((a + b·x)/(1 + x))
-count the roots in (a, b) up to an even number: 0 and 1 are exact answers).  The hit is the
-smallest t > 0 where F changes sign (a tangency, touching without crossing, is a miss).  It is
-kept as ``TorusT``: a tuple (num, den) of a rational within 2⁻¹¹⁰ (relative) of the root, for
-exact.py's float t and margins, which carries the polynomial and an isolating interval, so that
-``less`` compares it exactly with a rational (a plane's t) and with another torus's root.
+Fraction arithmetic on the common path).  Its real roots in (0, ∞) are isolated on its
+square-free part by bisection with Descartes' rule of signs (the sign variations of (1 +
+x)ⁿ·p((a + b·x)/(1 + x)) count the roots in (a, b) up to an even number: 0 and 1 are exact
+answers).  The hit is the smallest t > 0 where F changes sign (a tangency, touching without
+crossing, is a miss).  It is kept as ``TorusT``: a tuple (num, den) of a rational within
+2⁻¹¹⁰ (relative) of the root, for exact.py's float t and margins, which carries the
+polynomial and an isolating interval, so that ``less`` compares it exactly with a rational
+(a plane's t) and with another torus's root.
 """
 from __future__ import annotations
 
@@ -347,8 +348,11 @@ def first_crossing(F):
     sf = _squarefree(Fi)
     if len(sf) < 2:
         return None
-    bound = 1 + Fraction(max(abs(c) for c in sf[:-1]), abs(sf[-1])) if isinstance(
-        sf[-1], int) else 1 + max(abs(c / sf[-1]) for c in sf[:-1])  # every root below it
+    # every root below it (Cauchy): 1 + max |c_i / c_n|
+    if isinstance(sf[-1], int):
+        bound = 1 + Fraction(max(abs(c) for c in sf[:-1]), abs(sf[-1]))
+    else:
+        bound = 1 + max(abs(c / sf[-1]) for c in sf[:-1])
     e = max(1, math.ceil(math.log2(bound)) + 1)
     si = _ints(sf)
     q = [c << (e * i) for i, c in enumerate(si)]           # sf(2^e·x): roots in (0, 1)

@@ -50,9 +50,9 @@ REFERENCE = "exact oracle (mitsuba_ref/exact.py, rational arithmetic, ideal rays
 
 
 # The exact oracle's rational arithmetic takes 0.03-0.18 ms a pixel on the scenes with
-# these kinds (measured at 48 and 160 columns, this project's 2-core machine): an image of more
-# pixels than this (about 580 columns of a 4:3 window, up to ~45 s a scene) is refused
-# rather than left to run for hours
+# these kinds (measured at 48 and 160 columns, this project's 2-core machine): an image of
+# more pixels than this (about 580 columns of a 4:3 window, up to ~45 s a scene) is
+# refused rather than left to run for hours
 MAX_PIXELS = 250_000
 
 # the exact oracle of the last image compared: a scene's f32 and f64 comparisons share it
