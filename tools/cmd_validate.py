@@ -40,6 +40,11 @@ def add_parser(sub) -> None:
                         "(cone, ellipsoid, torus: left out of the Mitsuba comparisons), every "
                         "object, with the exact oracle at N columns, in each precision (rtval "
                         "compare --mode exact; default 48; 0: off; 0.1-0.3 s a scene)")
+    p.add_argument("--oracle-columns", type=int, default=24, metavar="N",
+                   help="also compare the shaded course image of each such scene, every "
+                        "object, with the float64 shading oracle's at N columns (rtval "
+                        "compare --shaded --reference oracle; default 24; 0: off; 0.05-0.7 s "
+                        "a scene)")
     p.add_argument("--evidence", choices=("failures", "all"), default="failures",
                    help="EXRs of the failing comparisons only (default), or also ours and "
                         "Mitsuba's of every passing one (under DIR/exr)")
@@ -67,8 +72,8 @@ def run(args) -> int:
     from tqdm import tqdm
     from rt_core.render import versions
     from tools.harness.parallel import plan_of
-    from tools.harness.validate import (SERIAL_BUSY_CORES, check_memory, default_scene_paths,
-                                        failed_reading, load_supported,
+    from tools.harness.validate import (SERIAL_BUSY_CORES, SHADED_MODES, check_memory,
+                                        default_scene_paths, failed_reading, load_supported,
                                         seconds_per_comparison, skip_counts, row_stem,
                                         validate, write_report)
 
@@ -81,7 +86,7 @@ def run(args) -> int:
         check_file_target(args.junit, make_dirs=False)
     paths = args.scenes or default_scene_paths()
     scenes, skipped = load_supported(paths, explicit=bool(args.scenes), code27=args.code27)
-    if args.shaded_columns > 0:         # the shaded comparisons need the textures
+    if args.shaded_columns > 0 or args.oracle_columns > 0:   # shaded ones need the textures
         from tools.harness.validate import attach_textures
         scenes, no_texture = attach_textures(scenes, args.texture_dir)
         skipped += no_texture
@@ -91,9 +96,13 @@ def run(args) -> int:
         print(f"{'FAILED' if s.category == 'disagree' else 'skipped'} ({s.category}): "
               f"{s.reason}", file=sys.stderr)
     from tools.harness.exact_compare import needs_exact
+    from tools.harness.validate import lacks_texture
     exact = sum(map(needs_exact, scenes)) if args.exact_columns > 0 else 0
+    oracle = sum(needs_exact(s) and not lacks_texture(s) for s in scenes) \
+        if args.oracle_columns > 0 else 0
     total = len(scenes) * (len(precisions) * len(modes) + (args.shaded_columns > 0)) \
-        + exact * len(precisions) - sum(s.category == "texture" for s in skipped)
+        + exact * len(precisions) + oracle \
+        - (args.shaded_columns > 0) * sum(s.category == "texture" for s in skipped)
     plan = plan_of(args).resolve(total, seconds_per_comparison(args.columns), SERIAL_BUSY_CORES)
     if sys.stderr.isatty():
         bar = tqdm(total=total, file=sys.stderr, unit="cmp")
@@ -101,22 +110,25 @@ def run(args) -> int:
     else:                       # a log (CI): a plain line every tenth of the way
         progress, done = _log_progress(total), (lambda: None)
     for option, cols in (("--shaded-columns", args.shaded_columns),
-                         ("--exact-columns", args.exact_columns)):
+                         ("--exact-columns", args.exact_columns),
+                         ("--oracle-columns", args.oracle_columns)):
         if cols < 0 or cols == 1:
             from rt_core.errors import InputError
             raise InputError(f"{option} {cols}: give 0 (off) or a width of at least 2")
     # (validate() checks too, for its other callers; here it comes before evidence_run
     # removes an earlier run's evidence)
-    check_memory(scenes, args.columns, precisions, args.shaded_columns, args.exact_columns)
+    check_memory(scenes, args.columns, precisions, args.shaded_columns, args.exact_columns,
+                 args.oracle_columns)
     from tools.harness.validate import evidence_run
     with evidence_run(args.output):     # a run stopped while it reports leaves no evidence
         results = validate(scenes, args.columns, precisions, modes, args.output,
                            progress=progress, evidence=args.evidence,
                            shaded_columns=args.shaded_columns, pictures=bool(args.report),
-                           plan=plan, exact_columns=args.exact_columns, code27=args.code27)
+                           plan=plan, exact_columns=args.exact_columns, code27=args.code27,
+                           oracle_columns=args.oracle_columns)
         done()
         meta = dict(columns=args.columns, backend="llvm", reference="mitsuba llvm_ad_rgb",
-                    exact_columns=args.exact_columns,
+                    exact_columns=args.exact_columns, oracle_columns=args.oracle_columns,
                     **versions(), ran=plan.describe())
         from rt_core.outputs import together
         page = None
@@ -150,9 +162,9 @@ def run(args) -> int:
             f"{'unexpl':>6s} {'depth max rel':>13s} {'rt_core ms':>10s} {'Mitsuba ms':>10s}")
     print(head)
     for r in results:
-        if r["mode"] == "shaded":           # explained: rounding and boundary; unexpl: wrong
+        if r["mode"] in SHADED_MODES:       # explained: rounding and boundary; unexpl: wrong
             c = r["classes"]
-            print(f"{row_stem(r)[:34]:34s} {'shaded':6s} {'f64':4s} {r['pixels']:7d} "
+            print(f"{row_stem(r)[:34]:34s} {r['mode']:6s} {'f64':4s} {r['pixels']:7d} "
                   f"{c['rounding'] + c['boundary']:9d} {c['wrong']:6d} {'(8-bit)':>13s} "
                   f"{r['rt_core_ms']:10.2f} {r['mitsuba_ms']:10.2f}"
                   + ("" if r["ok"] else "  FAIL"))

@@ -110,7 +110,7 @@ def compare_exact(scene: Scene, columns: int, precision: str = "f32", rules: Rul
         ours = to_images(trace_geometry(scene, cam, T, rules), cam)
         ms_ours = (time.perf_counter() - t0) * 1e3
     n = cam.columns * cam.rows
-    with sw("exact"):               # the reference's image (Mitsuba's phase elsewhere)
+    with sw("oracle"):              # the reference's image (Mitsuba's phase elsewhere)
         t0 = time.perf_counter()
         key = (str(scene.path), scene.sha256, cam.columns, cam.rows, sampling, rules, code27)
         shared = _ORACLE[0] == key

@@ -77,7 +77,8 @@ def palette(name: str) -> tuple:
         from mitsuba_ref.explain import CLASSES
         assert tuple(c for c, *_ in GEOMETRY_PALETTE) == CLASSES
         return GEOMETRY_PALETTE
-    return {"shaded": _shaded_palette, "check": _check_palette}[name]()
+    return {"shaded": _shaded_palette, "shaded-oracle": _shaded_palette,
+            "check": _check_palette}[name]()
 
 
 # --- pictures ------------------------------------------------------------------------------------
@@ -166,9 +167,12 @@ def comparison_pictures(cmp) -> Pictures:
     the reference is Mitsuba's, or the exact oracle's (tools/harness/exact_compare.py)."""
     text = {"rtval.scene": str(cmp.scene.path), "rtval.scene_sha256": cmp.scene.sha256 or ""}
     if hasattr(cmp, "theirs"):                          # ShadedComparison
-        return Pictures.make("shaded", cmp.theirs, cmp.ours, cmp.classes,
-                             {**text, "rtval.mode": "shaded",
-                              "rtval.reference": "mitsuba course integrator",
+        oracle = cmp.reference == "oracle"
+        kind = "shaded-oracle" if oracle else "shaded"
+        return Pictures.make(kind, cmp.theirs, cmp.ours, cmp.classes,
+                             {**text, "rtval.mode": kind,
+                              "rtval.reference": "float64 shading oracle" if oracle else
+                              "mitsuba course integrator",
                               "rtval.ours": "rt_core f64"})
     ts = [np.asarray(im["depth.Z"], np.float64)[np.asarray(im["hit.mask"]) > 0]
           for im in (cmp.ref, cmp.ours)]
@@ -271,11 +275,13 @@ def _q(*words) -> str:
 def compare_command(row: dict, rows_given: int | None = None) -> str:
     """The ``rtval compare`` command that redoes one comparison of validate or compare."""
     from rt_core.rules import Rules
-    words = ["rtval", "compare"] + (["--shaded"] if row["mode"] == "shaded" else []) + [
+    shaded = row["mode"] in ("shaded", "shaded-oracle")
+    words = ["rtval", "compare"] + (["--shaded"] if shaded else []) + (
+        ["--reference", "oracle"] if row["mode"] == "shaded-oracle" else []) + [
         row["scene"], "--columns", row["columns"]]
     if rows_given:
         words += ["--rows", rows_given]
-    if row["mode"] != "shaded":
+    if not shaded:
         words += ["--mode", row["mode"], "--precision", row["precision"]]
         if row.get("backend", "llvm") != "llvm":
             words += ["--backend", row["backend"]]
@@ -283,7 +289,7 @@ def compare_command(row: dict, rows_given: int | None = None) -> str:
         words += ["--sampling", row["sampling"]]
     if row.get("rules") and row["rules"] != Rules().describe():
         words += ["--rules", row["rules"]]
-    if row["mode"] == "shaded":
+    if shaded:
         from rt_core.shading import DEFAULT_MAX_DIST
         if row.get("max_dist", DEFAULT_MAX_DIST) != DEFAULT_MAX_DIST:
             words += ["--max-dist", repr(row["max_dist"])]
@@ -295,10 +301,13 @@ def comparison_row(row: dict, rows_given: int | None = None) -> Row:
     from .validate import row_stem
     counts = {k: v for k, v in row["classes"].items()}
     listed = ", ".join(f"{k} {v}" for k, v in counts.items() if v)
-    if row["mode"] == "shaded":
-        title = f"{row_stem(row)} · shaded"
-        summary = f"{row['columns']}×{row['rows']} 8-bit, rt_core f64 / Mitsuba f32: {listed}"
-        details = [f"wrong pixel (column {x}, row {y}): rt_core {o}, Mitsuba {t}"
+    oracle = row["mode"] == "shaded-oracle"
+    if row["mode"] in ("shaded", "shaded-oracle"):
+        them = "the shading oracle" if oracle else "Mitsuba"
+        title = f"{row_stem(row)} · {row['mode']}"
+        summary = (f"{row['columns']}×{row['rows']} 8-bit, rt_core f64 / "
+                   f"{'oracle f64' if oracle else 'Mitsuba f32'}: {listed}")
+        details = [f"wrong pixel (column {x}, row {y}): rt_core {o}, {them} {t}"
                    for x, y, o, t in row.get("worst", [])]
     else:
         d = row["depth"]
@@ -307,7 +316,8 @@ def comparison_row(row: dict, rows_given: int | None = None) -> Row:
                    f"{d['max_rel']:.3g} on {d['pixels']} same-object pixels, "
                    f"{d['over_bound']} over their bound")
         details = [row["note"]] if row.get("note") else []
-    reference = "the exact oracle" if row["mode"] == "exact" else "Mitsuba"
+    reference = {"exact": "the exact oracle", "shaded-oracle": "the shading oracle"}.get(
+        row["mode"], "Mitsuba")
     details.append(f"rt_core {row['rt_core_ms']:.1f} ms, {reference} {row['mitsuba_ms']:.1f} ms")
     return Row(title, "pass" if row["ok"] else "fail", summary, details,
                row.get("pictures"), counts, list(row.get("evidence", [])),
@@ -369,11 +379,14 @@ LEGEND_TITLES = {"geometry": "classes of the geometry comparisons (mask, object 
                  "exact": "classes of the comparisons with the exact oracle (mask, object "
                           "id, depth)",
                  "shaded": "classes of the shaded comparisons (8-bit course image)",
+                 "shaded-oracle": "classes of the course images against the shading oracle "
+                                  "(8-bit)",
                  "check": "classes of your tracer's pixels"}
 LABELS = {   # (reference, ours) per kind of comparison
     "geometry": ("Mitsuba (reference)", "rt_core (ours)"),
     "exact": ("exact oracle (reference)", "rt_core (ours)"),
     "shaded": ("Mitsuba course integrator (reference)", "rt_core f64 (ours)"),
+    "shaded-oracle": ("float64 shading oracle (reference)", "rt_core f64 (ours)"),
     "check": ("rt_core f64 (reference)", "your tracer (theirs)"),
 }
 

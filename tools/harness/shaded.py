@@ -47,6 +47,10 @@ from .check import COLORS as CHECK_COLORS
 from .timing import Stopwatch
 
 SHADED_CLASSES = ("match", "rounding", "boundary", "wrong")
+# the course image of a scene with objects Mitsuba has no shape for, every object, against
+# the float64 shading oracle (``compare_shaded(.., reference="oracle")``)
+ORACLE_MODE = "shaded-oracle"
+SHADED_MODES = ("shaded", ORACLE_MODE)
 # the object kinds the shaded comparison keeps (the others are left out on both sides, named
 # in its note)
 SHADED_KINDS = ("sphere", "plane", "fplane", "tplane", "cylinder", "triangle", "disk")
@@ -75,14 +79,18 @@ class ShadedComparison:
     flip: np.ndarray | None = None    # FLIP's per-pixel error; None when the images are equal
     note: str = ""                    # objects left out of the comparison
     seconds: dict = field(default_factory=dict)     # per phase (tools/harness/timing.py)
+    reference: str = "mitsuba"        # or "oracle": the float64 shading oracle (ORACLE_MODE)
 
     @property
     def ok(self) -> bool:
         return self.counts.get("wrong", 0) == 0
 
     def summary(self) -> dict:
-        return {"scene": self.scene.path, "scene_sha256": self.scene.sha256, "mode": "shaded",
-                "precision": "f64 / mitsuba f32", "sampling": self.sampling,
+        oracle = self.reference == "oracle"
+        return {"scene": self.scene.path, "scene_sha256": self.scene.sha256,
+                "mode": ORACLE_MODE if oracle else "shaded",
+                "precision": "f64 / oracle f64" if oracle else "f64 / mitsuba f32",
+                "sampling": self.sampling,
                 "rules": self.rules.describe(), "max_dist": self.max_dist,
                 "columns": self.columns, "rows": self.rows,
                 "pixels": self.columns * self.rows, "classes": self.counts,
@@ -113,8 +121,11 @@ def quantize32(I: np.ndarray) -> np.ndarray:
 
 
 def classify_shaded(scene: Scene, ours: np.ndarray, theirs: np.ndarray, sampling: str,
-                    rules: Rules, max_dist: float) -> np.ndarray:
-    """SHADED_CODE per pixel (module docstring); the oracle runs on the differing pixels."""
+                    rules: Rules, max_dist: float, precision: str = "f32",
+                    stand_in: bool = True) -> np.ndarray:
+    """SHADED_CODE per pixel (module docstring); the oracle runs on the differing pixels.
+    ``precision``: the reference's (Mitsuba's float32, or the shading oracle's float64);
+    ``stand_in``: the reference's infinite planes are Mitsuba's finite squares."""
     from mitsuba_ref.convert import plane_extent
     from mitsuba_ref.shade_oracle import (K_DECISION, U, flags, other_sides_of, reaches,
                                           shade_pixels)
@@ -124,11 +135,12 @@ def classify_shaded(scene: Scene, ours: np.ndarray, theirs: np.ndarray, sampling
     pix = np.flatnonzero(diff.ravel())
     if not len(pix):
         return classes
-    near = K_DECISION * U["f32"]       # (the paths' near decisions, for other_sides)
+    near = K_DECISION * U[precision]   # (the paths' near decisions, for other_sides)
     orc = shade_pixels(scene, W, H, pix, sampling, rules, max_dist, limit=near)
-    f = flags(orc, "f32")
+    f = flags(orc, precision)
     # (beyond the stand-in square as explain.ObjectEval's "extent" test takes it)
-    beyond = orc["reach"] > plane_extent(scene) * (1 - 1e-6)
+    beyond = orc["reach"] > plane_extent(scene) * (1 - 1e-6) if stand_in else \
+        np.zeros(len(pix), bool)
     jump = f["jump"] | beyond
     # rounding: every channel that differs (by one level) lies near its level; another
     # channel near one is no excuse (a review: 69 of 223 such pixels a broken Mitsuba made)
@@ -171,18 +183,26 @@ def classify_shaded(scene: Scene, ours: np.ndarray, theirs: np.ndarray, sampling
 def compare_shaded(scene: Scene, columns: int, rows: int | None = None,
                    sampling: str = "corners", rules: Rules = Rules(),
                    max_dist: float = DEFAULT_MAX_DIST, integrator=None,
-                   guarded: bool = False) -> ShadedComparison:
+                   guarded: bool = False, reference: str = "mitsuba") -> ShadedComparison:
     """rt_core's 8-bit course image (float64, exact decisions) against Mitsuba's.
     ``integrator``: the registered plugin name of the integrator to use (tests: a
     deliberately wrong one); default ``course``.  ``guarded``: the caller has checked this
-    size against the memory there is."""
+    size against the memory there is.  ``reference="oracle"``: against the float64 shading
+    oracle's image instead (mitsuba_ref/shade_oracle.py: every object, cones, ellipsoids
+    and tori too; its decisions' bounds taken for float64; ``check_oracle_size``)."""
+    oracle = reference == "oracle"
     sw = Stopwatch()
     with sw("other"):
-        # the kinds compared: those below (cones, ellipsoids, the torus have no Mitsuba shape)
-        from mitsuba_ref.convert import mitsuba_subset
-        scene, note = mitsuba_subset(scene, lambda k: k in SHADED_KINDS, inside=True)
+        note = ""
+        if not oracle:
+            # the kinds compared: those below (cones, ellipsoids, the torus have no Mitsuba
+            # shape)
+            from mitsuba_ref.convert import mitsuba_subset
+            scene, note = mitsuba_subset(scene, lambda k: k in SHADED_KINDS, inside=True)
         cam = make_camera(scene, columns, rows, sampling, rules)
         same_rows(scene, columns, rows, cam)
+        if oracle:
+            check_oracle_size(cam.columns, cam.rows)
         if not guarded:
             guard(lambda px: compare_bytes(px, "shaded"), "compare --shaded", cam.columns,
                   cam.rows)
@@ -192,16 +212,25 @@ def compare_shaded(scene: Scene, columns: int, rows: int | None = None,
                               shade=True, max_dist=max_dist)
         ms_ours = (time.perf_counter() - t0) * 1e3
         ours = quantize(np.stack([ims[c] for c in "RGB"], -1))
-    with sw("mitsuba"):
+    with sw("oracle" if oracle else "mitsuba"):
         t0 = time.perf_counter()
-        I = mitsuba_course_image(scene, cam.columns, cam.rows, sampling, rules, max_dist,
-                                 integrator)
+        if oracle:
+            from mitsuba_ref.shade_oracle import render_shade_oracle
+            I = render_shade_oracle(scene, cam.columns, cam.rows, sampling, rules, max_dist)["I"]
+        else:
+            I = mitsuba_course_image(scene, cam.columns, cam.rows, sampling, rules, max_dist,
+                                     integrator)
         ms_ref = (time.perf_counter() - t0) * 1e3
     with sw("classify"):
-        theirs = quantize32(I)
-        classes = classify_shaded(scene, ours, theirs, sampling, rules, max_dist)
+        if oracle:
+            from mitsuba_ref.shade_oracle import quantize as quantize64
+            theirs = quantize64(I)
+        else:
+            theirs = quantize32(I)
+        classes = classify_shaded(scene, ours, theirs, sampling, rules, max_dist,
+                                  "f64" if oracle else "f32", stand_in=not oracle)
         wrong = classes == SHADED_CODE["wrong"]
-        if wrong.any():
+        if wrong.any() and not oracle:
             # the geometry classifier on the primary rays (Mitsuba tracing rt_core's rays, as
             # rtval compare --mode rays): a pixel whose first hit it explains (an edge, a tie,
             # the clip, the stand-in plane's extent, a grazing or parallel ray) is a boundary
@@ -221,7 +250,23 @@ def compare_shaded(scene: Scene, columns: int, rows: int | None = None,
             flip, flip_mean, _ = flip_map(theirs / np.float32(255), ours / np.float32(255))
     return ShadedComparison(scene, cam.columns, cam.rows, ours, theirs, classes, counts,
                             ms_ours, ms_ref, sampling, rules, max_dist, worst, flip_mean, flip,
-                            note, sw.rounded())
+                            note, sw.rounded(), reference)
+
+
+# The shading oracle's image takes 0.3-1.6 ms a pixel on the course scenes with cones,
+# ellipsoids and tori (1 to 19 objects, 0 to 2 lights; measured at 24 columns, this
+# project's 2-core machine): a larger image than this (about 160 columns of a 4:3 window,
+# up to ~30 s a scene) is refused rather than left to run for minutes
+MAX_ORACLE_PIXELS = 20_000
+
+
+def check_oracle_size(columns: int, rows: int, option: str = "--columns") -> None:
+    """InputError where the shading oracle's image would take too long."""
+    if columns * rows > MAX_ORACLE_PIXELS:
+        from rt_core.errors import InputError
+        raise InputError(f"{option} {columns}: {columns} x {rows} pixels is more than the "
+                         f"shading oracle's {MAX_ORACLE_PIXELS:,} (it takes up to 1.6 ms a "
+                         "pixel); give fewer columns")
 
 
 def classes_rgb(classes: np.ndarray) -> np.ndarray:
@@ -231,7 +276,7 @@ def classes_rgb(classes: np.ndarray) -> np.ndarray:
 
 
 def write_shaded_evidence(cmp: ShadedComparison, outdir: str, stem: str) -> list[str]:
-    """PNGs of ours, Mitsuba's, the classes (named colours, legend in the PNG's text) and,
+    """PNGs of ours, the reference's (Mitsuba's or the shading oracle's), the classes (named colours, legend in the PNG's text) and,
     where they differ, FLIP's error map (magma), with provenance; returns the paths
     written."""
     from rt_core.imageio import write_png
@@ -242,17 +287,20 @@ def write_shaded_evidence(cmp: ShadedComparison, outdir: str, stem: str) -> list
     text = {"rtval.scene": str(cmp.scene.path), "rtval.scene_sha256": cmp.scene.sha256,
             "rtval.rules": cmp.rules.describe(), "rtval.max_dist": repr(cmp.max_dist)}
     paths = []
+    oracle = cmp.reference == "oracle"
+    ref, ref_text = (("oracle", "float64 shading oracle (mitsuba_ref/shade_oracle.py)")
+                     if oracle else ("mitsuba", "mitsuba course integrator, llvm_ad_rgb"))
     for name, img, extra in (("ours", cmp.ours, {"rtval.image": "rt_core f64"}),
-                             ("mitsuba", cmp.theirs,
-                              {"rtval.image": "mitsuba course integrator, llvm_ad_rgb"}),
+                             (ref, cmp.theirs, {"rtval.image": ref_text}),
                              ("classes", classes_rgb(cmp.classes),
                               {"rtval.image": "shaded classes", "rtval.classes": legend}),
                              *([("flip", flip_colours(cmp.flip),
                                  {"rtval.image": "NVIDIA FLIP error map (magma, 0 black, 1 "
-                                                 "light yellow), Mitsuba the reference",
+                                                 f"light yellow), {ref} the reference",
                                   "rtval.flip.mean": repr(cmp.flip_mean)})]
                                if cmp.flip is not None else [])):
-        path = os.path.join(outdir, f"{stem}.shaded.{name}.png")
+        mode = ORACLE_MODE if oracle else "shaded"
+        path = os.path.join(outdir, f"{stem}.{mode}.{name}.png")
         write_png(path, img, {**text, **extra})
         paths.append(path)
     return paths

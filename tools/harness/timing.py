@@ -1,8 +1,9 @@
 """Where a run's time goes: each comparison times its phases, and a run sums them.
 
 Phases: ``rt_core`` (tracing or shading, both calls, and its images as arrays), ``mitsuba``
-(loading the converted scene, both calls), ``exact`` (the exact oracle's image, the reference
-of the comparisons of objects Mitsuba has no shape for: mitsuba_ref/exact.py), ``classify`` (pixel classification, the oracles it
+(loading the converted scene, both calls), ``oracle`` (the exact oracle's or the shading
+oracle's image: the reference of the comparisons of objects Mitsuba has no shape for,
+mitsuba_ref/exact.py and shade_oracle.py), ``classify`` (pixel classification, the oracles it
 runs, the depth bounds, FLIP), ``other`` (the rest of the comparison: parsing, rays for
 Mitsuba, the row) and ``write`` (evidence and pictures, in the rtval process).  Sums are of
 each comparison's own wall time, so with several workers they add up to more than the run's
@@ -13,7 +14,7 @@ from __future__ import annotations
 import time
 from contextlib import contextmanager
 
-PHASES = ("rt_core", "mitsuba", "exact", "classify", "other", "write")
+PHASES = ("rt_core", "mitsuba", "oracle", "classify", "other", "write")
 
 
 class Stopwatch:
@@ -47,7 +48,7 @@ def time_split(rows) -> dict:
 
 def split_line(split: dict) -> str:
     """One line: each phase's share and seconds."""
-    names = {"rt_core": "rt_core", "mitsuba": "Mitsuba", "exact": "exact oracle",
+    names = {"rt_core": "rt_core", "mitsuba": "Mitsuba", "oracle": "oracles",
              "classify": "classification",
              "other": "other Python", "write": "writing"}
     return "time (summed over comparisons): " + ", ".join(

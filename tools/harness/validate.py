@@ -12,6 +12,7 @@ from pathlib import Path
 from tools.harness.agree import parse_agreed
 from rt_core.scene import Scene, SceneError
 from .compare import compare, write_evidence
+from .shaded import SHADED_MODES
 
 REPO = Path(__file__).resolve().parents[2]
 COURSE_SCENES = REPO.parent / "shared" / "course-scenes"
@@ -163,11 +164,13 @@ class Job:
 
 def jobs(scenes, columns: int, precisions, modes, evidence: str = "failures",
          shaded_columns: int = 0, pictures: bool = False, exact_columns: int = 0,
-         code27: str = "auto") -> list:
+         code27: str = "auto", oracle_columns: int = 0) -> list:
     """The run's jobs: per scene, one per precision (its modes together), then, where the
     scene has objects Mitsuba has no shape for, one per precision against the exact oracle
-    (tools/harness/exact_compare.py), then the shaded course image."""
+    (tools/harness/exact_compare.py), then the shaded course image, and for those scenes
+    their course image against the shading oracle (``oracle_columns``)."""
     from .exact_compare import needs_exact, scene_source
+    from .shaded import ORACLE_MODE
     out = []
     for scene in scenes:
         for precision in precisions:
@@ -180,15 +183,18 @@ def jobs(scenes, columns: int, precisions, modes, evidence: str = "failures",
                         source) for precision in precisions]
         if shaded_columns and not lacks_texture(scene):
             out.append(Job(scene, ("shaded",), "f64", shaded_columns, pictures=pictures))
+        if oracle_columns and needs_exact(scene) and not lacks_texture(scene):
+            out.append(Job(scene, (ORACLE_MODE,), "f64", oracle_columns, pictures=pictures))
     return out
 
 
 def check_memory(scenes, columns: int, precisions, shaded_columns: int,
-                 exact_columns: int = 0) -> None:
+                 exact_columns: int = 0, oracle_columns: int = 0) -> None:
     """The run's largest comparison of each kind against the memory there is, and its
-    largest exact one against the exact oracle's pixels (exact_compare.check_size):
-    InputError naming the option to lower (``--columns``, ``--shaded-columns``,
-    ``--exact-columns``)."""
+    largest exact one against the exact oracle's pixels (exact_compare.check_size), its
+    largest shading oracle one against that oracle's (shaded.check_oracle_size): InputError
+    naming the option to lower (``--columns``, ``--shaded-columns``, ``--exact-columns``,
+    ``--oracle-columns``)."""
     from rt_core.camera import make_camera
     from rt_core.memory import compare_bytes, guard
     top = "f64" if "f64" in precisions else "f32"
@@ -204,6 +210,12 @@ def check_memory(scenes, columns: int, precisions, shaded_columns: int,
     if exact:
         check_size(exact_columns, max(make_camera(s, exact_columns).rows for s in exact),
                    "--exact-columns")
+    exact = [s for s in scenes if needs_exact(s)] if oracle_columns > 0 else []
+    if exact:
+        from .shaded import check_oracle_size
+        check_oracle_size(oracle_columns,
+                          max(make_camera(s, oracle_columns).rows for s in exact),
+                          "--oracle-columns")
 
 
 def seconds_per_comparison(columns: int) -> float:
@@ -273,6 +285,9 @@ def run_job(job: Job) -> list:
         if mode == "shaded":
             from tools.harness.shaded import compare_shaded
             cmp = compare_shaded(job.scene, job.columns, guarded=guarded)
+        elif mode == "shaded-oracle":
+            from tools.harness.shaded import compare_shaded
+            cmp = compare_shaded(job.scene, job.columns, guarded=guarded, reference="oracle")
         elif mode == "exact":
             from tools.harness.exact_compare import compare_exact
             cmp = compare_exact(job.scene, job.columns, job.precision, code27=job.code27,
@@ -298,7 +313,8 @@ def run_job(job: Job) -> list:
 
 def validate(scenes, columns: int, precisions, modes, outdir: str, progress=None,
              evidence: str = "failures", shaded_columns: int = 0, plan=None,
-             pictures: bool = False, exact_columns: int = 0, code27: str = "auto"):
+             pictures: bool = False, exact_columns: int = 0, code27: str = "auto",
+             oracle_columns: int = 0):
     """Run every comparison (``plan``: where, tools/harness/parallel.py; default in this
     process); write the evidence EXRs under ``outdir``: of every failing comparison (ours,
     Mitsuba, difference, classes, in ``failures/``) and, with ``evidence="all"``, ours and
@@ -313,6 +329,10 @@ def validate(scenes, columns: int, precisions, modes, outdir: str, progress=None
     torus) is also compared, every object, with the exact oracle at that width and each
     precision (tools/harness/exact_compare.py; ``code27``: how its file was read).
 
+    ``oracle_columns`` > 0: the course image of each such scene is also compared, every
+    object, with the float64 shading oracle's at that width (mode ``shaded-oracle``,
+    ``compare_shaded(.., reference="oracle")``).
+
     ``pictures``: each row also gets "pictures", its PNGs for the HTML report
     (tools/harness/html_report.py, made where the comparison ran; ``public`` drops them
     from what is written as JSON).
@@ -324,12 +344,13 @@ def validate(scenes, columns: int, precisions, modes, outdir: str, progress=None
     The run's largest comparison of each kind is checked against the memory there is before
     any runs (InputError naming the option to lower); each comparison then skips its own
     check, but on a Dask worker."""
-    check_memory(scenes, columns, precisions, shaded_columns, exact_columns)
+    check_memory(scenes, columns, precisions, shaded_columns, exact_columns, oracle_columns)
     _free()                 # (what an earlier run in this process left is not this run's)
     try:
         with evidence_run(outdir):
             return _validate(scenes, columns, precisions, modes, outdir, progress, evidence,
-                             shaded_columns, pictures, plan, exact_columns, code27)
+                             shaded_columns, pictures, plan, exact_columns, code27,
+                             oracle_columns)
     finally:
         _free()
 
@@ -361,11 +382,11 @@ def evidence_run(outdir: str):
 
 
 def _validate(scenes, columns, precisions, modes, outdir, progress, evidence, shaded_columns,
-              pictures, plan, exact_columns=0, code27="auto"):
+              pictures, plan, exact_columns=0, code27="auto", oracle_columns=0):
     """``validate``'s comparisons, once the output directory is ready."""
     from tools.harness.parallel import SERIAL, run_cases
     todo = jobs(scenes, columns, precisions, modes, evidence, shaded_columns, pictures,
-                exact_columns, code27)
+                exact_columns, code27, oracle_columns)
     stems = unique_stems([s.path for s in scenes])
 
     def each(i, outs):
@@ -374,7 +395,7 @@ def _validate(scenes, columns, precisions, modes, outdir, progress, evidence, sh
         for row, cmp in outs:
             t0 = time.perf_counter()
             row["stem"] = stems[job.scene.path]         # (its name in the reports)
-            if row["mode"] == "shaded":
+            if row["mode"] in SHADED_MODES:
                 if cmp is not None:
                     from tools.harness.shaded import write_shaded_evidence
                     row["evidence"] = write_shaded_evidence(
@@ -396,7 +417,7 @@ def _validate(scenes, columns, precisions, modes, outdir, progress, evidence, sh
                      busy_cores=SERIAL_BUSY_CORES)
     # report order: per scene, every mode and precision (as given), then the exact oracle's,
     # then the shaded image
-    order = {m: k for k, m in enumerate((*modes, "exact", "shaded"))}
+    order = {m: k for k, m in enumerate((*modes, "exact", *SHADED_MODES))}
     prec = {p: k for k, p in enumerate(precisions)}
     keyed = [(n, order[r["mode"]], prec.get(todo[n].precision, 0), r)
              for n, rows in enumerate(done) for r in rows]
@@ -442,9 +463,9 @@ def write_report(results, skipped, outdir: str, meta: dict) -> tuple[str, str]:
              "| scene | mode | prec | pixels | explained | unexplained | depth max rel | "
              "over bound | rt_core ms | Mitsuba ms |",
              "|---|---|---|---|---|---|---|---|---|---|"]
-    shaded = [r for r in results if r["mode"] == "shaded"]
+    shaded = [r for r in results if r["mode"] in SHADED_MODES]
     for r in results:
-        if r["mode"] == "shaded":
+        if r["mode"] in SHADED_MODES:
             continue
         lines.append(f"| {row_stem(r)} | {r['mode']} | {r['precision']} | {r['pixels']} |"
                      f" {r['explained']} | {r['unexplained']} | {r['depth']['max_rel']:.2e} | "
@@ -453,12 +474,15 @@ def write_report(results, skipped, outdir: str, meta: dict) -> tuple[str, str]:
         lines += ["", "## The course image (rt_core f64 against Mitsuba's `course` integrator)",
                   "", "8-bit pixels: match, rounding (±1 at an 8-bit level), boundary (a decision "
                   "within float32's bound: the float64 shading oracle or the geometry "
-                  "classifier), wrong (tools/harness/shaded.py).", "",
-                  "| scene | pixels | match | rounding | boundary | wrong | rt_core ms | "
-                  "Mitsuba ms |", "|---|---|---|---|---|---|---|---|"]
+                  "classifier), wrong (tools/harness/shaded.py). Mode `shaded-oracle`: "
+                  "scenes with objects Mitsuba has no shape for, every object, against the "
+                  "float64 shading oracle's image (decisions within float64's bound); its "
+                  "reference ms are the oracle's.", "",
+                  "| scene | mode | pixels | match | rounding | boundary | wrong | rt_core ms | "
+                  "reference ms |", "|---|---|---|---|---|---|---|---|---|"]
         for r in shaded:
             c = r["classes"]
-            lines.append(f"| {row_stem(r)} | {r['pixels']} | {c['match']} | "
+            lines.append(f"| {row_stem(r)} | {r['mode']} | {r['pixels']} | {c['match']} | "
                          f"{c['rounding']} | {c['boundary']} | {c['wrong']} | "
                          f"{r['rt_core_ms']:.2f} | {r['mitsuba_ms']:.2f} |")
     bad = [r for r in results if not r["ok"]]
@@ -484,7 +508,7 @@ def comparison_cases(rows, classname: str) -> list:
         c = Case(f"{row_stem(r)}.{r['mode']}.{prec}", classname,
                  sum(r["seconds"].values()))
         counts = ", ".join(f"{k} {v}" for k, v in r["classes"].items() if v)
-        if r["mode"] == "shaded":
+        if r["mode"] in SHADED_MODES:
             c.body = (f"{r['columns']}x{r['rows']} 8-bit: {counts}"
                       + "".join(f"\nevidence: {p}" for p in r.get("evidence", [])))
             if not r["ok"]:
