@@ -26,6 +26,11 @@ evidence.
 
 rt_core renders in float64 with exact decisions; Mitsuba's variant is float32, so the
 oracle's bounds are taken for float32 (``shade_oracle.flags(.., "f32")``).
+
+Mode ``shaded-oracle`` (``compare_shaded(.., reference="oracle")``): the reference is the
+float64 shading oracle's image of every object (Mitsuba has no cone, ellipsoid or torus, and
+the comparison above leaves them out on both sides); the same classes, the bounds taken for
+float64, no stand-in planes and no geometry classifier (both are Mitsuba's).
 """
 from __future__ import annotations
 
