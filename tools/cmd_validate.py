@@ -95,14 +95,10 @@ def run(args) -> int:
     for s in skipped:
         print(f"{'FAILED' if s.category == 'disagree' else 'skipped'} ({s.category}): "
               f"{s.reason}", file=sys.stderr)
-    from tools.harness.exact_compare import needs_exact
-    from tools.harness.validate import lacks_texture
-    exact = sum(map(needs_exact, scenes)) if args.exact_columns > 0 else 0
-    oracle = sum(needs_exact(s) and not lacks_texture(s) for s in scenes) \
-        if args.oracle_columns > 0 else 0
-    total = len(scenes) * (len(precisions) * len(modes) + (args.shaded_columns > 0)) \
-        + exact * len(precisions) + oracle \
-        - (args.shaded_columns > 0) * sum(s.category == "texture" for s in skipped)
+    from tools.harness.validate import jobs
+    total = sum(len(j.modes) for j in jobs(
+        scenes, args.columns, precisions, modes, shaded_columns=args.shaded_columns,
+        exact_columns=args.exact_columns, oracle_columns=args.oracle_columns))
     plan = plan_of(args).resolve(total, seconds_per_comparison(args.columns), SERIAL_BUSY_CORES)
     if sys.stderr.isatty():
         bar = tqdm(total=total, file=sys.stderr, unit="cmp")

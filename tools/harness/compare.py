@@ -14,7 +14,6 @@ import numpy as np
 
 from rt_core import backend
 from rt_core.camera import make_camera
-from .agree import same_rows
 from rt_core.memory import compare_bytes, guard
 from rt_core.render import (DIRECTION_CHANNELS, provenance, to_images, trace_geometry,
                             write_images)
@@ -23,6 +22,7 @@ from rt_core.scene import Scene
 from mitsuba_ref.convert import mitsuba_subset, plane_extent, sensor_setup
 from mitsuba_ref.explain import CLASS_CODE, CLASSES, classify, over_bound
 from mitsuba_ref.reference import MitsubaScene, render_camera, trace_rays
+from .agree import same_rows
 from .timing import Stopwatch
 
 MODES = ("rays", "camera")

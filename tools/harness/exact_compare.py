@@ -11,10 +11,11 @@ kernels is shared.
 * float64: rt_core decides every primary hit exactly (certified, the rest by
   rt_core/decide.py), so every pixel must be the exact oracle's object: any other is
   ``unexplained``.  Nothing is excused.
-* float32: a pixel whose object differs is excused only where a decision of one of the two
-  objects involved lies within K·u·S of its threshold (``ExactResult.reasons``: the
-  decision's margin against its condition), or the two lie at the same depth within their
-  bounds; the class names the decision (CLASSES: an outline or the torus's crossing is a
+* float32: a pixel whose object differs is excused only where rt_core's answer is one that
+  decisions within K·u·S of their thresholds give (``ExactResult.reasons(reach=True)``: its
+  object, if the oracle's misses it, can flip to a hit, and every object hit in front of it
+  can flip to a miss or lies at its depth within their bounds, both hit); the class names
+  the decision (CLASSES: an outline or the torus's crossing is a
   silhouette, a rectangle's, rim's, triangle's or axial bound's or t's test an edge, the
   screen clip a clip, a plane parallel to the ray a graze).  Else ``unexplained``.  A
   margin of exactly 0 is within reach too: the ideal ray hits the edge exactly, but
@@ -65,13 +66,15 @@ def needs_exact(scene: Scene) -> bool:
     return bool(oracle_only(scene))
 
 
-def check_size(columns: int, rows: int, option: str = "--columns") -> None:
-    """InputError where the exact oracle would take too long (``MAX_PIXELS``)."""
-    if columns * rows > MAX_PIXELS:
+def check_size(columns: int, rows: int, option: str = "--columns", limit: int = MAX_PIXELS,
+               why: str = "exact oracle's {limit:,} (its rational arithmetic takes up to "
+                          "0.18 ms a pixel)") -> None:
+    """InputError where an oracle would take too long: more pixels than ``limit`` (the
+    exact oracle's ``MAX_PIXELS``, or another's with its ``why``)."""
+    if columns * rows > limit:
         from rt_core.errors import InputError
         raise InputError(f"{option} {columns}: {columns} x {rows} pixels is more than the "
-                         f"exact oracle's {MAX_PIXELS:,} (its rational arithmetic takes up "
-                         "to 0.18 ms a pixel); give fewer columns")
+                         f"{why.format(limit=limit)}; give fewer columns")
 
 
 def scene_source(scene: Scene) -> bytes:

@@ -167,8 +167,9 @@ def comparison_pictures(cmp) -> Pictures:
     the reference is Mitsuba's, or the exact oracle's (tools/harness/exact_compare.py)."""
     text = {"rtval.scene": str(cmp.scene.path), "rtval.scene_sha256": cmp.scene.sha256 or ""}
     if hasattr(cmp, "theirs"):                          # ShadedComparison
+        from .shaded import ORACLE_MODE
         oracle = cmp.reference == "oracle"
-        kind = "shaded-oracle" if oracle else "shaded"
+        kind = ORACLE_MODE if oracle else "shaded"
         return Pictures.make(kind, cmp.theirs, cmp.ours, cmp.classes,
                              {**text, "rtval.mode": kind,
                               "rtval.reference": "float64 shading oracle" if oracle else
@@ -275,9 +276,10 @@ def _q(*words) -> str:
 def compare_command(row: dict, rows_given: int | None = None) -> str:
     """The ``rtval compare`` command that redoes one comparison of validate or compare."""
     from rt_core.rules import Rules
-    shaded = row["mode"] in ("shaded", "shaded-oracle")
+    from .shaded import ORACLE_MODE, SHADED_MODES
+    shaded = row["mode"] in SHADED_MODES
     words = ["rtval", "compare"] + (["--shaded"] if shaded else []) + (
-        ["--reference", "oracle"] if row["mode"] == "shaded-oracle" else []) + [
+        ["--reference", "oracle"] if row["mode"] == ORACLE_MODE else []) + [
         row["scene"], "--columns", row["columns"]]
     if rows_given:
         words += ["--rows", rows_given]
@@ -301,8 +303,9 @@ def comparison_row(row: dict, rows_given: int | None = None) -> Row:
     from .validate import row_stem
     counts = {k: v for k, v in row["classes"].items()}
     listed = ", ".join(f"{k} {v}" for k, v in counts.items() if v)
-    oracle = row["mode"] == "shaded-oracle"
-    if row["mode"] in ("shaded", "shaded-oracle"):
+    from .shaded import ORACLE_MODE, SHADED_MODES
+    oracle = row["mode"] == ORACLE_MODE
+    if row["mode"] in SHADED_MODES:
         them = "the shading oracle" if oracle else "Mitsuba"
         title = f"{row_stem(row)} · {row['mode']}"
         summary = (f"{row['columns']}×{row['rows']} 8-bit, rt_core f64 / "
@@ -316,7 +319,7 @@ def comparison_row(row: dict, rows_given: int | None = None) -> Row:
                    f"{d['max_rel']:.3g} on {d['pixels']} same-object pixels, "
                    f"{d['over_bound']} over their bound")
         details = [row["note"]] if row.get("note") else []
-    reference = {"exact": "the exact oracle", "shaded-oracle": "the shading oracle"}.get(
+    reference = {"exact": "the exact oracle", ORACLE_MODE: "the shading oracle"}.get(
         row["mode"], "Mitsuba")
     details.append(f"rt_core {row['rt_core_ms']:.1f} ms, {reference} {row['mitsuba_ms']:.1f} ms")
     return Row(title, "pass" if row["ok"] else "fail", summary, details,

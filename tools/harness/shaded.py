@@ -267,11 +267,9 @@ MAX_ORACLE_PIXELS = 20_000
 
 def check_oracle_size(columns: int, rows: int, option: str = "--columns") -> None:
     """InputError where the shading oracle's image would take too long."""
-    if columns * rows > MAX_ORACLE_PIXELS:
-        from rt_core.errors import InputError
-        raise InputError(f"{option} {columns}: {columns} x {rows} pixels is more than the "
-                         f"shading oracle's {MAX_ORACLE_PIXELS:,} (it takes up to 1.6 ms a "
-                         "pixel); give fewer columns")
+    from .exact_compare import check_size
+    check_size(columns, rows, option, MAX_ORACLE_PIXELS,
+               "shading oracle's {limit:,} (it takes up to 1.6 ms a pixel)")
 
 
 def classes_rgb(classes: np.ndarray) -> np.ndarray:

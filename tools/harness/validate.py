@@ -12,7 +12,7 @@ from pathlib import Path
 from tools.harness.agree import parse_agreed
 from rt_core.scene import Scene, SceneError
 from .compare import compare, write_evidence
-from .shaded import SHADED_MODES
+from .shaded import ORACLE_MODE, SHADED_MODES
 
 REPO = Path(__file__).resolve().parents[2]
 COURSE_SCENES = REPO.parent / "shared" / "course-scenes"
@@ -170,7 +170,6 @@ def jobs(scenes, columns: int, precisions, modes, evidence: str = "failures",
     (tools/harness/exact_compare.py), then the shaded course image, and for those scenes
     their course image against the shading oracle (``oracle_columns``)."""
     from .exact_compare import needs_exact, scene_source
-    from .shaded import ORACLE_MODE
     out = []
     for scene in scenes:
         for precision in precisions:
@@ -206,16 +205,12 @@ def check_memory(scenes, columns: int, precisions, shaded_columns: int,
             rows = max(make_camera(s, cols).rows for s in scenes)
             guard(lambda px: compare_bytes(px, key), what, cols, rows, option=option)
     from .exact_compare import check_size, needs_exact
-    exact = [s for s in scenes if needs_exact(s)] if exact_columns > 0 else []
-    if exact:
-        check_size(exact_columns, max(make_camera(s, exact_columns).rows for s in exact),
-                   "--exact-columns")
-    exact = [s for s in scenes if needs_exact(s)] if oracle_columns > 0 else []
-    if exact:
-        from .shaded import check_oracle_size
-        check_oracle_size(oracle_columns,
-                          max(make_camera(s, oracle_columns).rows for s in exact),
-                          "--oracle-columns")
+    from .shaded import check_oracle_size
+    odd = [s for s in scenes if needs_exact(s)]         # (the oracles' scenes)
+    for cols, check, option in ((exact_columns, check_size, "--exact-columns"),
+                                (oracle_columns, check_oracle_size, "--oracle-columns")):
+        if cols > 0 and odd:
+            check(cols, max(make_camera(s, cols).rows for s in odd), option)
 
 
 def seconds_per_comparison(columns: int) -> float:
@@ -285,7 +280,7 @@ def run_job(job: Job) -> list:
         if mode == "shaded":
             from tools.harness.shaded import compare_shaded
             cmp = compare_shaded(job.scene, job.columns, guarded=guarded)
-        elif mode == "shaded-oracle":
+        elif mode == ORACLE_MODE:
             from tools.harness.shaded import compare_shaded
             cmp = compare_shaded(job.scene, job.columns, guarded=guarded, reference="oracle")
         elif mode == "exact":
