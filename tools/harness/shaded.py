@@ -279,9 +279,9 @@ def classes_rgb(classes: np.ndarray) -> np.ndarray:
 
 
 def write_shaded_evidence(cmp: ShadedComparison, outdir: str, stem: str) -> list[str]:
-    """PNGs of ours, the reference's (Mitsuba's or the shading oracle's), the classes (named colours, legend in the PNG's text) and,
-    where they differ, FLIP's error map (magma), with provenance; returns the paths
-    written."""
+    """PNGs of ours, the reference's (Mitsuba's or the shading oracle's), the classes (named
+    colours, legend in the PNG's text) and, where they differ, FLIP's error map (magma),
+    with provenance; returns the paths written."""
     from rt_core.imageio import write_png
     from tools.harness.flip import flip_colours
     os.makedirs(outdir, exist_ok=True)
@@ -293,6 +293,7 @@ def write_shaded_evidence(cmp: ShadedComparison, outdir: str, stem: str) -> list
     oracle = cmp.reference == "oracle"
     ref, ref_text = (("oracle", "float64 shading oracle (mitsuba_ref/shade_oracle.py)")
                      if oracle else ("mitsuba", "mitsuba course integrator, llvm_ad_rgb"))
+    mode = ORACLE_MODE if oracle else "shaded"
     for name, img, extra in (("ours", cmp.ours, {"rtval.image": "rt_core f64"}),
                              (ref, cmp.theirs, {"rtval.image": ref_text}),
                              ("classes", classes_rgb(cmp.classes),
@@ -302,7 +303,6 @@ def write_shaded_evidence(cmp: ShadedComparison, outdir: str, stem: str) -> list
                                                  f"light yellow), {ref} the reference",
                                   "rtval.flip.mean": repr(cmp.flip_mean)})]
                                if cmp.flip is not None else [])):
-        mode = ORACLE_MODE if oracle else "shaded"
         path = os.path.join(outdir, f"{stem}.{mode}.{name}.png")
         write_png(path, img, {**text, **extra})
         paths.append(path)
