@@ -26,7 +26,7 @@ from rt_core.camera import make_camera, primary_directions
 from rt_core.exrio import write_exr
 from rt_core.jitlog import KernelLog
 from rt_core.parser import parse_scene, parse_text
-from rt_core.render import render_image
+from rt_core.render import render_image, to_images, trace_geometry
 from rt_core.rules import Rules
 from rt_core.scene import (Material, PointLight, Scene, make_plane, make_sphere,
                            make_tplane)
@@ -258,8 +258,8 @@ def test05a_oracle_sphere_margins_as_written():
 
 
 # The kinds Mitsuba has no shape for (cones, ellipsoids, the torus): validate compares their
-# geometry with the exact oracle, and their shading (normals, shadows they cast, reflections)
-# only here, at COLUMNS, every object, in the default run
+# geometry with the exact oracle and their shading (normals, shadows they cast, reflections)
+# with this oracle in f64 (mode shaded-oracle); here in both precisions, every object
 ORACLE_ONLY = [REPO / "tests" / "scenes" / "cones.txt", REPO / "scenes" / "torus.txt",
                *(REPO.parent / "shared" / "course-scenes" / p for p in (
                    "keyword/rm768__bowling.txt", "keyword/rm768__ellipsoid_bullets.txt",
@@ -290,7 +290,6 @@ def test05c_kinds_without_a_mitsuba_shape_against_oracle(path, precision):
     # the comparison compared those kinds: pixels whose closest hit is one, lit or not
     T = backend.types(precision)
     cam = make_camera(scene, COLUMNS)
-    from rt_core.render import to_images, trace_geometry
     g = to_images(trace_geometry(scene, cam, T), cam)         # (rows, columns), top row first
     hit = g["hit.mask"] > 0
     kinds = np.array([o.kind for o in scene.objects] + ["none"])
