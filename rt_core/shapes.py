@@ -726,13 +726,15 @@ def directed(a: np.ndarray, precision: str, down: bool) -> np.ndarray:
     return f.astype(np.float64)
 
 
-def cone_rays(d):
-    """The per-ray part of ``sphere_cone``, computed once for all spheres: a = |d|² as
-    sphere_t computes it where CONE_MIN² <= a <= CONE_MIN⁻², else NaN (k·NaN drops
-    nothing)."""
+def cone_rays(d, dmax: float | None = None):
+    """The per-ray part of ``sphere_cone`` and ``ball_cone``, computed once for all objects:
+    a = |d|² as sphere_t computes it where CONE_MIN² <= a <= CONE_MIN⁻², else NaN (k·NaN
+    drops nothing).  ``dmax``: certified rays (|d| <= KD·dmax), for which the lower limit is
+    (dmax/4)² instead (``cert_radius``), raised past a's rounding."""
     F, B = _check(d)
     a = dr.squared_norm(d)
-    sane = (a >= CONE_MIN * CONE_MIN) & (a <= 1 / (CONE_MIN * CONE_MIN))
+    lo = CONE_MIN * CONE_MIN if dmax is None else dmax * dmax / 16 * (1 + 2.0 ** -20)
+    sane = (a >= lo) & (a <= 1 / (CONE_MIN * CONE_MIN))
     return dr.select(sane, a, dr.nan)
 
 
@@ -770,6 +772,67 @@ def sphere_cone(d, obj: ObjectConstants, precision: str, a):
     F, B = _check(d)
     b = dr.dot(opaque3(type(d), obj.q), d)         # sphere_t's bh, the same operations
     return (b > 0) & ~(b * b <= dr.opaque(F, k) * a)
+
+
+def ball_cone(d, centre, radius: float, precision: str, a):
+    """The rays from the viewpoint that may pass within ``radius`` of ``centre`` (host
+    float64, relative to the viewpoint): all but those that ``sphere_cone``'s argument finds
+    outside the cone of that ball, on either side of the viewpoint (no front test: an
+    object inside the ball may lie behind its centre); None where that argument does not
+    hold (``cone_k``).  Rays from inside the ball (k < 0) all pass.  ``a``: ``cone_rays``."""
+    k = cone_k(centre, radius, precision)
+    if k is None:
+        return None
+    F, B = _check(d)
+    b = dr.dot(opaque3(type(d), centre), d)
+    return ~(b * b <= dr.opaque(F, k) * a)
+
+
+# Certified camera rays (float64 with exact decisions) branch on ``ball_cone`` too, with the
+# ball widened so that a ray it drops is a certain miss in exact arithmetic.  A sphere's
+# certified outline test (``sphere_t``) finds a ray "not even possibly" hitting when its
+# computed r√a − |q×d| <= −bo (bo: ``_sphere_bounds``, scaled by the rays' dmax); then the
+# ideal ray misses the sphere.  ``sphere_cone``'s argument, run with the radius
+# r' = r + 4·bo₁ (bo₁ the bound for |d| <= KD), gives |q×d| as sphere_t computes it
+# >= r'√A(1 + 4u) >= r√a as computed + 4·bo₁·√A, which is >= r√a + bo₁·dmax for rays with
+# A >= (dmax/4)² (``cone_rays(d, dmax)``).  A ball around another bounded object (its
+# ``cull.bounding`` ball, holding it) is taken as such a sphere: a ray that certainly
+# misses the ball in exact arithmetic misses the object.
+
+def cert_radius(radius: float, bo: float) -> float | None:
+    """r + 4·bo₁, rounded up (``bo``: the sphere's bo₁, ``_sphere_bounds``); None where the
+    bound is not finite (NaN: the viewpoint inside the sphere)."""
+    if not math.isfinite(bo):
+        return None
+    return math.nextafter(float(Fraction(float(radius)) + 4 * Fraction(bo)), math.inf)
+
+
+def sphere_cone_cert(d, obj: ObjectConstants, precision: str, a):
+    """``ball_cone`` of sphere ``obj`` for certified rays: drops only rays that sphere_t's
+    certified test finds not even possibly hitting it; None where not used."""
+    r = cert_radius(obj.radius, obj.bo)
+    return None if r is None else ball_cone(d, obj.q, r, precision, a)
+
+
+# A bounding ball's radius is widened by BALL_GROW of itself and BALL_ROOM of |centre| +
+# radius: room for the host's roundings of the object's corners and of the ball (a few
+# ulps of those lengths), far below either
+BALL_GROW = 2.0 ** -10
+BALL_ROOM = 2.0 ** -40
+
+
+def bounded_cone(d, centre, radius: float, precision: str, a, cert: bool):
+    """``ball_cone`` of a bounded object's ball (``cull.bounding``): the rays that may hit
+    the object, certified (``cert``: ``cert_radius``'s widening) or not."""
+    centre = tuple(float(c) for c in centre)
+    r = radius * (1 + BALL_GROW) + BALL_ROOM * (math.sqrt(dot_x(centre, centre)) + radius)
+    if cert:
+        # (the ball's own numbers are the kernel's: its c = |centre|² − r², exactly)
+        c = dot_x(*(tuple(Fraction(x) for x in centre),) * 2) - Fraction(r) ** 2
+        r = cert_radius(r, _sphere_bounds(centre, r, c)["bo"])
+        if r is None:
+            return None
+    return ball_cone(d, centre, r, precision, a)
 
 
 def _sphere_miss(F, sn, ra, bo):

@@ -26,8 +26,8 @@ from .decide import decide, decide_rays, prepare as prepare_exact
 from .rules import Rules
 from .scene import Scene, SceneError, locate, written
 from .kinds import KIND_CODE, PLANE_KINDS
-from .shapes import (ObjectConstants, cone_rays, least, numbers, object_constants, object_t,
-                     sphere_cone, sphere_live, sphere_t)
+from .shapes import (ObjectConstants, bounded_cone, cone_rays, least, numbers, object_constants,
+                     object_t, sphere_cone, sphere_cone_cert, sphere_live, sphere_t)
 from .shapes_quadric import is_quadric, quadric_code, quadric_normal
 from .shapes_torus import torus_surface
 
@@ -36,6 +36,10 @@ from .shapes_torus import torus_surface
 # Measured single-thread in-process: 8 spheres 17% faster, 4 about even to 12%, 2 even,
 # 1 sphere twice as slow (README "Speed")
 SPHERE_BRANCH_MIN = 4
+# float64 (and certified finite planes, on their bounding balls): its square roots and
+# divisions cost 3-4 times float32's a lane (README "Speed"), so the branch pays sooner
+BRANCH_MIN = {("sphere", "f32"): SPHERE_BRANCH_MIN, ("sphere", "f64"): 1,
+              ("fplane", "f64"): 3}
 
 backend.require("llvm")     # fail early, with a message, on an LLVM that would abort kernels
 
@@ -255,19 +259,29 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, c
                        *((res[2], res[3] if len(ks.consts) > 1 else None,
                           dr.opaque(T.Int32, obj.grp) if shared else None) if cert else ()))
                 return s.state()
-            if kind != "sphere" or o is not None or len(ks.by_kind[kind]) < SPHERE_BRANCH_MIN:
+            if o is not None or len(ks.by_kind[kind]) < branch_min(kind, T.precision, cert):
                 st.set(test(*st.state()))
                 continue
-            # a camera ray's sphere: a packet whose rays all certainly miss skips the test
-            # (its two square roots and division) and the fold: without certification by
-            # one dot product against the sphere's cone (shapes.sphere_cone), else by
-            # sphere_live, whose |q×d|² and r√a the test reuses
-            if cone_a is None and not cert:
-                cone_a = cone_rays(d)       # (once: each if_stmt starts a new scope)
-            cone = None if cert else sphere_cone(d, obj, T.precision, cone_a)
+            # a camera ray's sphere or certified finite plane: a packet whose rays all
+            # certainly miss skips the test (a sphere's two square roots and division) and
+            # the fold, by one dot product against the cone of the object's ball: its own
+            # (shapes.sphere_cone; certified, sphere_cone_cert) or its bounding ball's
+            # (shapes.bounded_cone); else by sphere_live, whose |q×d|² and r√a the test
+            # reuses
+            if cone_a is None:              # (once: each if_stmt starts a new scope)
+                cone_a = cone_rays(d, scale if cert else None)
+            if kind != "sphere":
+                cone = bounded_cone(d, *cull.bounding(ks)[obj.id], T.precision, cone_a, cert)
+            elif cert:
+                cone = sphere_cone_cert(d, obj, T.precision, cone_a)
+            else:
+                cone = sphere_cone(d, obj, T.precision, cone_a)
             if cone is not None:
                 st.set(dr.if_stmt(st.state(), cone, test, lambda *s: s,
-                                  label="sphere_object"))
+                                  label=f"{kind}_object"))
+                continue
+            if kind != "sphere":
+                st.set(test(*st.state()))
                 continue
             live = sphere_live(d, obj, scale)
             st.set(dr.if_stmt(st.state(), live.mask, functools.partial(test, live=live),
@@ -276,6 +290,16 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, c
         return _decide_flagged(ks, cam, rules, st, d)
     hit = st.id >= 0
     return dr.select(hit, st.t, 0), st.id, hit
+
+
+def branch_min(kind: str, precision: str, cert: bool) -> int:
+    """How many unrolled objects of ``kind`` a scene needs for its camera rays to branch
+    past each one (``BRANCH_MIN``; finite planes only with certification: uncertified, a
+    grazing ray's noise hit, which their test may report (rt_core/bvh.py), would be
+    dropped with the branch and kept without)."""
+    if kind == "fplane" and not cert:
+        return 1 << 30
+    return BRANCH_MIN.get((kind, precision), 1 << 30)
 
 
 def shared_groups(ks: KernelScene) -> bool:
@@ -435,55 +459,40 @@ def _decide_flagged(ks: KernelScene, cam, rules: Rules, st: Best, d):
     # only)
     n = dr.width(oid)
     count = dr.zeros(T.UInt32, max(2, -(-n >> FLAG_SHIFT)))
+    # (ReduceMode.Local: a packet's lanes add up before one atomic each; Dr.Jit's default
+    # on LLVM gives each thread a copy of the counts and adds the copies in a kernel of its
+    # own, 4% of a 4-sphere image: README "Speed")
     dr.scatter_reduce(dr.ReduceOp.Add, count, T.UInt32(1),
-                      dr.arange(T.UInt32, n) >> FLAG_SHIFT, flag)
+                      dr.arange(T.UInt32, n) >> FLAG_SHIFT, flag, mode=dr.ReduceMode.Local)
     dr.eval(t, oid, count)
     pix = _flagged(T, oid, count.numpy())
     ks.__dict__["decided"] = len(pix)
     if not len(pix):
-        ids, ts = np.zeros(0, np.int32), np.zeros(0)
+        # (nothing to scatter: no kernel, 4% of a 4-sphere image's time; README "Speed")
+        return t, oid, oid >= 0
+    objs = ks.__dict__.get("_exact_objects")
+    if objs is None:
+        objs = ks.__dict__["_exact_objects"] = _exact_objects(ks.scene)
+    if isinstance(cam, str):                 # the traced directions are the exact rays
+        g = dr.gather(T.Array3, d, T.UInt32(pix.astype(np.uint32).tolist()))
+        E = np.stack([np.asarray(c.numpy(), np.float64) for c in (g.x, g.y, g.z)], 1)
+        ids, ts = decide_rays(ks.scene, rules, E.tolist(), objs=objs)
     else:
-        objs = ks.__dict__.get("_exact_objects")
-        if objs is None:
-            objs = ks.__dict__["_exact_objects"] = _exact_objects(ks.scene)
-        if isinstance(cam, str):             # the traced directions are the exact rays
-            g = dr.gather(T.Array3, d, T.UInt32(pix.astype(np.uint32).tolist()))
-            E = np.stack([np.asarray(c.numpy(), np.float64) for c in (g.x, g.y, g.z)], 1)
-            ids, ts = decide_rays(ks.scene, rules, E.tolist(), objs=objs)
-        else:
-            ids, ts = _decided(ks.scene, cam, rules, pix + cam.row0 * cam.columns, objs)
-    # scattered into the arrays by one kernel that always runs, with two masked-off lanes
-    # added (so that it never has one lane, a literal, and runs when nothing is flagged):
-    # the kernels a render compiles do not depend on what was flagged
-    if len(pix):
-        live = np.r_[np.ones(len(pix), bool), False, False]
-        pix, ids, ts = np.r_[pix, 0, 0], np.r_[ids, -1, -1], np.r_[ts, 0.0, 0.0]
-        # (from lists: Dr.Jit's own, aligned memory; numpy's alignment would change the
-        # kernel)
-        idx, mask = T.UInt32(pix.astype(np.uint32).tolist()), T.Bool(live.tolist())
-        tv = T.Float(np.where(ids >= 0, ts, 0.0).tolist())
-        iv = T.Int32(ids.astype(np.int32).tolist())
-        dr.eval(idx, mask, tv, iv)
-    else:
-        idx, mask, tv, iv = _no_flags(T)
+        ids, ts = _decided(ks.scene, cam, rules, pix + cam.row0 * cam.columns, objs)
+    # scattered into the arrays by one kernel, with two masked-off lanes added (so that it
+    # never has one lane, a literal: its code is the same for any count)
+    live = np.r_[np.ones(len(pix), bool), False, False]
+    pix, ids, ts = np.r_[pix, 0, 0], np.r_[ids, -1, -1], np.r_[ts, 0.0, 0.0]
+    # (from lists: Dr.Jit's own, aligned memory; numpy's alignment would change the
+    # kernel)
+    idx, mask = T.UInt32(pix.astype(np.uint32).tolist()), T.Bool(live.tolist())
+    tv = T.Float(np.where(ids >= 0, ts, 0.0).tolist())
+    iv = T.Int32(ids.astype(np.int32).tolist())
+    dr.eval(idx, mask, tv, iv)
     dr.scatter(t, tv, idx, mask)
     dr.scatter(oid, iv, idx, mask)
-    dr.eval(t, oid)                                 # one small kernel, fixed inputs
+    dr.eval(t, oid)                                 # one small kernel
     return t, oid, oid >= 0
-
-
-_NO_FLAGS: dict = {}
-
-
-def _no_flags(T):
-    """The scatter's inputs when nothing is flagged (two masked-off lanes), made once."""
-    key = (T.precision, dr.backend_v(T.Float))
-    if key not in _NO_FLAGS:
-        got = (T.UInt32([0, 0]), T.Bool([False, False]), T.Float([0.0, 0.0]),
-               T.Int32([-1, -1]))
-        dr.eval(got)
-        _NO_FLAGS[key] = got
-    return _NO_FLAGS[key]
 
 
 # exact answers of camera rays, kept across renders of one scene: renders that differ only in

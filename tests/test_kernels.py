@@ -343,18 +343,47 @@ def test09_looped_rows_and_bins_are_packet_gathers(precision):
 @pytest.mark.parametrize("precision", PRECISIONS)
 def test10_unrolled_spheres_branch_past_certain_misses(precision, monkeypatch):
     """Unrolled sphere tests of camera rays sit behind a packet-wide branch (tracer.closest_hit
-    on shapes.sphere_live), one per sphere; a looped sphere kind has none (its bins' rays
-    mostly hit).  That the branch drops no hit is test01's: the unrolled and the looped
-    search agree bit for bit."""
+    on shapes.sphere_cone), one per sphere, from tracer.BRANCH_MIN spheres on (float32 4,
+    float64 1); a looped sphere kind has none (its bins' rays mostly hit).  That the branch
+    drops no hit is test01's and test11b's."""
     T = types(precision)
-    n = tracer.SPHERE_BRANCH_MIN
+    n = tracer.branch_min("sphere", precision, False)
+    assert n == (4 if precision == "f32" else 1)
     ir = hit_kernel(scene_of(spheres(n)), T)["ir"].getvalue()
     assert ir.count("Symbolic conditional: sphere_object") == n
-    ir = hit_kernel(scene_of(spheres(n - 1)), T)["ir"].getvalue()
+    ir = hit_kernel(scene_of(spheres(n - 1) + fplanes(4)), T)["ir"].getvalue()
     assert "sphere_object" not in ir
+    assert "fplane_object" not in ir, "uncertified finite planes do not branch"
     monkeypatch.setattr(accel, "UNROLL_MAX", LOOPED)
     ir = hit_kernel(scene_of(spheres(n)), T)["ir"].getvalue()
     assert "sphere_object" not in ir and "closest_sphere" in ir
+
+
+def certified_kernel(scene):
+    """The IR of float64's certified closest-hit kernel on camera directions."""
+    T = types("f64")
+    d = primary_directions(scene, make_camera(scene, 64), T)
+    dr.eval(d)
+    ks = prepare(scene, T)
+
+    def run():
+        t, oid, _ = closest_hit(ks, d, cam="rays")
+        dr.eval(t, oid)
+    return max(jit_launches(run), key=lambda k: k["size"])["ir"].getvalue()
+
+
+def test10d_certified_camera_rays_branch_on_balls():
+    """float64 with exact decisions: each unrolled sphere behind its branch from one sphere
+    on (shapes.sphere_cone_cert), each finite plane from three on (shapes.bounded_cone, on
+    its bounding ball).  That the branches change no answer is test11c's and test11d's."""
+    ir = certified_kernel(scene_of(spheres(1)))
+    assert ir.count("Symbolic conditional: sphere_object") == 1
+    n = tracer.branch_min("fplane", "f64", True)
+    assert n == 3
+    ir = certified_kernel(scene_of(fplanes(n) + spheres(2)))
+    assert ir.count("Symbolic conditional: fplane_object") == n
+    assert ir.count("Symbolic conditional: sphere_object") == 2
+    assert "fplane_object" not in certified_kernel(scene_of(fplanes(n - 1)))
 
 
 @pytest.mark.parametrize("precision,exact", [("f32", True), ("f64", True), ("f64", False)])
@@ -469,13 +498,100 @@ def test11b_cone_cull_drops_no_hit(precision, monkeypatch):
     ks = accel.configure(prepare(scene, T), UNROLLED)
     with_cone = closest_hit(ks, D)
     assert all(shapes.cone_k(sp.q, sp.radius, precision) is not None for sp in ks.consts)
-    monkeypatch.setattr(tracer, "SPHERE_BRANCH_MIN", 10 ** 6)
+    monkeypatch.setattr(tracer, "BRANCH_MIN", {})
     plain = closest_hit(accel.configure(prepare(scene, T), UNROLLED), D)
     assert_same(tuple(bits(x) for x in with_cone[:2]), tuple(bits(x) for x in plain[:2]),
                 "outline probes")
     ids = plain[1].numpy().reshape(len(spheres_), -1)
     for k in range(len(spheres_)):
         assert (ids[k] == k).any() and (ids[k] != k).any(), f"sphere {k}: probes straddle"
+
+
+def outline_probes(centre, radius, scales, turns=24):
+    """Unit directions from the viewpoint (the origin here) at (1 ± s) times the angular
+    radius of the ball (``centre``, ``radius``) from its centre's direction, for each s of
+    ``scales`` and 0, ``turns`` around."""
+    q = np.asarray(centre, np.float64)
+    L = np.linalg.norm(q)
+    u = q / L
+    e1 = np.cross(u, [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(u, e1)
+    alpha = np.arcsin(radius / L) * (1 + np.r_[-scales, 0.0, scales])[:, None]
+    phi = np.linspace(0, 2 * np.pi, turns, endpoint=False)[None]
+    return (np.cos(alpha)[..., None] * u + np.sin(alpha)[..., None] *
+            (np.cos(phi)[..., None] * e1 + np.sin(phi)[..., None] * e2)).reshape(-1, 3)
+
+
+def certified(scene, d, branches: bool, monkeypatch):
+    """float64's certified (t, id) bits of the unrolled search along directions ``d``
+    (the exact rays), and how many rays it decided exactly; with or without the branches."""
+    T = types("f64")
+    monkeypatch.setattr(tracer, "BRANCH_MIN", dict(tracer.BRANCH_MIN) if branches else {})
+    ks = accel.configure(prepare(scene, T), UNROLLED)
+    t, oid, _ = closest_hit(ks, T.Array3(*(T.Float(c) for c in d.T)), cam="rays")
+    return bits(t), bits(oid), ks.decided
+
+
+def test11c_certified_sphere_cone_drops_no_unsure_ray(monkeypatch):
+    """float64 with exact decisions branches on shapes.sphere_cone_cert from one sphere on.
+    Rays probing each sphere's outline, from 2⁻² down to 2⁻⁵² of its angular radius inside
+    and outside (through the band the certified test cannot decide), spheres 2 to 10⁵ radii
+    away: the answers and the rays decided exactly are those without the branch, bit for
+    bit; some rays are decided exactly, and the probes straddle every outline."""
+    V = np.array([0.0, 0.0, 10.0])
+    balls = [(np.array(c) / np.linalg.norm(c) * 12.0, 12.0 / k)
+             for c, k in (((0.7, 0.0, -0.714), 2), ((-0.5, 0.3, -0.81), 8),
+                          ((0.0, 0.5, -0.866), 40), ((-0.2, -0.4, -0.894), 3000),
+                          ((0.3, -0.6, -0.74), 100000))]
+    scene = Scene((8.0, 6.0), tuple(V), (),
+                  tuple(make_sphere(GREY, tuple(V + c), r) for c, r in balls))
+    d = np.concatenate([outline_probes(c, r, 2.0 ** -np.arange(2, 53, 2.0), 12)
+                        for c, r in balls])
+    got = certified(scene, d, True, monkeypatch)
+    want = certified(scene, d, False, monkeypatch)
+    assert want[2] > 20, "the outlines' rays are unsure"
+    assert got[2] == want[2]
+    assert_same(got[:2], want[:2], "outline probes")
+    ids = want[1].reshape(len(balls), -1)
+    for k in range(len(balls)):
+        assert (ids[k] == k).any() and (ids[k] != k).any(), f"sphere {k}: probes straddle"
+
+
+def test11d_certified_finite_planes_branch_on_their_balls(monkeypatch):
+    """float64 with exact decisions branches past finite planes on their bounding balls
+    (shapes.bounded_cone), whose surface their corners lie on.  Rays toward points near
+    each corner of four tilted finite planes, 2⁻¹ to 2⁻⁴⁰ of the plane's size inside and
+    outside along its edges and diagonal: the answers and the rays decided exactly are
+    those without the branch, bit for bit, and the probes straddle every plane's edges."""
+    V = np.array([0.0, 0.0, 10.0])
+    planes = [make_fplane(GREY, n, p, x, s) for n, p, x, s in (
+        ((0.2, 0.1, 1), (-6.0, 2.0, -5.0), (1, 0.3, 0), (2.0, 1.5)),
+        ((-0.3, 0.0, 1), (3.0, 2.5, -20.0), (1, -0.2, 0.3), (4.0, 3.0)),
+        ((0.0, 0.4, 1), (-7.0, -6.0, -2.0), (1, 0, 0), (1.0, 0.5)),
+        ((0.1, -0.2, 1), (5.0, -5.0, -60.0), (1, 0.5, 0), (9.0, 5.0)))]
+    scene = Scene((8.0, 6.0), tuple(V), (), tuple(planes))
+    ks = prepare(scene, types("f64"))
+    s = 2.0 ** -np.arange(1, 41, 3.0)
+    points = []
+    for c in ks.consts:
+        q, x, y = (np.array(v) for v in (c.q, c.xdir, c.ydir))
+        w, h = c.size
+        for cu, cv in ((0, 0), (1, 0), (0, 1), (1, 1)):
+            corner = q + cu * w * x + cv * h * y
+            out_u, out_v = (1 if cu else -1) * x, (1 if cv else -1) * y
+            for k in np.r_[-s, 0, s]:
+                for e in (out_u * w, out_v * h, out_u * w + out_v * h):
+                    points.append(corner + k * e)
+    d = np.array(points)
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    got = certified(scene, d, True, monkeypatch)
+    want = certified(scene, d, False, monkeypatch)
+    assert got[2] == want[2]
+    assert_same(got[:2], want[:2], "corner probes")
+    ids = want[1].reshape(len(planes), -1)
+    for k in range(len(planes)):
+        assert (ids[k] == k).any() and (ids[k] != k).any(), f"plane {k}: probes straddle"
 
 
 def test12_a_scenes_constants_are_computed_once(monkeypatch):
