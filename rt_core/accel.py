@@ -60,9 +60,10 @@ SECONDARY_FACTOR = 3
 # shapes.sphere_cone; a finite plane without bounds).  Measured (bench scenes, 1920 columns,
 # median of 11 interleaved calls), unrolled time over binned: spheres 9 0.59, 12 0.66, 16
 # 0.90, 20 0.98, 24 1.06; finite planes 10 0.76, 12 0.84, 14 0.83, 16 1.02; mixed 10 0.58,
-# 14 0.71, 16 0.86, 20 0.99.  Not in float64: certified, unrolled is the slower (finite
-# planes 12: 1.35, spheres 16: 1.50), and without exact decisions too (finite planes 12:
-# 1.43, 16: 1.81; spheres 16: 1.04).
+# 14 0.71, 16 0.86, 20 0.99.  float64 with exact decisions too, since its spheres and finite
+# planes branch on cone tests (median of 15: spheres 12 0.83, 16 1.03, 24 1.14; finite
+# planes 12 0.70, 16 0.78; mixed 16 0.83); not float64 without (finite planes 12: 1.43,
+# 16: 1.81; spheres 16: 1.04).
 CAMERA_FACTOR = 2
 # ... where every bounded object is of these kinds (measured on them; 12 tori unrolled took
 # 7 times the binned loop's time)
@@ -150,6 +151,13 @@ def use_bvh(ks, kind: str, o) -> bool:
             and ks.__dict__.get("_accel_opts", {}).get("bvh", True))
 
 
+def camera_unrolls(ks) -> bool:
+    """Do camera rays unroll up to CAMERA_FACTOR × UNROLL_MAX objects?  float32's, and
+    float64's with exact decisions (tracer.exact_decisions), whose unrolled spheres and
+    finite planes branch on cone tests (tracer.BRANCH_MIN); not float64's without."""
+    return ks.T.precision == "f32" or ks.__dict__.get("exact_decisions", True)
+
+
 def looped(ks, kind: str, reflections: bool = False, camera: bool = False) -> bool:
     """Is ``kind`` traced by a loop rather than unrolled?  Bounded kinds (spheres, finite
     planes) loop when there are more than UNROLL_MAX of them together; the unbounded ones
@@ -162,7 +170,7 @@ def looped(ks, kind: str, reflections: bool = False, camera: bool = False) -> bo
     if reflections:
         limit *= SECONDARY_FACTOR
     if kind in BOUNDED:
-        if camera and ks.T.precision == "f32" and all(
+        if camera and camera_unrolls(ks) and all(
                 k in CAMERA_KINDS for k in BOUNDED if ks.by_kind.get(k)):
             limit *= CAMERA_FACTOR
         return sum(len(ks.by_kind.get(k, ())) for k in BOUNDED) > limit

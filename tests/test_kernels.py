@@ -127,6 +127,28 @@ def test01_camera_rays_loop_equals_unrolled(seed, precision, monkeypatch):
     assert (a[1] >= 0).mean() > 0.3, "the scene should cover a good part of the image"
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test01c_certified_camera_rays_loop_equals_unrolled(seed, monkeypatch):
+    """float64 with exact decisions, whose unrolled spheres and finite planes branch on cone
+    tests (certified: shapes.sphere_cone_cert, bounded_cone) and whose camera rays unroll
+    up to CAMERA_FACTOR × UNROLL_MAX objects: on the adversarial scenes (a sphere holding
+    the viewpoint, edge-on and nearly edge-on finite planes, ties), unrolled with the
+    branches and looped without them give the same t and ids bit for bit, and decide the
+    same rays exactly."""
+    scene = adversarial_scene(seed)
+    T = types("f64")
+    cam = make_camera(scene, 96, None, "corners" if seed % 2 == 0 else "centers")
+    d = primary_directions(scene, cam, T)
+    out = []
+    for unroll in (LOOPED, UNROLLED):
+        ks = accel.configure(prepare(scene, T), unroll)
+        t, oid, _ = closest_hit(ks, d, cam=cam)
+        out.append((bits(t), bits(oid), ks.decided))
+    assert out[0][2] == out[1][2]
+    assert_same(out[0][:2], out[1][:2], f"certified adversarial {seed}")
+    assert (out[0][1] >= 0).mean() > 0.3
+
+
 @pytest.mark.parametrize("precision", PRECISIONS)
 def test01b_a_kind_no_camera_ray_can_hit(precision, monkeypatch):
     """The viewpoint inside the only sphere (and a second scene: on its surface): no camera
@@ -388,14 +410,14 @@ def test10d_certified_camera_rays_branch_on_balls():
 
 @pytest.mark.parametrize("precision,exact", [("f32", True), ("f64", True), ("f64", False)])
 def test10b_float32_camera_rays_unroll_more(precision, exact):
-    """float32 camera rays unroll up to CAMERA_FACTOR × UNROLL_MAX bounded objects, each
-    sphere behind its branch; float64, with exact decisions or without, loops above
-    UNROLL_MAX.  (That both give the same hits is test01's.)"""
+    """float32 camera rays, and float64's with exact decisions, unroll up to CAMERA_FACTOR ×
+    UNROLL_MAX bounded objects, each sphere behind its branch; float64 without exact
+    decisions loops above UNROLL_MAX.  (That both give the same hits is test01's.)"""
     T = types(precision)
     n = accel.UNROLL_MAX * accel.CAMERA_FACTOR
     for objs in (spheres(n), spheres(n // 2) + fplanes(n - n // 2)):
         ir = hit_kernel(scene_of(objs), T, exact)["ir"].getvalue()
-        if precision == "f64":
+        if not exact:
             assert "closest_sphere" in ir and "sphere_object" not in ir
         else:
             assert "closest_" not in ir
