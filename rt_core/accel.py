@@ -61,10 +61,13 @@ SECONDARY_FACTOR = 3
 # median of 11 interleaved calls), unrolled time over binned: spheres 9 0.59, 12 0.66, 16
 # 0.90, 20 0.98, 24 1.06; finite planes 10 0.76, 12 0.84, 14 0.83, 16 1.02; mixed 10 0.58,
 # 14 0.71, 16 0.86, 20 0.99.  float64 with exact decisions too, since its spheres and finite
-# planes branch on cone tests (median of 15: spheres 12 0.83, 16 1.03, 24 1.14; finite
-# planes 12 0.70, 16 0.78; mixed 16 0.83); not float64 without (finite planes 12: 1.43,
-# 16: 1.81; spheres 16: 1.04).
+# planes branch on cone tests, but with at most 12 spheres (two alternated bench runs
+# against the loop, float64 over Mitsuba: spheres 12 1.10/1.04 against 0.93/0.95, 16
+# 0.99/0.99 against 1.09/1.09; mixed 16 3.76/3.42 against 3.12/2.90; finite planes 12
+# 2.87/2.87 against 2.19/2.20, 16 2.44/2.39 against 2.05/2.06); not float64 without
+# (finite planes 12: 1.43, 16: 1.81; spheres 16: 1.04).
 CAMERA_FACTOR = 2
+CAMERA_SPHERES_F64 = 12
 # ... where every bounded object is of these kinds (measured on them; 12 tori unrolled took
 # 7 times the binned loop's time)
 CAMERA_KINDS = ("sphere", "fplane")
@@ -154,8 +157,12 @@ def use_bvh(ks, kind: str, o) -> bool:
 def camera_unrolls(ks) -> bool:
     """Do camera rays unroll up to CAMERA_FACTOR × UNROLL_MAX objects?  float32's, and
     float64's with exact decisions (tracer.exact_decisions), whose unrolled spheres and
-    finite planes branch on cone tests (tracer.BRANCH_MIN); not float64's without."""
-    return ks.T.precision == "f32" or ks.__dict__.get("exact_decisions", True)
+    finite planes branch on cone tests (tracer.BRANCH_MIN), with at most
+    CAMERA_SPHERES_F64 spheres; not float64's without."""
+    if ks.T.precision == "f32":
+        return True
+    return ks.__dict__.get("exact_decisions", True) and \
+        len(ks.by_kind.get("sphere", ())) <= CAMERA_SPHERES_F64
 
 
 def looped(ks, kind: str, reflections: bool = False, camera: bool = False) -> bool:
