@@ -823,7 +823,11 @@ BALL_ROOM = 2.0 ** -40
 
 def bounded_cone(d, centre, radius: float, precision: str, a, cert: bool):
     """``ball_cone`` of a bounded object's ball (``cull.bounding``): the rays that may hit
-    the object, certified (``cert``: ``cert_radius``'s widening) or not."""
+    the object, certified (``cert``: ``cert_radius``'s widening) or not.  Uncertified, a
+    dropped ray's line stays more than 2⁻¹¹ of the radius outside the ball, far beyond the
+    few ulps by which a hit test can accept a ray that misses, except a grazing ray's noise
+    hit (a planar object within ~10⁻⁴ rad in float32, rt_core/bvh.py): the screen-space
+    bins (rt_core/accel.py) drop those too, so unrolled and looped searches agree."""
     centre = tuple(float(c) for c in centre)
     r = radius * (1 + BALL_GROW) + BALL_ROOM * (math.sqrt(dot_x(centre, centre)) + radius)
     if cert:

@@ -36,10 +36,13 @@ from .shapes_torus import torus_surface
 # Measured single-thread in-process: 8 spheres 17% faster, 4 about even to 12%, 2 even,
 # 1 sphere twice as slow (README "Speed")
 SPHERE_BRANCH_MIN = 4
-# float64 (and certified finite planes, on their bounding balls): its square roots and
-# divisions cost 3-4 times float32's a lane (README "Speed"), so the branch pays sooner
+# float64's from one sphere on: its square roots and divisions cost 3-4 times float32's a
+# lane (README "Speed"), so the branch pays sooner.  Finite planes (on their bounding balls)
+# from 4 bounded objects on, of any kind: what matters is how much of the view each covers
+# (bench scenes, one process: finite planes 3 1.03 of the time, 4 0.84, 16 0.51; mixed 4,
+# 2 of them finite planes, 0.91)
 BRANCH_MIN = {("sphere", "f32"): SPHERE_BRANCH_MIN, ("sphere", "f64"): 1,
-              ("fplane", "f64"): 3}
+              ("fplane", "f32"): 4, ("fplane", "f64"): 4}
 
 backend.require("llvm")     # fail early, with a message, on an LLVM that would abort kernels
 
@@ -259,15 +262,15 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, c
                        *((res[2], res[3] if len(ks.consts) > 1 else None,
                           dr.opaque(T.Int32, obj.grp) if shared else None) if cert else ()))
                 return s.state()
-            if o is not None or len(ks.by_kind[kind]) < branch_min(kind, T.precision, cert):
+            if o is not None or not branches(ks, kind):
                 st.set(test(*st.state()))
                 continue
-            # a camera ray's sphere or certified finite plane: a packet whose rays all
-            # certainly miss skips the test (a sphere's two square roots and division) and
-            # the fold, by one dot product against the cone of the object's ball: its own
-            # (shapes.sphere_cone; certified, sphere_cone_cert) or its bounding ball's
-            # (shapes.bounded_cone); else by sphere_live, whose |q×d|² and r√a the test
-            # reuses
+            # a camera ray's sphere or finite plane: a packet whose rays all certainly
+            # miss skips the test (a sphere's two square roots and division, a plane's
+            # division) and the fold, by one dot product against the cone of the object's
+            # ball: its own (shapes.sphere_cone; certified, sphere_cone_cert) or its
+            # bounding ball's (shapes.bounded_cone); else by sphere_live, whose |q×d|² and
+            # r√a the test reuses
             if cone_a is None:              # (once: each if_stmt starts a new scope)
                 cone_a = cone_rays(d, scale if cert else None)
             if kind != "sphere":
@@ -292,14 +295,15 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, c
     return dr.select(hit, st.t, 0), st.id, hit
 
 
-def branch_min(kind: str, precision: str, cert: bool) -> int:
-    """How many unrolled objects of ``kind`` a scene needs for its camera rays to branch
-    past each one (``BRANCH_MIN``; finite planes only with certification: uncertified, a
-    grazing ray's noise hit, which their test may report (rt_core/bvh.py), would be
-    dropped with the branch and kept without)."""
-    if kind == "fplane" and not cert:
-        return 1 << 30
-    return BRANCH_MIN.get((kind, precision), 1 << 30)
+def branches(ks: KernelScene, kind: str) -> bool:
+    """Do the unrolled objects of ``kind`` sit behind camera rays' branches (``BRANCH_MIN``)?
+    Spheres by their count, finite planes by the count of every bounded object."""
+    need = BRANCH_MIN.get((kind, ks.T.precision))
+    if need is None:
+        return False
+    n = len(ks.by_kind[kind]) if kind == "sphere" else \
+        sum(len(ks.by_kind.get(k, ())) for k in accel.BOUNDED)
+    return n >= need
 
 
 def shared_groups(ks: KernelScene) -> bool:

@@ -369,13 +369,12 @@ def test10_unrolled_spheres_branch_past_certain_misses(precision, monkeypatch):
     float64 1); a looped sphere kind has none (its bins' rays mostly hit).  That the branch
     drops no hit is test01's and test11b's."""
     T = types(precision)
-    n = tracer.branch_min("sphere", precision, False)
+    n = tracer.BRANCH_MIN[("sphere", precision)]
     assert n == (4 if precision == "f32" else 1)
     ir = hit_kernel(scene_of(spheres(n)), T)["ir"].getvalue()
     assert ir.count("Symbolic conditional: sphere_object") == n
-    ir = hit_kernel(scene_of(spheres(n - 1) + fplanes(4)), T)["ir"].getvalue()
+    ir = hit_kernel(scene_of(spheres(n - 1) + fplanes(1)), T)["ir"].getvalue()
     assert "sphere_object" not in ir
-    assert "fplane_object" not in ir, "uncertified finite planes do not branch"
     monkeypatch.setattr(accel, "UNROLL_MAX", LOOPED)
     ir = hit_kernel(scene_of(spheres(n)), T)["ir"].getvalue()
     assert "sphere_object" not in ir and "closest_sphere" in ir
@@ -394,18 +393,26 @@ def certified_kernel(scene):
     return max(jit_launches(run), key=lambda k: k["size"])["ir"].getvalue()
 
 
-def test10d_certified_camera_rays_branch_on_balls():
-    """float64 with exact decisions: each unrolled sphere behind its branch from one sphere
-    on (shapes.sphere_cone_cert), each finite plane from three on (shapes.bounded_cone, on
-    its bounding ball).  That the branches change no answer is test11c's and test11d's."""
+def test10d_camera_rays_branch_on_balls():
+    """Each unrolled finite plane of camera rays sits behind its branch on its bounding
+    ball (shapes.bounded_cone) from BRANCH_MIN bounded objects of any kind on, certified
+    float64 or not; certified float64's spheres each behind theirs from one sphere on
+    (shapes.sphere_cone_cert).  That the branches change no answer is test11c's, test11d's
+    and test01's."""
+    n = tracer.BRANCH_MIN[("fplane", "f64")]
+    assert n == tracer.BRANCH_MIN[("fplane", "f32")] == 4
     ir = certified_kernel(scene_of(spheres(1)))
     assert ir.count("Symbolic conditional: sphere_object") == 1
-    n = tracer.branch_min("fplane", "f64", True)
-    assert n == 3
-    ir = certified_kernel(scene_of(fplanes(n) + spheres(2)))
-    assert ir.count("Symbolic conditional: fplane_object") == n
+    ir = certified_kernel(scene_of(fplanes(n - 2) + spheres(2)))
+    assert ir.count("Symbolic conditional: fplane_object") == n - 2
     assert ir.count("Symbolic conditional: sphere_object") == 2
     assert "fplane_object" not in certified_kernel(scene_of(fplanes(n - 1)))
+    for precision in ("f32", "f64"):
+        T = types(precision)
+        ir = hit_kernel(scene_of(fplanes(n)), T, exact=False)["ir"].getvalue()
+        assert ir.count("Symbolic conditional: fplane_object") == n
+        ir = hit_kernel(scene_of(fplanes(n - 1)), T, exact=False)["ir"].getvalue()
+        assert "fplane_object" not in ir
 
 
 @pytest.mark.parametrize("precision,exact", [("f32", True), ("f64", True), ("f64", False)])
@@ -547,14 +554,17 @@ def outline_probes(centre, radius, scales, turns=24):
             (np.cos(phi)[..., None] * e1 + np.sin(phi)[..., None] * e2)).reshape(-1, 3)
 
 
-def certified(scene, d, branches: bool, monkeypatch):
+def certified(scene, d, branches: bool, monkeypatch, precision="f64", cert=True):
     """float64's certified (t, id) bits of the unrolled search along directions ``d``
-    (the exact rays), and how many rays it decided exactly; with or without the branches."""
-    T = types("f64")
+    (the exact rays), and how many rays it decided exactly; with or without the branches.
+    (``cert=False``: ``precision``'s uncertified search, and None decided.)"""
+    T = types(precision)
     monkeypatch.setattr(tracer, "BRANCH_MIN", dict(tracer.BRANCH_MIN) if branches else {})
     ks = accel.configure(prepare(scene, T), UNROLLED)
-    t, oid, _ = closest_hit(ks, T.Array3(*(T.Float(c) for c in d.T)), cam="rays")
-    return bits(t), bits(oid), ks.decided
+    ks.exact_decisions = cert
+    t, oid, _ = closest_hit(ks, T.Array3(*(T.Float(c) for c in d.T)),
+                            cam="rays" if cert else None)
+    return bits(t), bits(oid), ks.__dict__.get("decided") if cert else None
 
 
 def test11c_certified_sphere_cone_drops_no_unsure_ray(monkeypatch):
@@ -582,12 +592,14 @@ def test11c_certified_sphere_cone_drops_no_unsure_ray(monkeypatch):
         assert (ids[k] == k).any() and (ids[k] != k).any(), f"sphere {k}: probes straddle"
 
 
-def test11d_certified_finite_planes_branch_on_their_balls(monkeypatch):
-    """float64 with exact decisions branches past finite planes on their bounding balls
-    (shapes.bounded_cone), whose surface their corners lie on.  Rays toward points near
-    each corner of four tilted finite planes, 2⁻¹ to 2⁻⁴⁰ of the plane's size inside and
-    outside along its edges and diagonal: the answers and the rays decided exactly are
-    those without the branch, bit for bit, and the probes straddle every plane's edges."""
+@pytest.mark.parametrize("precision,cert", [("f64", True), ("f64", False), ("f32", False)])
+def test11d_finite_planes_branch_on_their_balls(precision, cert, monkeypatch):
+    """Camera rays branch past finite planes on their bounding balls (shapes.bounded_cone),
+    whose surface their corners lie on; certified float64 on the ball widened as a
+    sphere's.  Rays toward points near each corner of four tilted finite planes, 2⁻¹ to
+    2⁻⁴⁰ of the plane's size inside and outside along its edges and diagonal: the answers
+    (and the rays decided exactly) are those without the branch, bit for bit, and the
+    probes straddle every plane's edges."""
     V = np.array([0.0, 0.0, 10.0])
     planes = [make_fplane(GREY, n, p, x, s) for n, p, x, s in (
         ((0.2, 0.1, 1), (-6.0, 2.0, -5.0), (1, 0.3, 0), (2.0, 1.5)),
@@ -609,8 +621,8 @@ def test11d_certified_finite_planes_branch_on_their_balls(monkeypatch):
                     points.append(corner + k * e)
     d = np.array(points)
     d /= np.linalg.norm(d, axis=1)[:, None]
-    got = certified(scene, d, True, monkeypatch)
-    want = certified(scene, d, False, monkeypatch)
+    got = certified(scene, d, True, monkeypatch, precision, cert)
+    want = certified(scene, d, False, monkeypatch, precision, cert)
     assert got[2] == want[2]
     assert_same(got[:2], want[:2], "corner probes")
     ids = want[1].reshape(len(planes), -1)
