@@ -730,10 +730,12 @@ def cone_rays(d, dmax: float | None = None):
     """The per-ray part of ``sphere_cone`` and ``ball_cone``, computed once for all objects:
     a = |d|² as sphere_t computes it where CONE_MIN² <= a <= CONE_MIN⁻², else NaN (k·NaN
     drops nothing).  ``dmax``: certified rays (|d| <= KD·dmax), for which the lower limit is
-    (dmax/4)² instead (``cert_radius``), raised past a's rounding."""
+    also (dmax/4)² (``cert_radius``, ``plane_ball``), raised past a's rounding."""
     F, B = _check(d)
     a = dr.squared_norm(d)
-    lo = CONE_MIN * CONE_MIN if dmax is None else dmax * dmax / 16 * (1 + 2.0 ** -20)
+    lo = CONE_MIN * CONE_MIN
+    if dmax is not None:
+        lo = max(lo, dmax * dmax / 16 * (1 + 2.0 ** -20))
     sane = (a >= lo) & (a <= 1 / (CONE_MIN * CONE_MIN))
     return dr.select(sane, a, dr.nan)
 
@@ -789,15 +791,14 @@ def ball_cone(d, centre, radius: float, precision: str, a):
 
 
 # Certified camera rays (float64 with exact decisions) branch on ``ball_cone`` too, with the
-# ball widened so that a ray it drops is a certain miss in exact arithmetic.  A sphere's
+# ball widened so that a ray it drops is one the certified test would find not even possibly
+# hitting: then neither the answers nor the rays decided exactly change.  A sphere's
 # certified outline test (``sphere_t``) finds a ray "not even possibly" hitting when its
-# computed r√a − |q×d| <= −bo (bo: ``_sphere_bounds``, scaled by the rays' dmax); then the
-# ideal ray misses the sphere.  ``sphere_cone``'s argument, run with the radius
-# r' = r + 4·bo₁ (bo₁ the bound for |d| <= KD), gives |q×d| as sphere_t computes it
-# >= r'√A(1 + 4u) >= r√a as computed + 4·bo₁·√A, which is >= r√a + bo₁·dmax for rays with
-# A >= (dmax/4)² (``cone_rays(d, dmax)``).  A ball around another bounded object (its
-# ``cull.bounding`` ball, holding it) is taken as such a sphere: a ray that certainly
-# misses the ball in exact arithmetic misses the object.
+# computed r√a − |q×d| <= −bo (bo: ``_sphere_bounds``, scaled by the rays' dmax).
+# ``sphere_cone``'s argument, run with the radius r' = r + 4·bo₁ (bo₁ the bound for
+# |d| <= KD), gives |q×d| as sphere_t computes it >= r'√A(1 + 4u) >= r√a as computed +
+# 4·bo₁·√A, which is >= r√a + bo₁·dmax for rays with A >= (dmax/4)² (``cone_rays(d,
+# dmax)``).
 
 def cert_radius(radius: float, bo: float) -> float | None:
     """r + 4·bo₁, rounded up (``bo``: the sphere's bo₁, ``_sphere_bounds``); None where the
@@ -814,29 +815,51 @@ def sphere_cone_cert(d, obj: ObjectConstants, precision: str, a):
     return None if r is None else ball_cone(d, obj.q, r, precision, a)
 
 
-# A bounding ball's radius is widened by BALL_GROW of itself and BALL_ROOM of |centre| +
-# radius: room for the host's roundings of the object's corners and of the ball (a few
-# ulps of those lengths), far below either
-BALL_GROW = 2.0 ** -10
-BALL_ROOM = 2.0 ** -40
+# A finite plane's ball (``cull.bounding``: about c, out to its farthest corner R) is widened
+# to R₂ so that a ray it drops fails one of the plane's edge decisions by more than their
+# bound bm (``_plane_bounds``; for float32, in float32's unit): certified, not even possibly a
+# hit; uncertified, no computed hit either, not even a grazing ray's noise hit.  With h = |n·q|
+# the viewpoint's distance from the plane, a ray the cone drops meets the plane (if at all
+# ahead, den = n·d̂ > 0) at P with |P − c| >= R₂, so outside the rectangle by e >= (R₂ − R)/√2
+# along u or v; t = h/den <= |c| + |P − c| and (x − R)/(|c| + x) grows with x, so the edge
+# value −e·den <= −(R₂ − R)·h/((|c| + R₂)·√2)·|d|, which is <= −2·bm₁·4|d| (the computed value
+# then <= −bm, for rays |d| >= dmax/4 in certified kernels, whose bound is bm₁·dmax) when
+# R₂ − R >= K·(|c| + R₂), K = 8√2·bm₁/h.  Rays with den <= 0: below −bden a certain miss;
+# nearer 0, |(q×d)·x̂| or |(q×d)·ŷ| >= h|d|/√2 (d in the plane's directions), far beyond bm
+# when h >= PLANE_H·(bm₁ + (w + h)·bden₁).  Found by a reviewer's fuzzing: the ball widened by
+# 2⁻¹⁰ alone let nearly edge-on planes' unsure rays (certified) and noise hits (uncertified)
+# be dropped.
+BALL_GROW = 2.0 ** -10      # relative widening, and BALL_ROOM of |c| + R for the host's
+BALL_ROOM = 2.0 ** -40      # roundings of the corners and of the ball
+PLANE_K_MAX = 0.5           # no branch where the widening would grow R₂ by half or more
+PLANE_H = 64.0
 
 
-def bounded_cone(d, centre, radius: float, precision: str, a, cert: bool):
-    """``ball_cone`` of a bounded object's ball (``cull.bounding``): the rays that may hit
-    the object, certified (``cert``: ``cert_radius``'s widening) or not.  Uncertified, a
-    dropped ray's line stays more than 2⁻¹¹ of the radius outside the ball, far beyond the
-    few ulps by which a hit test can accept a ray that misses, except a grazing ray's noise
-    hit (a planar object within ~10⁻⁴ rad in float32, rt_core/bvh.py): the screen-space
-    bins (rt_core/accel.py) drop those too, so unrolled and looped searches agree."""
-    centre = tuple(float(c) for c in centre)
-    r = radius * (1 + BALL_GROW) + BALL_ROOM * (math.sqrt(dot_x(centre, centre)) + radius)
-    if cert:
-        # (the ball's own numbers are the kernel's: its c = |centre|² − r², exactly)
-        c = dot_x(*(tuple(Fraction(x) for x in centre),) * 2) - Fraction(r) ** 2
-        r = cert_radius(r, _sphere_bounds(centre, r, c)["bo"])
-        if r is None:
-            return None
-    return ball_cone(d, centre, r, precision, a)
+def plane_ball(obj: ObjectConstants, centre, radius: float, precision: str) -> float | None:
+    """R₂ of finite plane ``obj``'s ball (``centre``, ``radius``: cull.bounding's), for
+    ``precision``'s kernels, certified or not; None where no branch is sound (the viewpoint
+    too near the plane's)."""
+    if not isinstance(obj.nq, (int, float)) or not isinstance(obj.bm, (int, float)):
+        return None
+    scale = 1.0 if precision == "f64" else 2.0 ** -24 / U64
+    bm1, bden1 = obj.bm * scale, KB * U64 * KD * scale
+    h = abs(obj.nq)
+    nc = math.sqrt(dot_x(centre, centre))
+    if not (math.isfinite(bm1) and math.isfinite(nc)) or \
+            h <= PLANE_H * (bm1 + (obj.size[0] + obj.size[1]) * bden1):
+        return None
+    K = 8 * math.sqrt(2) * bm1 / h * (1 + 2.0 ** -20)
+    if K >= PLANE_K_MAX:
+        return None
+    r = (radius * (1 + BALL_GROW) + BALL_ROOM * (nc + radius) + K * nc) / (1 - K)
+    return r * (1 + 2.0 ** -20)
+
+
+def plane_cone(d, obj: ObjectConstants, centre, radius: float, precision: str, a):
+    """``ball_cone`` of finite plane ``obj``'s ball widened to ``plane_ball``: the camera
+    rays that may hit it (certified: possibly); None where not used."""
+    r = plane_ball(obj, tuple(float(c) for c in centre), radius, precision)
+    return None if r is None else ball_cone(d, centre, r, precision, a)
 
 
 def _sphere_miss(F, sn, ra, bo):

@@ -26,8 +26,8 @@ from .decide import decide, decide_rays, prepare as prepare_exact
 from .rules import Rules
 from .scene import Scene, SceneError, locate, written
 from .kinds import KIND_CODE, PLANE_KINDS
-from .shapes import (ObjectConstants, bounded_cone, cone_rays, least, numbers, object_constants,
-                     object_t, sphere_cone, sphere_cone_cert, sphere_live, sphere_t)
+from .shapes import (ObjectConstants, cone_rays, least, numbers, object_constants,
+                     object_t, plane_cone, sphere_cone, sphere_cone_cert, sphere_live, sphere_t)
 from .shapes_quadric import is_quadric, quadric_code, quadric_normal
 from .shapes_torus import torus_surface
 
@@ -269,12 +269,12 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, c
             # miss skips the test (a sphere's two square roots and division, a plane's
             # division) and the fold, by one dot product against the cone of the object's
             # ball: its own (shapes.sphere_cone; certified, sphere_cone_cert) or its
-            # bounding ball's (shapes.bounded_cone); else by sphere_live, whose |q×d|² and
+            # bounding ball's (shapes.plane_cone); else by sphere_live, whose |q×d|² and
             # r√a the test reuses
             if cone_a is None:              # (once: each if_stmt starts a new scope)
                 cone_a = cone_rays(d, scale if cert else None)
             if kind != "sphere":
-                cone = bounded_cone(d, *cull.bounding(ks)[obj.id], T.precision, cone_a, cert)
+                cone = plane_cone(d, obj, *cull.bounding(ks)[obj.id], T.precision, cone_a)
             elif cert:
                 cone = sphere_cone_cert(d, obj, T.precision, cone_a)
             else:

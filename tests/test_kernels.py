@@ -30,6 +30,7 @@ from tests.scenegen import random_scene
 PRECISIONS = [pytest.param(p, id=p) for p in ("f32", "f64")]
 GREY = Material((1, 1, 1), (2, 2, 2), (0, 0, 0))
 UNROLLED = 10 ** 6          # accel.UNROLL_MAX that unrolls every object
+BRANCH_MIN = dict(tracer.BRANCH_MIN)    # (as imported: tests monkeypatch the module's)
 LOOPED = 0                  # ... that loops over every kind
 
 
@@ -395,7 +396,7 @@ def certified_kernel(scene):
 
 def test10d_camera_rays_branch_on_balls():
     """Each unrolled finite plane of camera rays sits behind its branch on its bounding
-    ball (shapes.bounded_cone) from BRANCH_MIN bounded objects of any kind on, certified
+    ball (shapes.plane_cone) from BRANCH_MIN bounded objects of any kind on, certified
     float64 or not; certified float64's spheres each behind theirs from one sphere on
     (shapes.sphere_cone_cert).  That the branches change no answer is test11c's, test11d's
     and test01's."""
@@ -559,7 +560,7 @@ def certified(scene, d, branches: bool, monkeypatch, precision="f64", cert=True)
     (the exact rays), and how many rays it decided exactly; with or without the branches.
     (``cert=False``: ``precision``'s uncertified search, and None decided.)"""
     T = types(precision)
-    monkeypatch.setattr(tracer, "BRANCH_MIN", dict(tracer.BRANCH_MIN) if branches else {})
+    monkeypatch.setattr(tracer, "BRANCH_MIN", dict(BRANCH_MIN) if branches else {})
     ks = accel.configure(prepare(scene, T), UNROLLED)
     ks.exact_decisions = cert
     t, oid, _ = closest_hit(ks, T.Array3(*(T.Float(c) for c in d.T)),
@@ -594,9 +595,8 @@ def test11c_certified_sphere_cone_drops_no_unsure_ray(monkeypatch):
 
 @pytest.mark.parametrize("precision,cert", [("f64", True), ("f64", False), ("f32", False)])
 def test11d_finite_planes_branch_on_their_balls(precision, cert, monkeypatch):
-    """Camera rays branch past finite planes on their bounding balls (shapes.bounded_cone),
-    whose surface their corners lie on; certified float64 on the ball widened as a
-    sphere's.  Rays toward points near each corner of four tilted finite planes, 2⁻¹ to
+    """Camera rays branch past finite planes on their bounding balls (shapes.plane_cone),
+    whose surface their corners lie on, widened by plane_ball.  Rays toward points near each corner of four tilted finite planes, 2⁻¹ to
     2⁻⁴⁰ of the plane's size inside and outside along its edges and diagonal: the answers
     (and the rays decided exactly) are those without the branch, bit for bit, and the
     probes straddle every plane's edges."""
@@ -628,6 +628,52 @@ def test11d_finite_planes_branch_on_their_balls(precision, cert, monkeypatch):
     ids = want[1].reshape(len(planes), -1)
     for k in range(len(planes)):
         assert (ids[k] == k).any() and (ids[k] != k).any(), f"plane {k}: probes straddle"
+
+
+def test11e_branches_keep_edge_on_planes_and_tiny_rays(monkeypatch):
+    """Two cases a reviewer's fuzzing found (certified float64, with and without the
+    branches, bit for bit, and the same rays decided exactly): rays just outside the ball of
+    a nearly edge-on finite plane, whose certified edge test is unsure there (its bound over
+    n·d is far wider than the ball's 2⁻¹⁰: shapes.plane_ball widens it by that, or leaves
+    the plane without a branch); and rays of length 10⁻¹⁶⁵, whose |d|² underflows, so that
+    the cone test would drop them whatever their direction (cone_rays keeps CONE_MIN² as
+    its lower limit).  (What the kernel answers for the tiny rays, a hit or not, depends on
+    how denormals are handled in the process; the test asks that the branch changes it
+    not.)"""
+    from rt_core import cull
+    V = np.array([0.0, 0.0, 10.0])
+    n = np.array([0.0, 1.0, 1e-10])
+    xh = np.array([1.0, 0, 0])
+    yh = np.cross(n / np.linalg.norm(n), xh)
+    w, h = 2.0, 0.002
+    P = V + np.array([0.0, 0.0, -1000.0]) - w / 2 * xh - h / 2 * yh
+    objs = (make_fplane(GREY, tuple(n), tuple(P), (1, 0, 0), (w, h)),
+            make_fplane(GREY, (0, 0, 1), (50.0, 50.0, -5.0), (1, 0, 0), (1.0, 1.0)),
+            make_fplane(GREY, (0, 0, 1), (-50.0, 50.0, -5.0), (1, 0, 0), (1.0, 1.0)),
+            make_fplane(GREY, (0.001, 0.0013, 1), (-100.0, -100.0, -2000.0), (1, 0, 0),
+                        (200.0, 200.0)))
+    scene = Scene((8.0, 6.0), tuple(V), (), objs)
+    centre, R = cull.bounding(prepare(scene, types("f64")))[0]
+    d = np.array([np.array(centre) + R * (1 + k) * xh for k in np.geomspace(3e-3, 3e-2, 64)])
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    got = certified(scene, d, True, monkeypatch)
+    want = certified(scene, d, False, monkeypatch)
+    assert want[2] > 0 and got[2] == want[2]
+    assert_same(got[:2], want[:2], "edge-on plane")
+    scene = Scene((8.0, 6.0), tuple(V), (), (make_sphere(GREY, (0.0, 0.0, 0.0), 1.0),))
+    d = np.array([[0.0, 0.0, -1.0], [0.05, 0.0, -1.0], [0.0, 0.099, -1.0], [0.3, 0, -1]])
+    for s, rays in ((1e-165, d[:1]), (1e-165, d), (1e-300, d)):
+        T = types("f64")
+        D = T.Array3(*(T.Float(np.ascontiguousarray(c)) for c in (rays * s).T))
+        out = []
+        for branches in (True, False):
+            monkeypatch.setattr(tracer, "BRANCH_MIN", dict(BRANCH_MIN) if branches else {})
+            ks = accel.configure(prepare(scene, T), UNROLLED)
+            t, oid, _ = closest_hit(ks, D, cam="rays",
+                                    dmax=s * float(np.linalg.norm(rays, axis=1).max()))
+            out.append((bits(t), bits(oid), ks.decided))
+        assert out[0][2] == out[1][2]
+        assert_same(out[0][:2], out[1][:2], f"rays of length {s}")
 
 
 def test12_a_scenes_constants_are_computed_once(monkeypatch):

@@ -724,6 +724,9 @@ def test21h_rt_cores_plane_hit_carries_no_stand_in_term(monkeypatch):
     if not path.is_file():
         pytest.skip("the course scenes are not here")
     scene = parse_scene(path)
+    # (its 10 bounded objects through the bins' loop, where the fault goes: certified
+    # camera rays would unroll them)
+    monkeypatch.setattr(accel, "CAMERA_FACTOR", 1)
     assert compare(scene, 64, None, "f64", "rays").ok
     rng = accel._range
 
