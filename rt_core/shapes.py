@@ -826,9 +826,11 @@ def sphere_cone_cert(d, obj: ObjectConstants, precision: str, a):
 # then <= −bm, for rays |d| >= dmax/4 in certified kernels, whose bound is bm₁·dmax) when
 # R₂ − R >= K·(|c| + R₂), K = 8√2·bm₁/h.  Rays with den <= 0: below −bden a certain miss;
 # nearer 0, |(q×d)·x̂| or |(q×d)·ŷ| >= h|d|/√2 (d in the plane's directions), far beyond bm
-# when h >= PLANE_H·(bm₁ + (w + h)·bden₁).  Found by a reviewer's fuzzing: the ball widened by
-# 2⁻¹⁰ alone let nearly edge-on planes' unsure rays (certified) and noise hits (uncertified)
-# be dropped.
+# when h >= PLANE_H·(bm₁ + (w + h)·bden₁).  bm₁ is taken as the largest of the decisions'
+# bounds (edges, clip, den), which the certified test compares their least with (``_Least``).
+# Found by reviewers' fuzzing: the ball widened by 2⁻¹⁰ alone let nearly edge-on planes'
+# unsure rays (certified) and noise hits (uncertified) be dropped, and bm alone, without the
+# larger den bound of small scenes, unsure rays.
 BALL_GROW = 2.0 ** -10      # relative widening, and BALL_ROOM of |c| + R for the host's
 BALL_ROOM = 2.0 ** -40      # roundings of the corners and of the ball
 PLANE_K_MAX = 0.5           # no branch where the widening would grow R₂ by half or more
@@ -842,7 +844,10 @@ def plane_ball(obj: ObjectConstants, centre, radius: float, precision: str) -> f
     if not isinstance(obj.nq, (int, float)) or not isinstance(obj.bm, (int, float)):
         return None
     scale = 1.0 if precision == "f64" else 2.0 ** -24 / U64
-    bm1, bden1 = obj.bm * scale, KB * U64 * KD * scale
+    # (the certified test takes its decisions' least against their largest bound: _Least)
+    bden1 = KB * U64 * KD * scale
+    bm1 = max(obj.bm, obj.bz if isinstance(obj.bz, (int, float)) else math.inf,
+              KB * U64 * KD) * scale
     h = abs(obj.nq)
     nc = math.sqrt(dot_x(centre, centre))
     if not (math.isfinite(bm1) and math.isfinite(nc)) or \

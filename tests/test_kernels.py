@@ -676,6 +676,38 @@ def test11e_branches_keep_edge_on_planes_and_tiny_rays(monkeypatch):
         assert_same(out[0][:2], out[1][:2], f"rays of length {s}")
 
 
+def test11f_branch_keeps_small_scenes_unsure_rays(monkeypatch):
+    """A second reviewer's case: in a small scene (a nearly edge-on 0.01 finite plane 0.03
+    from the viewpoint) the certified finite plane's den bound, which does not shrink with
+    the scene, dwarfs its edges' bound, and the test takes its decisions' least against the
+    largest of their bounds; plane_ball widening by the edges' bound alone let unsure rays
+    be dropped (their t then the kernel's, not the exact decision's).  Rays in the plane's
+    directions from 10⁻⁶ to 100 times its ball's radius outside, of lengths 1 and 0.26 of
+    dmax: the same answers and exact decisions with the branches as without."""
+    from rt_core import cull
+    V = np.array([0.0, 0.0, 0.01])
+    w = 0.01
+    objs = (make_fplane(GREY, (1.0, 0.0, 3e-12), tuple(V + np.array([0.0, -w / 2, -0.03])),
+                        (0, 1, 0), (w, w)),
+            make_fplane(GREY, (0, 0, 1), (50.0, 50.0, -5.0), (1, 0, 0), (1.0, 1.0)),
+            make_fplane(GREY, (0, 0, 1), (-50.0, 50.0, -5.0), (1, 0, 0), (1.0, 1.0)),
+            make_fplane(GREY, (0, 0, 1), (50.0, -50.0, -5.0), (1, 0, 0), (1.0, 1.0)))
+    scene = Scene((8.0, 6.0), tuple(V), (), objs)
+    ks = prepare(scene, types("f64"))
+    centre, R = cull.bounding(ks)[0]
+    x, y = np.array(ks.consts[0].xdir), np.array(ks.consts[0].ydir)
+    d = np.array([np.array(centre) + R * (1 + k) * (np.cos(p) * x + np.sin(p) * y)
+                  for p in np.linspace(0, 2 * np.pi, 32, endpoint=False)
+                  for k in np.geomspace(1e-6, 100, 40)])
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    for length in (1.0, 0.26):
+        got = certified(scene, d * length, True, monkeypatch)
+        want = certified(scene, d * length, False, monkeypatch)
+        assert want[2] > 0, "rays near the plane are unsure"
+        assert got[2] == want[2]
+        assert_same(got[:2], want[:2], f"small scene, length {length}")
+
+
 def test12_a_scenes_constants_are_computed_once(monkeypatch):
     """tracer.prepare keeps the exact-arithmetic constants of the scenes it prepared last: a
     second precision or render of the same (frozen) scene reuses them, another scene gets its
