@@ -57,7 +57,8 @@ UNROLL_MAX = 8
 SECONDARY_FACTOR = 3
 # Camera rays in float32 loop over bounded objects only above CAMERA_FACTOR times UNROLL_MAX:
 # their unrolled tests are the cheap ones (a sphere behind one dot product,
-# shapes.sphere_cone; a finite plane without bounds).  Measured (bench scenes, 1920 columns,
+# shapes.sphere_cone; a finite plane without bounds, since behind its ball's, plane_cone).
+# Measured before that (bench scenes, 1920 columns,
 # median of 11 interleaved calls), unrolled time over binned: spheres 9 0.59, 12 0.66, 16
 # 0.90, 20 0.98, 24 1.06; finite planes 10 0.76, 12 0.84, 14 0.83, 16 1.02; mixed 10 0.58,
 # 14 0.71, 16 0.86, 20 0.99.  float64 with exact decisions too, since its spheres and finite
@@ -65,7 +66,7 @@ SECONDARY_FACTOR = 3
 # against the loop, float64 over Mitsuba: spheres 12 1.10/1.04 against 0.93/0.95, 16
 # 0.99/0.99 against 1.09/1.09; mixed 16 3.76/3.42 against 3.12/2.90; finite planes 12
 # 2.87/2.87 against 2.19/2.20, 16 2.44/2.39 against 2.05/2.06); not float64 without
-# (finite planes 12: 1.43, 16: 1.81; spheres 16: 1.04).
+# (before its finite planes branched: finite planes 12: 1.43, 16: 1.81; spheres 16: 1.04).
 CAMERA_FACTOR = 2
 CAMERA_SPHERES_F64 = 12
 # ... where every bounded object is of these kinds (measured on them; 12 tori unrolled took

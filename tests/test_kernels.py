@@ -131,7 +131,7 @@ def test01_camera_rays_loop_equals_unrolled(seed, precision, monkeypatch):
 @pytest.mark.parametrize("seed", range(4))
 def test01c_certified_camera_rays_loop_equals_unrolled(seed, monkeypatch):
     """float64 with exact decisions, whose unrolled spheres and finite planes branch on cone
-    tests (certified: shapes.sphere_cone_cert, bounded_cone) and whose camera rays unroll
+    tests (certified: shapes.sphere_cone_cert, plane_cone) and whose camera rays unroll
     up to CAMERA_FACTOR × UNROLL_MAX objects: on the adversarial scenes (a sphere holding
     the viewpoint, edge-on and nearly edge-on finite planes, ties), unrolled with the
     branches and looped without them give the same t and ids bit for bit, and decide the
