@@ -55,7 +55,8 @@ UNROLL_MAX = 8
 # costing about three unrolled hit tests (measured: unrolled is faster up to ~24 finite
 # planes, ~48 spheres).
 SECONDARY_FACTOR = 3
-# Camera rays in float32 loop over bounded objects only above CAMERA_FACTOR times UNROLL_MAX:
+# Camera rays in float32 (and certified float64's: camera_unrolls) loop over bounded objects
+# only above CAMERA_FACTOR times UNROLL_MAX:
 # their unrolled tests are the cheap ones (a sphere behind one dot product,
 # shapes.sphere_cone; a finite plane without bounds, since behind its ball's, plane_cone).
 # Measured before that (bench scenes, 1920 columns,
@@ -159,7 +160,8 @@ def camera_unrolls(ks) -> bool:
     """Do camera rays unroll up to CAMERA_FACTOR × UNROLL_MAX objects?  float32's, and
     float64's with exact decisions (tracer.exact_decisions), whose unrolled spheres and
     finite planes branch on cone tests (tracer.BRANCH_MIN), with at most
-    CAMERA_SPHERES_F64 spheres; not float64's without."""
+    CAMERA_SPHERES_F64 spheres; not float64's without.  (Read from the KernelScene: an
+    uncertified call on a scene with exact decisions, which only tests make, unrolls too.)"""
     if ks.T.precision == "f32":
         return True
     return ks.__dict__.get("exact_decisions", True) and \

@@ -129,7 +129,7 @@ def test01_camera_rays_loop_equals_unrolled(seed, precision, monkeypatch):
 
 
 @pytest.mark.parametrize("seed", range(4))
-def test01c_certified_camera_rays_loop_equals_unrolled(seed, monkeypatch):
+def test01c_certified_camera_rays_loop_equals_unrolled(seed):
     """float64 with exact decisions, whose unrolled spheres and finite planes branch on cone
     tests (certified: shapes.sphere_cone_cert, plane_cone) and whose camera rays unroll
     up to CAMERA_FACTOR × UNROLL_MAX objects: on the adversarial scenes (a sphere holding
@@ -374,8 +374,9 @@ def test10_unrolled_spheres_branch_past_certain_misses(precision, monkeypatch):
     assert n == (4 if precision == "f32" else 1)
     ir = hit_kernel(scene_of(spheres(n)), T)["ir"].getvalue()
     assert ir.count("Symbolic conditional: sphere_object") == n
-    ir = hit_kernel(scene_of(spheres(n - 1) + fplanes(1)), T)["ir"].getvalue()
-    assert "sphere_object" not in ir
+    if n > 1:
+        ir = hit_kernel(scene_of(spheres(n - 1) + fplanes(1)), T)["ir"].getvalue()
+        assert "sphere_object" not in ir
     monkeypatch.setattr(accel, "UNROLL_MAX", LOOPED)
     ir = hit_kernel(scene_of(spheres(n)), T)["ir"].getvalue()
     assert "sphere_object" not in ir and "closest_sphere" in ir
@@ -421,11 +422,17 @@ def test10b_float32_camera_rays_unroll_more(precision, exact):
     """float32 camera rays, and float64's with exact decisions (with at most
     CAMERA_SPHERES_F64 spheres), unroll up to CAMERA_FACTOR × UNROLL_MAX bounded objects,
     each sphere behind its branch; float64 without exact decisions loops above UNROLL_MAX.
-    (That both give the same hits is test01's and test01c's.)"""
+    (That both give the same hits is test01's and test01c's.)  float64 with exact decisions:
+    the certified kernel."""
     T = types(precision)
+
+    def kernel(objs):
+        if precision == "f64" and exact:
+            return certified_kernel(scene_of(objs))
+        return hit_kernel(scene_of(objs), T, exact)["ir"].getvalue()
     n = accel.UNROLL_MAX * accel.CAMERA_FACTOR
     for objs in (spheres(n), spheres(n // 2) + fplanes(n - n // 2)):
-        ir = hit_kernel(scene_of(objs), T, exact)["ir"].getvalue()
+        ir = kernel(objs)
         many = len([o for o in objs if o.kind == "sphere"]) > accel.CAMERA_SPHERES_F64
         if not exact or (precision == "f64" and many):
             assert "closest_sphere" in ir and "sphere_object" not in ir
@@ -433,13 +440,13 @@ def test10b_float32_camera_rays_unroll_more(precision, exact):
             assert "closest_" not in ir
             assert ir.count("Symbolic conditional: sphere_object") == len(
                 [o for o in objs if o.kind == "sphere"])
-    ir = hit_kernel(scene_of(spheres(n + 1)), T, exact)["ir"].getvalue()
+    ir = kernel(spheres(n + 1))
     assert "closest_sphere" in ir and "sphere_object" not in ir
-    ir = hit_kernel(scene_of(spheres(accel.UNROLL_MAX)), T, exact)["ir"].getvalue()
+    ir = kernel(spheres(accel.UNROLL_MAX))
     assert "closest_sphere" not in ir
     # another bounded kind among them (not measured unrolled): the loop above UNROLL_MAX
     disk = make_disk(GREY, (0, 0, -6), 1.0, (0, 0, 1))
-    ir = hit_kernel(scene_of(spheres(accel.UNROLL_MAX) + [disk]), T, exact)["ir"].getvalue()
+    ir = kernel(spheres(accel.UNROLL_MAX) + [disk])
     assert "closest_sphere" in ir and "closest_disk" in ir
 
 
@@ -462,14 +469,21 @@ def test10c_shadow_rays_from_the_viewpoint_loop_without_bins(monkeypatch):
     assert np.array_equal(bits(got), bits(want)) and 0 < bits(got).mean() < 1
 
 
-def test11_certified_cull_keeps_unsure_rays():
+@pytest.mark.parametrize("branch", ["cone", "live"])
+def test11_certified_cull_keeps_unsure_rays(branch, monkeypatch):
     """float64 with exact decisions: rays within a few ulps of a sphere's outline are unsure
-    (flagged, then decided exactly); the unrolled test's cull must not take them for certain
-    misses.  Unrolled (culled) and looped without bins (the same per-sphere bounds, no cull)
-    flag the same rays and give the same answers."""
+    (flagged, then decided exactly); the unrolled test's branch must not take them for
+    certain misses: its cone test (shapes.sphere_cone_cert), or sphere_live's where there
+    is no cone (``live``: sphere_cone_cert made to give none).  Unrolled and looped without
+    bins (the same per-sphere bounds, no branch) flag the same rays and give the same
+    answers."""
+    from rt_core import shapes
+    if branch == "live":
+        monkeypatch.setattr(tracer, "sphere_cone_cert", lambda *a: None)
+    assert shapes.sphere_cone_cert is not None
     T = types("f64")
     sphere = make_sphere(GREY, (0.3, -0.2, -5.0), 1.3)
-    # and spheres away from these rays, so that the unrolled kernel has its branches
+    # and spheres away from these rays
     others = tuple(make_sphere(GREY, (4.0 * k, 30.0, -5.0), 1.0)
                    for k in range(tracer.SPHERE_BRANCH_MIN - 1))
     scene = Scene((8.0, 6.0), (0.0, 0.0, 10.0), (), (sphere,) + others)
