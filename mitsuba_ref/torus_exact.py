@@ -305,10 +305,9 @@ def _squarefree(G):
     gcd(G, G') = 1, which its image modulo the prime P shows (P does not divide G's leading
     coefficient, so a common factor over the rationals would stay one of the same degree
     modulo P); else by Euclid in Fractions."""
-    lead = G[-1] % _P
-    if lead and len(_gcd_mod(G, [i * G[i] for i in range(1, len(G))])) == 1:
-        return G
     dG = [i * G[i] for i in range(1, len(G))]
+    if G[-1] % _P and len(_gcd_mod(G, dG)) == 1:
+        return G
     return _divmod([Fraction(c) for c in G], _gcd(G, dG))[0]
 
 
@@ -344,7 +343,6 @@ def first_crossing(F):
         Fi = Fi[1:]
     if len(Fi) < 2:
         return None
-    F = Fi
     sf = _squarefree(Fi)
     if len(sf) < 2:
         return None
@@ -366,7 +364,7 @@ def first_crossing(F):
             while _variations(sf, x - h, x) or _variations(sf, x, x + h) or \
                     _value(sf, x - h) == 0 or _value(sf, x + h) == 0:
                 h /= 2
-            left, right = _sg(_value(F, x - h)), _sg(_value(F, x + h))
+            left, right = _sg(_value(Fi, x - h)), _sg(_value(Fi, x + h))
         else:
             left, right = _sign_dyadic(Fi, *lo), _sign_dyadic(Fi, *hi)
         if left != right:
