@@ -80,3 +80,13 @@ def types(precision: str = "f32", backend: str = "llvm") -> Types:
     if precision == "f32":
         return Types(backend, precision, m, m.Float, m.Array3f, m.Bool, m.UInt32, m.Int32)
     return Types(backend, precision, m, m.Float64, m.Array3f64, m.Bool, m.UInt32, m.Int32)
+
+
+def host_view(x):
+    """A numpy view of ``x``'s memory where it has some on this host (an evaluated array of
+    the LLVM backend: Dr.Jit hands numpy its buffer, no copy); None elsewhere (CUDA memory,
+    or an expression not evaluated: reading it would copy, or compute, the whole array)."""
+    import drjit as dr
+    if dr.backend_v(x) != dr.JitBackend.LLVM or x.state != dr.VarState.Evaluated:
+        return None
+    return x.numpy()

@@ -475,9 +475,13 @@ def _near_rays(xs, n: int, seed: int = 7) -> np.ndarray:
 def test08_margins_rounding_cannot_decide(rules, layout, monkeypatch):
     """Rays within a few ulps of every decision of a scene with generic decimals (the
     certified bounds at work: there the rounded margin's sign is often wrong, test07's exact
-    grid does not show that): rt_core f64's answer is exact arithmetic's on the same rays."""
+    grid does not show that): rt_core f64's answer is exact arithmetic's on the same rays.
+    The flagged rays' directions are read in place (host memory) with the notes' rules, and
+    gathered by a kernel (as on CUDA) with the others."""
     import drjit as dr
     from rt_core import accel
+    if rules != Rules():
+        monkeypatch.setattr(backend, "host_view", lambda x: None)
     from rt_core.parser import parse_text
     from rt_core.tracer import closest_hit, prepare
     xs = parse_exact(NEAR)
@@ -495,11 +499,14 @@ def test08_margins_rounding_cannot_decide(rules, layout, monkeypatch):
     assert 0 < ks.decided < len(d)
 
 
-@pytest.mark.parametrize("path_", ["blocks", "many blocks", "slots", "compress"])
+@pytest.mark.parametrize("path_", ["blocks", "blocks by kernel", "many blocks", "slots",
+                                   "compress"])
 def test09_flagged_rays_listed_every_way(path_, monkeypatch, tmp_path):
-    """The flagged rays are listed from the blocks that hold one (tracer._flagged), or, with
-    more than FLAG_BLOCKS such blocks, by one pass of atomic slots, or beyond FLAG_SLOTS
-    by a compress: the same rays either way, so the same answers, the exact ones."""
+    """The flagged rays are listed from the blocks that hold one (tracer._flagged: read in
+    place where the ids are host memory, else by a kernel over those blocks, as on CUDA),
+    or, with more than FLAG_BLOCKS such blocks, by one pass of atomic slots, or beyond
+    FLAG_SLOTS by a compress: the same rays either way, so the same answers, the exact
+    ones."""
     from rt_core import tracer
     path = tmp_path / "stress.txt"
     path.write_text(_stress(False))
@@ -509,15 +516,17 @@ def test09_flagged_rays_listed_every_way(path_, monkeypatch, tmp_path):
     flagged = tracer._flagged
     monkeypatch.setattr(tracer, "_flagged", lambda T, oid, per: seen.append(per) or
                         flagged(T, oid, per))
-    if path_ != "blocks":
+    if path_ == "blocks by kernel":
+        monkeypatch.setattr(backend, "host_view", lambda x: None)
+    if not path_.startswith("blocks"):
         monkeypatch.setattr(tracer, "FLAG_SHIFT", 3)            # 104 blocks of 8 rays
-    if path_ != "blocks":
+    if not path_.startswith("blocks"):
         monkeypatch.setattr(tracer, "FLAG_BLOCKS", 1000 if path_ == "many blocks" else 0)
     if path_ == "compress":
         monkeypatch.setattr(tracer, "FLAG_SLOTS", 8)
     other, _ = _render(path, W, H, Rules())
     per = seen[-1]
-    assert per.sum() > 8 and np.count_nonzero(per) > (0 if path_ == "blocks" else 8)
+    assert per.sum() > 8 and np.count_nonzero(per) > (0 if path_.startswith("blocks") else 8)
     assert (listed == other).all() and (listed >= -1).all()
     ex = _exact(path, W, H, range(W * H), Rules())
     assert (other == ex.id).all()
