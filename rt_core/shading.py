@@ -45,7 +45,7 @@ from . import accel
 from .accel import device_array, packet_type
 from .jitlog import NullLog
 from .textures import MODE_CODE, Texture
-from .tracer import KernelScene, closest_hit, occluded, surface
+from .tracer import KernelScene, closest_hit, occluded, surface, widened
 
 # Path length at which reflection stops (the notes' MAX_DIST; the course programs used 20 to
 # 50000).  1000 is the keyword-dialect course program's value (rocketman768/ClemsonRaytracer,
@@ -257,7 +257,9 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
     (``tracer.closest_hit``)."""
     T = ks.T
     F = T.Float
-    assert isinstance(d, T.Array3), f"expected {T.Array3.__name__} directions"
+    # (float32 directions in a float64 kernel: widened there, tracer.widened; the primary
+    # hits' closest_hit reads the given ones back where it decides exactly)
+    given, d = d, widened(T, d)
     # images shaded through this KernelScene (rt_core/reflectbins.py builds its bins for
     # the second: their build costs more than one image saves)
     ks.__dict__["_images"] = ks.__dict__.get("_images", 0) + 1
@@ -288,7 +290,7 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
         ``hit``) and its reflection rays."""
         # closest hit, surface, material (in float64 the primary hits are decided exactly
         # first: closest_hit evaluates them)
-        t, oid, hit = found or closest_hit(ks, d, o, rules, skip,
+        t, oid, hit = found or closest_hit(ks, given if bounce == 0 else d, o, rules, skip,
                                            cam=cam if bounce == 0 else None)
         if live is not None:
             hit &= live

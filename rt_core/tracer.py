@@ -214,7 +214,7 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, c
     with the directions ``d`` themselves as the exact rays, ``dmax`` (host) bounding their
     lengths (the bounds hold for |d| <= 1.01·dmax)."""
     T = ks.T
-    assert isinstance(d, T.Array3), f"expected {T.Array3.__name__} directions"
+    given, d = d, widened(T, d)
     cert = cam is not None and o is None and exact_decisions(ks)
     if cert and isinstance(cam, str):
         assert cam == "rays", cam
@@ -290,9 +290,22 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, c
             st.set(dr.if_stmt(st.state(), live.mask, functools.partial(test, live=live),
                               lambda *s: s, label="sphere_object"))
     if cert:
-        return _decide_flagged(ks, cam, rules, st, d)
+        return _decide_flagged(ks, cam, rules, st, given)
     hit = st.id >= 0
     return dr.select(hit, st.t, 0), st.id, hit
+
+
+def widened(T: Types, d):
+    """Directions for T's kernels: ``d`` itself, or float32 directions (an ``Array3f`` of
+    the same backend) for a float64 kernel, widened there (exactly: every float32 is a
+    float64), so that a float64 kernel traces float32 rays reading what a float32 one reads
+    (``rtval bench``'s identical rays) instead of a float64 copy twice the size."""
+    if isinstance(d, T.Array3):
+        return d
+    narrow = getattr(T.module, "Array3f")
+    assert T.precision == "f64" and isinstance(d, narrow), \
+        f"expected {T.Array3.__name__} (or, for float64, {narrow.__name__}) directions"
+    return T.Array3(d)
 
 
 def branches(ks: KernelScene, kind: str) -> bool:
@@ -456,7 +469,9 @@ def _flagged(T, oid, per_block: np.ndarray) -> np.ndarray:
 
 
 def _decide_flagged(ks: KernelScene, cam, rules: Rules, st: Best, d):
-    """Replace the flagged rays' answers by the exact ones (rt_core/decide.py)."""
+    """Replace the flagged rays' answers by the exact ones (rt_core/decide.py).  ``d``: the
+    directions as closest_hit was given them (``cam="rays"``: the exact rays, read back at
+    the flagged rays, float32 ones widened exactly)."""
     T = ks.T
     # [t·lf, t + (t − t·lf)] holds the exact t with room to spare (KB is twice the rounding
     # count), so intervals that merely touch are apart; a miss's upper end is inf, flagged
@@ -490,7 +505,7 @@ def _decide_flagged(ks: KernelScene, cam, rules: Rules, st: Best, d):
             # (read in place, as the ids above: no gather kernel)
             E = np.stack([np.asarray(v[pix], np.float64) for v in view], 1)
         else:
-            g = dr.gather(T.Array3, d, T.UInt32(pix.astype(np.uint32).tolist()))
+            g = dr.gather(type(d), d, T.UInt32(pix.astype(np.uint32).tolist()))
             E = np.stack([np.asarray(c.numpy(), np.float64) for c in (g.x, g.y, g.z)], 1)
         ids, ts = decide_rays(ks.scene, rules, E.tolist(), objs=objs)
     else:

@@ -499,6 +499,46 @@ def test08_margins_rounding_cannot_decide(rules, layout, monkeypatch):
     assert 0 < ks.decided < len(d)
 
 
+@pytest.mark.parametrize("view", ["in place", "by kernel"])
+def test08c_float32_rays_are_widened_in_the_kernel(view, monkeypatch):
+    """float32 directions handed to a float64 kernel (tracer.widened: what `rtval bench`
+    does, so that every tracer reads the same arrays) are traced as their exact float64
+    values: t, ids and the rays decided exactly are those of the widened copy, bit for bit,
+    and the ids exact arithmetic's; the flagged rays' directions read back from the float32
+    arrays, in place or by a kernel.  A shaded image likewise."""
+    import drjit as dr
+    from rt_core.parser import parse_text
+    from rt_core.shading import shade
+    from rt_core.tracer import closest_hit, prepare
+    if view == "by kernel":
+        monkeypatch.setattr(backend, "host_view", lambda x: None)
+    xs = parse_exact(NEAR)
+    d = _near_rays(xs, 3200).astype(np.float32).astype(np.float64)
+    T, T32 = backend.types("f64"), backend.types("f32")
+    d32 = T32.Array3(*(T32.Float(c) for c in d.astype(np.float32).T))
+    d64 = T.Array3(*(T.Float(c) for c in d.T))
+    dmax = float(np.linalg.norm(d, axis=1).max())
+    got = []
+    for rays in (d32, d64):
+        ks = prepare(parse_text(NEAR), T)
+        t, oid, _ = closest_hit(ks, rays, None, Rules(), cam="rays", dmax=dmax)
+        got.append((t.numpy().view(np.int64), oid.numpy(), ks.decided))
+    assert got[0][2] == got[1][2] > 0
+    assert (got[0][0] == got[1][0]).all() and (got[0][1] == got[1][1]).all()
+    assert (got[0][1] == trace_exact(xs, d, Rules()).id).all()
+    with pytest.raises(AssertionError, match="directions"):
+        closest_hit(prepare(parse_text(NEAR), T32), d64, cam="rays")
+    from tools.harness.bench_shaded import shaded_scene
+    from rt_core.camera import make_camera, primary_directions
+    scene = shaded_scene("mixed", 4)
+    p32 = primary_directions(scene, make_camera(scene, 48), T32)
+    dr.eval(p32)
+    imgs = [shade(prepare(scene, T), rays, Rules(), max_bounces=1, cam="rays").rgb
+            for rays in (p32, T.Array3(*(T.Float(c.numpy().astype(np.float64))
+                                         for c in (p32.x, p32.y, p32.z))))]
+    assert all((a.numpy() == b.numpy()).all() for a, b in zip(imgs[0], imgs[1]))
+
+
 @pytest.mark.parametrize("path_", ["blocks", "blocks by kernel", "many blocks", "slots",
                                    "compress"])
 def test09_flagged_rays_listed_every_way(path_, monkeypatch, tmp_path):

@@ -75,8 +75,7 @@ def rt_side(name: str, scene: Scene, precision: str, d32, max_dist: float = MAX_
     from rt_core.shading import shade
     from rt_core.tracer import prepare
     T = backend.types(precision, backend_name)
-    d = d32 if precision == "f32" else T.Array3(*(T.Float(c) for c in (d32.x, d32.y, d32.z)))
-    dr.eval(d)
+    d = d32                 # (float64 widens the float32 directions in its kernel: bench.py)
     t0 = time.perf_counter()
     ks = prepare(scene, T)
     prep = (time.perf_counter() - t0) * 1e3
