@@ -187,6 +187,11 @@ def looped(ks, kind: str, reflections: bool = False, camera: bool = False) -> bo
     return len(ks.by_kind.get(kind, ())) > limit
 
 
+def camera_loops(ks) -> bool:
+    """Do camera rays loop over some kind's objects (bins), not only unrolled code?"""
+    return any(looped(ks, k, camera=True) for k in ks.kinds)
+
+
 def _row(c) -> dict:
     """The numbers of one ObjectConstants by slot name (float64, host)."""
     r = {"id": float(c.id), "grp": float(c.grp), "radius": c.radius, "c": c.c, "nq": c.nq,

@@ -302,3 +302,32 @@ def test30_every_compression_is_lossless(tmp_path, compression):
     assert sorted(ca) == sorted(cb)
     for k in ca:
         assert np.array_equal(ca[k].view(np.uint32), cb[k].view(np.uint32)), k
+
+
+@pytest.mark.parametrize("precision", ["f32", "f64"])
+def test20_looped_camera_rays_are_evaluated_first_same_images(precision, monkeypatch):
+    """Where camera rays loop over bins (accel.camera_loops), their directions are evaluated
+    by a kernel of their own before the trace (render.camera_rays: faster than fused into
+    the loop's kernel); unrolled scenes keep them fused.  Either way the geometry and the
+    shaded image are the same, bit for bit."""
+    import drjit as dr
+    from rt_core import accel, backend, render
+    from rt_core.camera import make_camera
+    from rt_core.tracer import prepare
+    from tools.harness.bench_shaded import shaded_scene
+    T = backend.types(precision)
+    for n, loops in ((4, False), (40, True)):
+        scene = shaded_scene("mixed", n)
+        cam = make_camera(scene, 64)
+        ks = prepare(scene, T)
+        assert accel.camera_loops(ks) == loops
+        d = render.camera_rays(ks, cam)
+        assert (d.x.state == dr.VarState.Evaluated) == loops
+        got = {}
+        for on in (False, True):
+            monkeypatch.setattr(render, "EVAL_LOOPED_DIRECTIONS", on)
+            geo = render.to_images(render.trace_geometry(scene, cam, T), cam)
+            img, _ = render.render_image(scene, cam, T, shade=True, geometry=False)
+            got[on] = {**geo, **img}
+        for k in got[False]:
+            assert np.array_equal(got[False][k], got[True][k], equal_nan=True), (n, k)
