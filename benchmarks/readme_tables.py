@@ -4,7 +4,9 @@ the runs and [their range], so that the README carries measured numbers, never c
     python benchmarks/readme_tables.py run1.json run2.json run3.json
 
 Primary-ray runs (`rtval bench`) give the ratio table (rt_core f32 and f64 against Mitsuba,
-and f64 with exact decisions against without) and the f64/f32 speed table; shaded runs
+and f64 with exact decisions against without), the f64/f32 speed table, and the f64/f32 speed
+table on rt_core's own camera rays (`rtval render`'s: tracers rt_core-f32-camera and
+rt_core-f64-camera; runs from before they existed leave its cells empty); shaded runs
 (`rtval bench --shaded`) the shaded ratio table.  Runs of both modes can be given together.
 """
 from __future__ import annotations
@@ -75,6 +77,10 @@ def _f64_over_f32(c):
     return a["median_ms"] / b["median_ms"] if a and b else None
 
 
+def _f64_over_f32_camera(c):
+    return c.get("f64_vs_f32_camera")
+
+
 def primary_tables(runs) -> str:
     cases, counts, scenes = _layout(runs)
     exact = ("f64 exact / plain (" + "; ".join(scenes) + ")",
@@ -84,7 +90,11 @@ def primary_tables(runs) -> str:
                    [NAMES[s] for s in scenes[1:]],
                    [[str(n)] + [_cell([_f64_over_f32(c) for c in cases.get((s, n), [])], unit="")
                                 for s in scenes] for n in counts])
-    return "\n".join(ratio_table(runs, exact) + [""] + speed)
+    camera = _table(["objects", "f64 / f32 speed, camera rays: " + NAMES[scenes[0]]] +
+                    [NAMES[s] for s in scenes[1:]],
+                    [[str(n)] + [_cell([_f64_over_f32_camera(c) for c in cases.get((s, n), [])],
+                                       unit="") for s in scenes] for n in counts])
+    return "\n".join(ratio_table(runs, exact) + [""] + speed + [""] + camera)
 
 
 def shaded_table(runs) -> str:

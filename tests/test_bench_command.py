@@ -216,6 +216,10 @@ def test08_readme_tables_from_bench_runs(tmp_path):
     med = (ratios[0] + ratios[1]) / 2
     assert row.split(" | ")[1] == f"{med:.2f}× [{ratios[0]:.2f}–{ratios[1]:.2f}]", row
     assert "2 runs" in r.stdout and "f64 / f32 speed" in r.stdout
+    cams = sorted(json.loads(p.read_text())["cases"][0]["f64_vs_f32_camera"] for p in paths)
+    head = r.stdout.index("f64 / f32 speed, camera rays")
+    row = next(l for l in r.stdout[head:].splitlines() if l.startswith("| 1 |"))
+    assert row == f"| 1 | {(cams[0] + cams[1]) / 2:.2f} [{cams[0]:.2f}–{cams[1]:.2f}] |", row
 
 
 def test08b_readme_tables_refuse_what_is_not_a_run(tmp_path):

@@ -90,6 +90,12 @@ def test06_bench_case_small():
     assert t["mitsuba"]["differ_from_f32"] <= 0.01 * r["rays"]
     assert t["rt_core-f64"]["differ_from_f32"] <= 0.01 * r["rays"]
     assert "ratio_f32_vs_mitsuba" in r and "ratio_f64_vs_mitsuba" in r
+    # rt_core's own camera rays: float32's are the bench's rays (computed in the kernel
+    # there), float64's its own, a few edge rays apart
+    assert t["rt_core-f32-camera"]["differ_from_f32"] == 0
+    assert t["rt_core-f64-camera"]["differ_from_f32"] <= 0.01 * r["rays"]
+    assert r["f64_vs_f32_camera"] == round(t["rt_core-f32-camera"]["median_ms"] /
+                                           t["rt_core-f64-camera"]["median_ms"], 3)
     g = bench.growth([r])
     assert "mixed" in g
 

@@ -15,9 +15,14 @@ Mitsuba scene with rays from the viewpoint computes the course's answer (up to f
 rounding: ``agree`` counts the rays where rt_core f32 and Mitsuba see different objects).
 
 Rays: rt_core's float32 camera directions, evaluated once; rt_core f64 traces the same values
-widened exactly, with its exact decisions on them (``rt_core-f64-plain``: the same kernel
+widened exactly in its kernel (every tracer reads the same float32 arrays; a float64 copy of
+them, twice the bytes, cost float64 11-15% of its time at 4-16 objects), with its
+exact decisions on them (``rt_core-f64-plain``: the same kernel
 without the certification; ``f64_exact_vs_plain`` is their speed ratio), Mitsuba the same
-float32 values from the (float32) viewpoint.  Timed: the
+float32 values from the (float32) viewpoint.  ``rt_core-f32-camera`` and ``rt_core-f64-camera``
+trace rt_core's own camera rays instead, as ``rtval render`` does (``camera_tracer``: each
+direction computed in the kernel, in the tracer's precision); ``f64_vs_f32_camera`` is their
+speed ratio.  Timed: the
 closest-hit kernel alone (rt_core ``closest_hit`` → t, id; Mitsuba ``ray_intersect_preliminary``
 → t, shape index), each call ``dr.eval`` + ``dr.sync_thread``.  The first call (compilation
 included, unless a kernel of the same structure ran before in the process) is reported apart;
@@ -44,7 +49,8 @@ SCENES = ("fplanes", "spheres", "mixed")
 WINDOW = (16.0, 9.0)
 VIEWPOINT = (0.0, 0.0, 10.0)
 GREY = Material((1, 1, 1), (2, 2, 2), (0, 0, 0))
-TRACERS = ("rt_core-f32", "rt_core-f64", "rt_core-f64-plain", "mitsuba")
+TRACERS = ("rt_core-f32", "rt_core-f64", "rt_core-f64-plain", "mitsuba",
+           "rt_core-f32-camera", "rt_core-f64-camera")
 # optional variants (--brute): what the many-object path replaced
 BRUTE = ("rt_core-f32-nobins", "rt_core-f32-unrolled")
 UNROLLED_LIMIT = 64          # the unrolled kernel beyond this takes seconds to compile and run
@@ -218,8 +224,8 @@ def rt_tracer(name, scene, precision, d32, unroll_max=None, bins=None,
     from rt_core import accel, backend
     from rt_core.tracer import closest_hit, prepare
     T = backend.types(precision, backend_name)
-    d = d32 if precision == "f32" else T.Array3(*(T.Float(c) for c in (d32.x, d32.y, d32.z)))
-    dr.eval(d)
+    # (float64 too traces the float32 directions: its kernel widens them, exactly)
+    d = d32
     t0 = time.perf_counter()
     ks = accel.configure(prepare(scene, T), unroll_max, bins)
     ks.exact_decisions = exact
@@ -237,6 +243,32 @@ def rt_tracer(name, scene, precision, d32, unroll_max=None, bins=None,
         state["id"] = oid
         return t, oid
     return Tracer(name, run, prep, lambda: np.asarray(state["id"].numpy()), [ks, d])
+
+
+def camera_tracer(name, scene, precision, cam, backend_name: str = "llvm") -> Tracer:
+    """rt_core on its own camera rays, as ``rtval render`` traces them: each ray's direction
+    computed in the kernel from its pixel (in the tracer's precision; nothing read from
+    memory), float64 deciding its flagged rays exactly, anew each call (the decisions kept
+    across renders of a scene, ``tracer._DECIDED``, are dropped first)."""
+    import drjit as dr
+    from rt_core import accel, backend, tracer
+    from rt_core.render import camera_rays
+    from rt_core.tracer import closest_hit, prepare
+    T = backend.types(precision, backend_name)
+    t0 = time.perf_counter()
+    ks = prepare(scene, T)
+    if accel.camera_loops(ks):
+        accel.binned(ks, cam.size)
+    prep = (time.perf_counter() - t0) * 1e3
+    state = {}
+
+    def run():
+        tracer._DECIDED.clear()
+        t, oid, _ = closest_hit(ks, camera_rays(ks, cam), cam=cam)
+        dr.eval(t, oid)
+        state["id"] = oid
+        return t, oid
+    return Tracer(name, run, prep, lambda: np.asarray(state["id"].numpy()), [ks])
 
 
 def mitsuba_tracer(scene, d32, columns: int, backend_name: str = "llvm") -> Tracer:
@@ -284,6 +316,10 @@ def bench_case(kind: str, n: int, columns: int = 1920, reps: int = 9, brute: boo
               "rt_core-f64": rt("rt_core-f64", "f64"),
               "rt_core-f64-plain": rt("rt_core-f64-plain", "f64", exact=False),
               "mitsuba": lambda: mitsuba_tracer(scene, d32, columns, backend_name),
+              "rt_core-f32-camera": lambda: camera_tracer("rt_core-f32-camera", scene, "f32",
+                                                          cam, backend_name),
+              "rt_core-f64-camera": lambda: camera_tracer("rt_core-f64-camera", scene, "f64",
+                                                          cam, backend_name),
               "rt_core-f32-nobins": rt("rt_core-f32-nobins", "f32", bins=False),
               "rt_core-f32-unrolled": rt("rt_core-f32-unrolled", "f32", unroll_max=1 << 30)}
     names = list(tracers) + (list(BRUTE) if brute else [])
@@ -323,6 +359,10 @@ def bench_case(kind: str, n: int, columns: int = 1920, reps: int = 9, brute: boo
     if ex and pl:
         out["f64_exact_vs_plain"] = round(pl["median_ms"] / ex["median_ms"], 3)
         out["f64_exact_vs_plain_best"] = round(pl["min_ms"] / ex["min_ms"], 3)
+    # float64 against float32 on the camera's own rays (``camera_tracer``)
+    c32, c64 = out["tracers"].get("rt_core-f32-camera"), out["tracers"].get("rt_core-f64-camera")
+    if c32 and c64:
+        out["f64_vs_f32_camera"] = round(c32["median_ms"] / c64["median_ms"], 3)
     for p in ("f32", "f64"):
         r = out["tracers"].get(f"rt_core-{p}")
         if r and mi:
