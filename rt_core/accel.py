@@ -17,7 +17,9 @@ table rows, so a ray reads its bin's rows in sequence.  With up to 512 bins per 
 per 64 rays at most) a camera ray visits 1.2-3.5 rows in the benchmark scenes
 (tools/harness/bench.py) whatever N: time grows as
 ~N^0.1-0.3 from 16 to 1024 objects, against N^1 for the unrolled or unbinned search.  A ray computes its
-bin from its own direction and loops over that bin's list only; rays that cross the plane
+bin from its own direction (camera rays whose directions the kernel computes: from the
+unnormalized one, the pixel's window offset, tracer.BIN_BY_OFFSETS) and loops over that bin's
+list only; rays that cross the plane
 outside the grid (or not at all) take a last bin that lists every object.  The per-object test
 is the same function on the same (float64-derived) constants as the unrolled code, and the tie
 test compares object ids, so the results are bit-identical to the unrolled search (tested in
@@ -29,7 +31,8 @@ their light (rt_core/lightbins.py), and the rest a BVH (rt_core/bvh.py); without
 Why the culling is conservative: an object is left out of a bin only if its float64 projected
 box, enlarged by ``MARGIN`` (2⁻¹² of the window, viewpoint and box scales), misses the bin.  A
 float32 hit test can accept a ray that exactly misses only within a few ulps of an edge, i.e.
-within ~1e-6 of those scales in window coordinates, and the float32 bin of a ray is off by as
+within ~1e-6 of those scales in window coordinates, and the float32 bin of a ray (from its
+direction or its window offset: the same line, each within a few roundings) is off by as
 little; the margin is 2.4e-4 of them.
 """
 from __future__ import annotations
@@ -484,11 +487,12 @@ def ray_bins(ks, grid: Grid, d):
 
 # --- the loops ----------------------------------------------------------------------------------
 
-def _range(ks, kind: str, d, o):
+def _range(ks, kind: str, d, o, along=None):
     """(table, start, end): the rows start..end-1 of the table that each ray visits, as
     Int32 (a signed comparison ends the loop: AVX2 has no unsigned one; rows < 2³¹); None
     when no ray can hit an object of the kind (its bins list none: every one is never_hit,
-    and an empty table has nothing to gather from)."""
+    and an empty table has nothing to gather from).  ``along``: for camera rays, vectors
+    along d that the kernel has sooner (``closest_kind``), to find the bins by."""
     I = ks.T.Int32
     use = o is None and ks.__dict__.get("_accel_opts", {}).get("bins", True)
     b = binned(ks, dr.width(d)) if use else None
@@ -500,20 +504,23 @@ def _range(ks, kind: str, d, o):
         return tab, dr.zeros(I, dr.width(d)), dr.opaque(I, tab.count, dr.width(d))
     if dr.width(tab.rows) == 0:
         return None
-    se = dr.gather(ks.T.module.ArrayXu, tab.offsets, ray_bins(ks, b[0], d),
-                   shape=(4, dr.width(d)))
+    se = dr.gather(ks.T.module.ArrayXu, tab.offsets,
+                   ray_bins(ks, b[0], d if along is None else along), shape=(4, dr.width(d)))
     return tab, I(se[0]), I(se[1])
 
 
-def closest_kind(ks, kind: str, d, o, rules: Rules, skip, st, scale: float = 0.0):
+def closest_kind(ks, kind: str, d, o, rules: Rules, skip, st, scale: float = 0.0,
+                 along=None):
     """Fold every object of ``kind`` into the running closest hit ``st`` (tracer.Best), with
-    the same test, tie rule and certification as the unrolled code."""
+    the same test, tie rule and certification as the unrolled code.  ``along``: camera
+    rays' unnormalized directions (the pixels' window offsets), which the kernel has before
+    d, to look up their bins by (``_range``)."""
     if use_bvh(ks, kind, o):
         from . import reflectbins
         return reflectbins.closest_kind(ks, kind, d, o, rules, skip, st)
     T = ks.T
     vz = ks.scene.viewpoint[2]
-    got = _range(ks, kind, d, o)
+    got = _range(ks, kind, d, o, along)
     if got is None:
         return st
     tab, start, end = got

@@ -45,19 +45,24 @@ def _empty_geometry(T, n: int) -> dict:
     return out
 
 
-# Camera rays whose closest hits loop (accel.camera_loops) get their directions evaluated
-# first, by a kernel of their own, and the trace reads them: fused into the trace kernel they
-# cost more than writing and reading them (float32, 1920 columns, same process, median of
-# 11: 64 spheres 7.65 -> 5.86 ms, 1024 spheres 10.87 -> 7.96, 64 finite planes 11.1 -> 9.8;
-# float64 2-8% less; unrolled scenes, where it gains little, keep them fused)
+# float32 camera rays whose closest hits loop (accel.camera_loops) get their directions
+# evaluated first, by a kernel of their own, and the trace reads them.  Fused into the
+# trace kernel, each packet's bin lookup waited for the whole direction (a division, a
+# square root) before its short loop could start, which costs more than writing and
+# reading them (1920 columns, same process, median of 11, closest hits: 64 spheres 7.64
+# -> 5.82 ms, 1024 spheres 10.86 -> 8.03, 4096 13.13 -> 9.48, 64 finite planes 11.05 ->
+# 9.86).  float64 keeps them fused and finds the bins by the pixels' window offsets
+# instead (tracer.BIN_BY_OFFSETS: 0.91-0.98 of the evaluated rays' time, whose arrays are
+# twice float32's); unrolled scenes, where it gains little, keep them fused.
 EVAL_LOOPED_DIRECTIONS = True
 
 
 def camera_rays(ks, cam: Camera):
     """The camera's unit ray directions for ``ks``'s kernels (``primary_directions``),
-    evaluated where camera rays loop (EVAL_LOOPED_DIRECTIONS)."""
+    evaluated where float32 camera rays loop (EVAL_LOOPED_DIRECTIONS)."""
     d = primary_directions(ks.scene, cam, ks.T)
-    if EVAL_LOOPED_DIRECTIONS and ks.scene.objects and accel.camera_loops(ks):
+    if EVAL_LOOPED_DIRECTIONS and ks.T.precision == "f32" and ks.scene.objects and \
+            accel.camera_loops(ks):
         dr.eval(d)
     return d
 

@@ -22,6 +22,7 @@ import drjit as dr
 
 from . import accel, backend, cull
 from .backend import Types
+from .camera import Camera, primary_offsets
 from .decide import decide, decide_rays, prepare as prepare_exact
 from .rules import Rules
 from .scene import Scene, SceneError, locate, written
@@ -227,11 +228,14 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, c
         st.certify(T, n, shared)
     # file order is id order within one kind: then no tie term is needed for 'first'
     single_kind = len(ks.kinds) == 1
-    near = cone_a = None
+    near = cone_a = along = None
     for kind in ks.kinds:
         # many objects: one loop, constants as data
         if accel.looped(ks, kind, o is not None, camera=o is None):
-            st = accel.closest_kind(ks, kind, d, o, rules, skip, st, scale)
+            if along is None and BIN_BY_OFFSETS and isinstance(cam, Camera) and \
+                    o is None and d.x.state != dr.VarState.Evaluated:
+                along = primary_offsets(ks.scene, cam, T)
+            st = accel.closest_kind(ks, kind, d, o, rules, skip, st, scale, along)
             continue
         for obj in ks.by_kind[kind]:
             oid = dr.opaque(T.Int32, obj.id)
@@ -293,6 +297,15 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, c
         return _decide_flagged(ks, cam, rules, st, given)
     hit = st.id >= 0
     return dr.select(hit, st.t, 0), st.id, hit
+
+
+# Camera rays (a Camera given) whose directions are not evaluated find their bins
+# (accel._range) by the pixels' window offsets, of which the directions are the normalized
+# values: the same line, so the same bin but within a few roundings, far inside the bins'
+# MARGIN (accel.py); the lookup then need not wait for the normalization.  float64, 1920
+# columns, same process, median of 11, closest hits: 64 spheres 12.31 -> 11.38 ms, 64 finite
+# planes 16.6 -> 14.12, mixed 64 17.74 -> 15.25, 4096 spheres 21.14 -> 19.91.
+BIN_BY_OFFSETS = True
 
 
 def widened(T: Types, d):

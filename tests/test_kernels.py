@@ -735,3 +735,49 @@ def test12_a_scenes_constants_are_computed_once(monkeypatch):
     kc = tracer.prepare(b, types("f32"))
     assert calls == [a, b]
     assert ka.consts == kb.consts == real(a) and kc.consts == real(b)
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test13_camera_rays_find_their_bins_by_their_window_offsets(precision, monkeypatch):
+    """Camera rays whose directions the kernel computes look their bins up by the pixels'
+    window offsets (tracer.BIN_BY_OFFSETS: the unnormalized directions, the same line), and
+    evaluated directions by themselves: the hits, and float64's exactly decided rays, are
+    those of the bins by direction, bit for bit, on looped scenes seen from off-centre
+    viewpoints, with corner and centre sampling and a band of rows."""
+    import dataclasses
+    from tools.harness.bench import bench_scene
+    T = types(precision)
+    given = []
+    ray_bins = accel.ray_bins
+    monkeypatch.setattr(accel, "ray_bins", lambda ks, grid, d: given.append(d) or
+                        ray_bins(ks, grid, d))
+    scenes = [bench_scene(k, 40) for k in ("spheres", "fplanes", "mixed")]
+    scenes.append(random_scene(13, 30))
+    for i, scene in enumerate(scenes):
+        scene = scene.__class__(**{**scene.__dict__,
+                                   "viewpoint": (0.7 * i - 1, 0.4 - 0.3 * i, 9.0 + i)})
+        ks = prepare(scene, T)
+        assert accel.camera_loops(ks)
+        for sampling, rows in (("corners", None), ("centers", None)):
+            cam = make_camera(scene, 61 + 14 * i, rows, sampling)
+            if i == 3:                      # a band of rows, shifted (a course variant)
+                cam = dataclasses.replace(cam, row0=5, band=17, row_shift=1)
+            got = []
+            for on in (False, True):
+                monkeypatch.setattr(tracer, "BIN_BY_OFFSETS", on)
+                given.clear()
+                d = primary_directions(scene, cam, T)
+                t, oid, _ = closest_hit(ks, d, cam=cam)
+                got.append((t.numpy().copy(), oid.numpy().copy(), ks.__dict__.get("decided")))
+                # the offsets (their z a constant: one opaque number, not a normalized one)
+                assert given and all((v is not d) == on for v in given)
+            assert np.array_equal(got[0][0], got[1][0]) and np.array_equal(got[0][1],
+                                                                             got[1][1])
+            assert got[0][2] == got[1][2]
+    # evaluated directions are their own bins' vectors
+    monkeypatch.setattr(tracer, "BIN_BY_OFFSETS", True)
+    given.clear()
+    d = primary_directions(scenes[0], make_camera(scenes[0], 40), T)
+    dr.eval(d)
+    closest_hit(prepare(scenes[0], T), d, cam=make_camera(scenes[0], 40))
+    assert given and all(v is d for v in given)
