@@ -20,7 +20,9 @@ Why no blocker the plain loop finds is missing from a ray's cell:
 * the kernel's ray is H + t·L with L = (C − H)/|C − H| rounded, C the light's centre in the
   kernel's precision (the bins are built around that same point): the line passes within
   ~2u·|C − H| of C (u: the unit roundoff), and a hit function accepts a point within a few
-  u·(S + |C − H|) of its object (S: the largest distance from C to any box corner);
+  u·(S + |C − H|) of its object (S: the largest distance from C to any box corner); the
+  ray's cell is found from H − C as computed (``CELL_BY_OFFSET``), whose direction is
+  within ~3u of L's;
 * so a blocker's accepted point P, at distance r from C, lies within an angle of
   ~8u·(S + |C − H|)/r of a point of the object's box, seen from C; objects within
   R0 = ``NEAR``·S of C are listed in every cell, so r >= R0 for the others, and rays with
@@ -52,7 +54,7 @@ import drjit as dr
 import numpy as np
 
 from .bvh import _upload, object_boxes, row_view, rows as packed_rows
-from .shapes import directed
+from .shapes import directed, opaque3
 from .accel import blocks, device_array, tested
 
 # cells along a face side, whatever the object count.  Finer cells more often start with the
@@ -75,6 +77,12 @@ NEAR = 2.0 ** -7            # R0 = NEAR · S: objects this near the light are in
 NEAR_SLACK = 2.0 ** -10     # relative slack on a row's distance from the light
 UNIT = {"f32": 2.0 ** -24, "f64": 2.0 ** -53}
 CONE = True                 # cells also cut by the cone of each object's bounding ball
+# A shadow ray's cell is found from H − C, not from −L = −(C − H)/|C − H|: the same
+# direction within a few roundings, so the same cell but far inside MARGIN (the argument
+# above), and the cell's lookup, and the loop after it, need not wait for the square root
+# and the division (shaded bench, f32, same process, median of 9, images identical:
+# spheres 16 0.96 of the time, finite planes 16 0.95, spheres 256 0.96, mixed 16 1.02)
+CELL_BY_OFFSET = True
 
 
 @dataclass
@@ -316,7 +324,10 @@ def occluded_kind(ks, kind: str, d, o, maxt, rules, skip, blocked, center):
     lb = light_bins(ks, kind, center, dr.width(d))
     vz = ks.scene.viewpoint[2]
     far = ~(maxt <= dr.opaque(T.Float, lb.dmax))
-    b = dr.select(far, U(0), cell(T, lb, d))
+    if CELL_BY_OFFSET:
+        b = dr.select(far, U(0), face_cell(T, lb.side, o - opaque3(T.Array3, center)))
+    else:
+        b = dr.select(far, U(0), cell(T, lb, d))
     se = dr.gather(T.module.ArrayXu, lb.cells, b, shape=(4, dr.width(b)))
     # a ray leaving the cell's first object starts past it: skipping it is what its test
     # does for such a ray (``tested``'s skip), so the answer is the same
