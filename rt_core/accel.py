@@ -589,14 +589,23 @@ def tested(d, o, obj, rules: Rules, vz: float, skip, fold, state, cert=False,
                       lambda *s: s, label="tested_sphere")
 
 
-def occluded_kind(ks, kind: str, d, o, maxt, rules: Rules, skip, blocked, toward=None):
+def light_binned(ks, kind: str, o) -> bool:
+    """Do shadow rays from ``o`` toward a light search ``kind`` through its light bins
+    (``occluded_kind`` with ``toward``)?  A looped bounded kind, rays with an origin."""
+    return looped(ks, kind) and use_bvh(ks, kind, o)
+
+
+def occluded_kind(ks, kind: str, d, o, maxt, rules: Rules, skip, blocked, toward=None,
+                  rows=None):
     """``blocked`` or any object of ``kind`` (other than ``skip``) hit at 0 < t < maxt; each
     ray stops at its first blocker (rays already ``blocked`` do nothing).  ``toward``: the
     light the rays go to (host, relative to the viewpoint; the rays as the shading makes
-    them): its direction bins (rt_core/lightbins.py)."""
+    them): its direction bins (rt_core/lightbins.py; ``rows``: their cells' rows, made
+    before)."""
     if toward is not None and use_bvh(ks, kind, o):
         from . import lightbins
-        return lightbins.occluded_kind(ks, kind, d, o, maxt, rules, skip, blocked, toward)
+        return lightbins.occluded_kind(ks, kind, d, o, maxt, rules, skip, blocked, toward,
+                                       rows)
     if use_bvh(ks, kind, o):
         from . import bvh
         return bvh.occluded_kind(ks, kind, d, o, maxt, rules, skip, blocked)

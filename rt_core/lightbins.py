@@ -314,15 +314,15 @@ def face_cell(T, side: int, v):
     return face * side * side + U(cy) * side + U(cx)
 
 
-def occluded_kind(ks, kind: str, d, o, maxt, rules, skip, blocked, center):
-    """accel.occluded_kind for shadow rays toward the light at ``center`` (d = L, o = H,
-    maxt = |C − H| as the shading makes them): the objects of the ray's cell; rays longer
-    than the bins' dmax (and any NaN) through the kind's BVH."""
-    from . import bvh
+def cells(ks, kind: str, o, maxt, skip, center):
+    """(far, start, end) of shadow rays from ``o`` toward the light at ``center`` (maxt =
+    |C − o| as the shading makes it): the rows start..end−1 of each ray's cell, and the rays
+    too long for the bins (``far``: the BVH's).  Made by ``occluded_kind``, or beforehand
+    (tracer.shadow_cells): the shading asks every light's before the first light's loop,
+    so that their lookups need not wait for the loops before them."""
     T = ks.T
     U = T.UInt32
-    lb = light_bins(ks, kind, center, dr.width(d))
-    vz = ks.scene.viewpoint[2]
+    lb = light_bins(ks, kind, center, dr.width(o))
     far = ~(maxt <= dr.opaque(T.Float, lb.dmax))
     if CELL_BY_OFFSET:
         b = dr.select(far, U(0), face_cell(T, lb.side, o - opaque3(T.Array3, center)))
@@ -334,6 +334,19 @@ def occluded_kind(ks, kind: str, d, o, maxt, rules, skip, blocked, center):
     start = se[0] + dr.select(T.Int32(se[2]) == skip, U(1), U(0)) if skip is not None \
         else se[0]
     end = dr.select(far, start, se[1])
+    return far, start, end
+
+
+def occluded_kind(ks, kind: str, d, o, maxt, rules, skip, blocked, center, rows=None):
+    """accel.occluded_kind for shadow rays toward the light at ``center`` (d = L, o = H,
+    maxt = |C − H| as the shading makes them): the objects of the ray's cell; rays longer
+    than the bins' dmax (and any NaN) through the kind's BVH.  ``rows``: ``cells``' answer
+    for these rays, where made before."""
+    from . import bvh
+    T = ks.T
+    lb = light_bins(ks, kind, center, dr.width(d))
+    vz = ks.scene.viewpoint[2]
+    far, start, end = rows if rows is not None else cells(ks, kind, o, maxt, skip, center)
 
     def body(i, blk):
         obj = row_view(T, kind, lb.rows, i)

@@ -45,7 +45,7 @@ from . import accel
 from .accel import device_array, packet_type
 from .jitlog import NullLog
 from .textures import MODE_CODE, Texture
-from .tracer import KernelScene, closest_hit, occluded, surface, widened
+from .tracer import KernelScene, closest_hit, occluded, shadow_cells, surface, widened
 
 # Path length at which reflection stops (the notes' MAX_DIST; the course programs used 20 to
 # 50000).  1000 is the keyword-dialect course program's value (rocketman768/ClemsonRaytracer,
@@ -63,6 +63,9 @@ MAX_BOUNCES = 10_000
 # With max_bounces = 1, trace the one reflection bounce's rays in the primary rays' kernel
 # (``_one_bounce``) rather than as a compacted wavefront (tests compare the two)
 FUSE_ONE_BOUNCE = True
+# Every light's light-bin cells looked up before the first light's shadow rays are
+# searched (tracer.shadow_cells)
+PREFETCH_CELLS = True
 # The reflection rays run their bounces in one kernel (``_tail``) instead of one compacted
 # wavefront a bounce (tests compare the two); the bounces ``record`` keeps stay wavefronts.
 # Where their closest hits walk a BVH or bins (many objects), a bounce of more than
@@ -301,16 +304,21 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
         ex = extra(t, oid, hit, normal, u, v) if extra is not None and bounce == 0 else {}
         # one shadow ray per light from each hit that faces it: diffuse where unblocked
         I = amb
+        # every light's path and light-bin cells before the first light's search
+        # (tracer.shadow_cells)
+        Ds = [Lp - H for Lp, _, _ in lights]
+        lds = [dr.norm(D) for D in Ds]
+        cells = [shadow_cells(ks, H, ld, oid, c) if PREFETCH_CELLS else None
+                 for ld, c in zip(lds, centres)]
         for j, (Lp, E, spot) in enumerate(lights):
-            D = Lp - H
-            ld = dr.norm(D)
+            D, ld = Ds[j], lds[j]
             L = D / ld
             c = dr.dot(L, normal)
             cast = hit & (c > 0)
             if spot is not None:            # a spotlight lights H only inside its cone:
                 axis, cos_theta = spot      # unit(H − centre)·axis = −L·axis > cos θ
                 cast &= -dr.dot(L, axis) > cos_theta
-            blocked = occluded(ks, L, H, ld, rules, oid, cast, centres[j])
+            blocked = occluded(ks, L, H, ld, rules, oid, cast, centres[j], cells[j])
             I = I + dr.select(cast & ~blocked, dif * E * (c / ld), 0)
             if rec is not None:
                 rec.update({f"L{j}.dir": L, f"L{j}.dist": ld, f"L{j}.cast": cast,

@@ -623,8 +623,20 @@ def position(ks: KernelScene, d, t, hit, o=None):
     return dr.select(hit, V + rel, dr.zeros(T.Array3, dr.width(d)))
 
 
+def shadow_cells(ks: KernelScene, o, maxt, skip, toward) -> dict:
+    """{kind: its light-bin rows} of the shadow rays from ``o`` toward the light ``toward``
+    (as ``occluded`` would look them up: its ``cells``).  The shading makes every light's
+    before the first light's search: each lookup waits for its division and gather, and
+    made between the loops each would wait for the loop before it too (shaded bench, f32,
+    same process, median of 9, images identical: finite planes 16 and mixed 16 0.92 of the
+    time, spheres 16 and 256 0.97)."""
+    from . import lightbins
+    return {kind: lightbins.cells(ks, kind, o, maxt, skip, toward) for kind in ks.kinds
+            if accel.light_binned(ks, kind, o)}
+
+
 def occluded(ks: KernelScene, d, o, maxt, rules: Rules = Rules(), skip=None, active=None,
-             toward=None):
+             toward=None, cells=None):
     """Shadow-ray test: mask of the rays o + t·d that hit any object (other than ``skip``)
     at 0 < t < ``maxt``, with the same hit functions and rules as ``closest_hit``.  No t, no
     id, no tie order: the first level of the intersection only.
@@ -635,7 +647,8 @@ def occluded(ks: KernelScene, d, o, maxt, rules: Rules = Rules(), skip=None, act
     ``toward``: the point light the rays go to (host, relative to the viewpoint), for rays
     made as the shading makes them (d = unit(C − o) and maxt = |C − o| in the kernel's
     precision, C ``toward`` rounded to it): many objects are then searched through bins of
-    directions around the light (rt_core/lightbins.py)."""
+    directions around the light (rt_core/lightbins.py); ``cells``: ``shadow_cells`` of these
+    rays, made before."""
     T = ks.T
     assert isinstance(d, T.Array3), f"expected {T.Array3.__name__} directions"
     vz = ks.scene.viewpoint[2]
@@ -644,7 +657,7 @@ def occluded(ks: KernelScene, d, o, maxt, rules: Rules = Rules(), skip=None, act
         for kind in ks.kinds:
             if accel.looped(ks, kind):
                 blocked = accel.occluded_kind(ks, kind, d, o, maxt, rules, skip, blocked,
-                                              toward)
+                                              toward, (cells or {}).get(kind))
                 continue
             for obj in ks.by_kind[kind]:
                 def test(b, obj=obj):
