@@ -229,6 +229,16 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, c
     # file order is id order within one kind: then no tie term is needed for 'first'
     single_kind = len(ks.kinds) == 1
     near = cone_a = along = None
+    gos = {}
+    if skip is not None and PRE_CULL:
+        # rays with an origin: every unrolled object's cull before the first object's test
+        near = cull.Rays(ks, d, o)
+        for kind in ks.kinds:
+            if not accel.looped(ks, kind, o is not None, camera=o is None):
+                for obj in ks.by_kind[kind]:
+                    go = dr.opaque(T.Int32, obj.id) != skip
+                    reach = cull.may_hit(ks, near, obj.id)
+                    gos[obj.id] = go if reach is None else go & reach
     for kind in ks.kinds:
         # many objects: one loop, constants as data
         if accel.looped(ks, kind, o is not None, camera=o is None):
@@ -248,12 +258,14 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, c
                     s = st.set(state)
                     s.fold(t, hit, oid, rules, single_kind)
                     return s.state()
-                if near is None:
-                    near = cull.Rays(ks, d, o)
-                go = oid != skip
-                reach = cull.may_hit(ks, near, obj.id)
-                if reach is not None:
-                    go &= reach
+                go = gos.get(obj.id)
+                if go is None:
+                    if near is None:
+                        near = cull.Rays(ks, d, o)
+                    go = oid != skip
+                    reach = cull.may_hit(ks, near, obj.id)
+                    if reach is not None:
+                        go &= reach
                 st.set(dr.if_stmt(st.state(), go, test, lambda *s: s,
                                   label="closest_object"))
                 continue
@@ -306,6 +318,11 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, c
 # columns, same process, median of 11, closest hits: 64 spheres 12.31 -> 11.38 ms, 64 finite
 # planes 16.6 -> 14.12, mixed 64 17.74 -> 15.25, 4096 spheres 21.14 -> 19.91.
 BIN_BY_OFFSETS = True
+# Rays with an origin (reflections): every unrolled object's cull (cull.may_hit) is made
+# before the first object's test, so that none waits for the branches before it (shaded
+# bench f32, same process, median of 9, images identical: finite planes 16 0.97 of the
+# time, spheres 16 0.98-0.99, mixed 16 0.99)
+PRE_CULL = True
 
 
 def widened(T: Types, d):
