@@ -331,13 +331,15 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
         if reflect:
             # the reflection rays
             seg.go = hit & ((spec.x != 0) | (spec.y != 0) | (spec.z != 0)) & (total < max_d)
-            seg.R = dr.normalize(dr.fma(normal, -2 * dr.dot(d, normal), d))  # reflect(dir, N)
+            seg.Rn = dr.fma(normal, -2 * dr.dot(d, normal), d)   # reflect(dir, N), and
+            seg.R = dr.normalize(seg.Rn)                           # normalized
             seg.w_next = spec if weight is None else weight * spec
         return seg
 
     if reflect and max_bounces == 1 and not record and FUSE_ONE_BOUNCE:
         return _one_bounce(T, d, image, segment, out, log,
-                           lambda d, o, skip: closest_hit(ks, d, o, rules, skip))
+                           lambda d, o, skip, along: closest_hit(ks, d, o, rules, skip,
+                                                                 along=along))
     # reflection rays' closest hits through a BVH (or bins): ``TAIL_FRACTION``
     deep = any(accel.looped(ks, k, True) for k in ks.kinds)
     while True:
@@ -488,7 +490,8 @@ def _one_bounce(T, d, image, segment, out: ShadeResult, log, trace) -> ShadeResu
     image = image + dr.select(s0.hit, s0.add, 0)
 
     def reflected(t, oid):
-        t, oid, hit = trace(s0.R, s0.H, s0.oid)
+        # (the culls take the reflection before its normalization: tracer.closest_hit)
+        t, oid, hit = trace(s0.R, s0.H, s0.oid, s0.Rn)
         return t, oid
 
     t1, oid1 = dr.if_stmt((dr.zeros(F, n), dr.full(I, -1, n)), s0.go, reflected,
