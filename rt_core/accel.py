@@ -512,12 +512,13 @@ def _range(ks, kind: str, d, o, along=None):
 def closest_kind(ks, kind: str, d, o, rules: Rules, skip, st, scale: float = 0.0,
                  along=None):
     """Fold every object of ``kind`` into the running closest hit ``st`` (tracer.Best), with
-    the same test, tie rule and certification as the unrolled code.  ``along``: camera
-    rays' unnormalized directions (the pixels' window offsets), which the kernel has before
-    d, to look up their bins by (``_range``)."""
+    the same test, tie rule and certification as the unrolled code.  ``along``: the rays'
+    directions unnormalized, which the kernel has before d, to look up their bins by:
+    camera rays' window offsets (``_range``), reflection rays' reflection
+    (rt_core/reflectbins.py)."""
     if use_bvh(ks, kind, o):
         from . import reflectbins
-        return reflectbins.closest_kind(ks, kind, d, o, rules, skip, st)
+        return reflectbins.closest_kind(ks, kind, d, o, rules, skip, st, along)
     T = ks.T
     vz = ks.scene.viewpoint[2]
     got = _range(ks, kind, d, o, along)

@@ -248,7 +248,8 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, c
             if offsets is None and BIN_BY_OFFSETS and isinstance(cam, Camera) and \
                     o is None and d.x.state != dr.VarState.Evaluated:
                 offsets = primary_offsets(ks.scene, cam, T)
-            st = accel.closest_kind(ks, kind, d, o, rules, skip, st, scale, offsets)
+            st = accel.closest_kind(ks, kind, d, o, rules, skip, st, scale,
+                                    offsets if o is None else along)
             continue
         for obj in ks.by_kind[kind]:
             oid = dr.opaque(T.Int32, obj.id)

@@ -75,6 +75,31 @@ def test01_one_bounce_in_one_kernel_is_the_wavefront(precision, monkeypatch):
     assert capped >= 2                       # rays that would go on are counted too
 
 
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test01b_one_bounce_through_the_reflection_bins_is_the_wavefront(precision, monkeypatch):
+    """Scenes of many mirrors, whose reflection rays go through the reflection bins (from
+    a prepared scene's second image on; the fused bounce finds their cells from the
+    reflection before its normalization) or the BVH: the fused bounce's image is the
+    wavefront's, bit for bit, and the bins were used."""
+    from rt_core import reflectbins
+    from tools.harness.bench_shaded import shaded_scene
+    T = backend.types(precision)
+    for kind in ("spheres", "fplanes", "mixed"):
+        scene = shaded_scene(kind, 40)
+        cam = make_camera(scene, 96)
+        d = primary_directions(scene, cam, T)
+        images = {}
+        for fused in (False, True):
+            monkeypatch.setattr(shading, "FUSE_ONE_BOUNCE", fused)
+            ks = prepare(scene, T)
+            for _ in range(reflectbins.AFTER_IMAGES):
+                res = shade(ks, d, Rules(), cam=cam, max_bounces=1)
+            images[fused] = np.stack([np.asarray(getattr(res.rgb, c).numpy())
+                                      for c in "xyz"], 1)
+            assert ks.__dict__["_accel"].get("reflectbins"), kind
+        assert np.array_equal(bits(images[False]), bits(images[True])), kind
+
+
 def test02_one_bounce_shades_reflection_hits_densely(monkeypatch):
     """The fused bounce is two JIT kernels: the primary rays with their reflection rays'
     closest hits, then the shading of the reflection rays that hit, one lane each (the
