@@ -324,10 +324,11 @@ def cells(ks, kind: str, o, maxt, skip, center):
     U = T.UInt32
     lb = light_bins(ks, kind, center, dr.width(o))
     far = ~(maxt <= dr.opaque(T.Float, lb.dmax))
+    C = opaque3(T.Array3, center)
     if CELL_BY_OFFSET:
-        b = dr.select(far, U(0), face_cell(T, lb.side, o - opaque3(T.Array3, center)))
-    else:
-        b = dr.select(far, U(0), cell(T, lb, d))
+        b = dr.select(far, U(0), face_cell(T, lb.side, o - C))
+    else:                                   # from L = (C − o)/|C − o|, as the shading's
+        b = dr.select(far, U(0), cell(T, lb, (C - o) / maxt))
     se = dr.gather(T.module.ArrayXu, lb.cells, b, shape=(4, dr.width(b)))
     # a ray leaving the cell's first object starts past it: skipping it is what its test
     # does for such a ray (``tested``'s skip), so the answer is the same

@@ -187,6 +187,15 @@ def test03_generated_scenes(make, precision, side, monkeypatch):
         assert 0.02 < blocked.mean() < 0.98
 
 
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test03b_light_cells_from_the_direction_too(precision, monkeypatch):
+    """The light-bin cells found from −L (``CELL_BY_OFFSET`` off: the code before the
+    offset H − C) against the plain loop as well, so both lookups stay checked."""
+    monkeypatch.setattr(lightbins, "CELL_BY_OFFSET", False)
+    ks, _ = assert_identical(crowd(0), precision, monkeypatch, columns=48)
+    assert "lightbins" in used(ks)
+
+
 def test04_hall_has_grazing_reflections_and_duplicates(monkeypatch):
     """What mirror_hall is for: reflections off the floor within a few degrees of it, and
     duplicate objects (exact ties)."""
