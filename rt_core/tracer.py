@@ -650,8 +650,8 @@ def shadow_cells(ks: KernelScene, o, maxt, skip, toward) -> dict:
     (as ``occluded`` would look them up: its ``cells``).  The shading makes every light's
     before the first light's search: each lookup waits for its division and gather, and
     made between the loops each would wait for the loop before it too (shaded bench, f32,
-    same process, median of 9, images identical: finite planes 16 and mixed 16 0.92 of the
-    time, spheres 16 and 256 0.97)."""
+    same process, median of 9, images identical: finite planes 16 0.92, mixed 16 0.89-0.92
+    of the time, spheres 16 and 256 0.96-0.97)."""
     from . import lightbins
     return {kind: lightbins.cells(ks, kind, o, maxt, skip, toward) for kind in ks.kinds
             if accel.light_binned(ks, kind, o)}
