@@ -314,12 +314,14 @@ def face_cell(T, side: int, v):
     return face * side * side + U(cy) * side + U(cx)
 
 
-def cells(ks, kind: str, o, maxt, skip, center):
+def cells(ks, kind: str, o, maxt, skip, center, active=None):
     """(far, start, end) of shadow rays from ``o`` toward the light at ``center`` (maxt =
     |C − o| as the shading makes it): the rows start..end−1 of each ray's cell, and the rays
     too long for the bins (``far``: the BVH's).  Made by ``occluded_kind``, or beforehand
     (tracer.shadow_cells): the shading asks every light's before the first light's loop,
-    so that their lookups need not wait for the loops before them."""
+    so that their lookups need not wait for the loops before them; ``active``: the lanes
+    whose cell is read (the others, whose o may be no hit point at all, get none: rows
+    0..0), where made outside ``occluded``'s branch on its active lanes."""
     T = ks.T
     U = T.UInt32
     lb = light_bins(ks, kind, center, dr.width(o))
@@ -329,7 +331,8 @@ def cells(ks, kind: str, o, maxt, skip, center):
         b = dr.select(far, U(0), face_cell(T, lb.side, o - C))
     else:                                   # from L = (C − o)/|C − o|, as the shading's
         b = dr.select(far, U(0), cell(T, lb, (C - o) / maxt))
-    se = dr.gather(T.module.ArrayXu, lb.cells, b, shape=(4, dr.width(b)))
+    se = dr.gather(T.module.ArrayXu, lb.cells, b, True if active is None else active,
+                   shape=(4, dr.width(b)))
     # a ray leaving the cell's first object starts past it: skipping it is what its test
     # does for such a ray (``tested``'s skip), so the answer is the same
     start = se[0] + dr.select(T.Int32(se[2]) == skip, U(1), U(0)) if skip is not None \

@@ -308,7 +308,8 @@ def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_
         # (tracer.shadow_cells)
         Ds = [Lp - H for Lp, _, _ in lights]
         lds = [dr.norm(D) for D in Ds]
-        cells = [shadow_cells(ks, H, ld, oid, c) if PREFETCH_CELLS else None
+        # (read on the lanes that hit: the others have no hit point H)
+        cells = [shadow_cells(ks, H, ld, oid, c, hit) if PREFETCH_CELLS else None
                  for ld, c in zip(lds, centres)]
         for j, (Lp, E, spot) in enumerate(lights):
             D, ld = Ds[j], lds[j]

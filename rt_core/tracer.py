@@ -645,16 +645,16 @@ def position(ks: KernelScene, d, t, hit, o=None):
     return dr.select(hit, V + rel, dr.zeros(T.Array3, dr.width(d)))
 
 
-def shadow_cells(ks: KernelScene, o, maxt, skip, toward) -> dict:
+def shadow_cells(ks: KernelScene, o, maxt, skip, toward, active=None) -> dict:
     """{kind: its light-bin rows} of the shadow rays from ``o`` toward the light ``toward``
-    (as ``occluded`` would look them up: its ``cells``).  The shading makes every light's
+    (as ``occluded`` would look them up: its ``cells``), read on the ``active`` lanes.  The shading makes every light's
     before the first light's search: each lookup waits for its division and gather, and
     made between the loops each would wait for the loop before it too (shaded bench, f32,
-    same process, median of 9, images identical: finite planes 16 0.92, mixed 16 0.89-0.92
-    of the time, spheres 16 and 256 0.96-0.97)."""
+    same process, median of 9, images identical, three measurements: finite planes 16
+    0.92 of the time, mixed 16 0.88-0.89, spheres 16 0.96-0.99, spheres 256 0.94-0.97)."""
     from . import lightbins
-    return {kind: lightbins.cells(ks, kind, o, maxt, skip, toward) for kind in ks.kinds
-            if accel.light_binned(ks, kind, o)}
+    return {kind: lightbins.cells(ks, kind, o, maxt, skip, toward, active)
+            for kind in ks.kinds if accel.light_binned(ks, kind, o)}
 
 
 def occluded(ks: KernelScene, d, o, maxt, rules: Rules = Rules(), skip=None, active=None,
