@@ -76,6 +76,14 @@ CAMERA_SPHERES_F64 = 12
 # ... where every bounded object is of these kinds (measured on them; 12 tori unrolled took
 # 7 times the binned loop's time)
 CAMERA_KINDS = ("sphere", "fplane")
+# Shadow rays search spheres through the light bins (rt_core/lightbins.py) from more than
+# SHADOW_SPHERES · UNROLL_MAX spheres on, where the other kinds still unroll: unrolled, every
+# lit hit ran each sphere's whole test a light (three square roots and a division).  Shaded
+# bench scenes, f32, 1920 columns, same process, median of 7, images identical, time with
+# the light bins over unrolled: spheres 4 0.985, 6 0.77, 7 0.71, 8 0.68 (1.19x Mitsuba ->
+# 1.76x); with every bounded kind through them from 2 objects on, finite planes 4 1.14,
+# mixed 4 1.34, mixed 6 1.13, spheres 2 1.40: not done
+SHADOW_SPHERES = 0.5
 # Bins per looped object (bounded kinds), at most one per RAYS_PER_BIN rays of the first
 # batch traced, and at most MAX_BINS.  Finer bins list fewer rows a ray misses (spheres, 16
 # objects: 1.41 rows a ray at 32 bins per object, 1.20 at 512; 64: 2.54, 2.16) and were
@@ -171,17 +179,22 @@ def camera_unrolls(ks) -> bool:
         len(ks.by_kind.get("sphere", ())) <= CAMERA_SPHERES_F64
 
 
-def looped(ks, kind: str, reflections: bool = False, camera: bool = False) -> bool:
+def looped(ks, kind: str, reflections: bool = False, camera: bool = False,
+           shadows: bool = False) -> bool:
     """Is ``kind`` traced by a loop rather than unrolled?  Bounded kinds (spheres, finite
     planes) loop when there are more than UNROLL_MAX of them together; the unbounded ones
     (planes, tiled planes: every bin lists them) when there are more than UNROLL_MAX of the
     kind.  ``reflections``: for the closest hits of rays with an origin, above
     SECONDARY_FACTOR times that.  ``camera``: for the closest hits of camera rays, where
     in float32 bounded kinds loop above CAMERA_FACTOR times that if all are CAMERA_KINDS
-    (every kind looped here is looped without ``camera`` too, not the other way round)."""
+    (every kind looped here is looped without ``camera`` too, not the other way round).
+    ``shadows``: for shadow rays, where spheres also loop (through the light bins) when
+    there are more than SHADOW_SPHERES times that of them."""
     limit = ks.__dict__.get("_accel_opts", {}).get("unroll_max", UNROLL_MAX)
     if reflections:
         limit *= SECONDARY_FACTOR
+    if shadows and kind == "sphere" and len(ks.by_kind.get(kind, ())) > limit * SHADOW_SPHERES:
+        return True
     if kind in BOUNDED:
         if camera and camera_unrolls(ks) and all(
                 k in CAMERA_KINDS for k in BOUNDED if ks.by_kind.get(k)):
@@ -332,7 +345,7 @@ def tables(ks) -> dict:
     if "tables" not in cache:
         cache["tables"] = {}
         for k in ks.kinds:
-            if looped(ks, k):
+            if looped(ks, k) or looped(ks, k, shadows=True):
                 assert len(ks.by_kind[k]) < 2 ** 24, "object ids must be exact in float32"
                 cache["tables"][k] = _upload(ks, k, pack(k, ks.by_kind[k]))
     return cache["tables"]
@@ -593,7 +606,7 @@ def tested(d, o, obj, rules: Rules, vz: float, skip, fold, state, cert=False,
 def light_binned(ks, kind: str, o) -> bool:
     """Do shadow rays from ``o`` toward a light search ``kind`` through its light bins
     (``occluded_kind`` with ``toward``)?  A looped bounded kind, rays with an origin."""
-    return looped(ks, kind) and use_bvh(ks, kind, o)
+    return looped(ks, kind, shadows=True) and use_bvh(ks, kind, o)
 
 
 def occluded_kind(ks, kind: str, d, o, maxt, rules: Rules, skip, blocked, toward=None,

@@ -255,13 +255,15 @@ def row_view(T, kind: str, rows, k, active=True):
 
 
 def trees(ks) -> dict:
-    """{kind: KindBVH} of the bounded kinds that are looped (built once per KernelScene)."""
+    """{kind: KindBVH} of the bounded kinds that are looped, by any rays (built once per
+    KernelScene)."""
     from . import accel
     cache = ks.__dict__.setdefault("_accel", {})
     if "bvh" not in cache:
         cache["bvh"] = {}
         for kind in accel.BOUNDED:
-            if not (ks.by_kind.get(kind) and accel.looped(ks, kind)):
+            if not (ks.by_kind.get(kind) and (accel.looped(ks, kind) or
+                                              accel.looped(ks, kind, shadows=True))):
                 continue
             consts = ks.by_kind[kind]
             tree = build(*object_boxes(kind, consts))

@@ -677,7 +677,7 @@ def occluded(ks: KernelScene, d, o, maxt, rules: Rules = Rules(), skip=None, act
 
     def search(blocked):
         for kind in ks.kinds:
-            if accel.looped(ks, kind):
+            if accel.looped(ks, kind, shadows=True):
                 blocked = accel.occluded_kind(ks, kind, d, o, maxt, rules, skip, blocked,
                                               toward, (cells or {}).get(kind))
                 continue

@@ -196,6 +196,51 @@ def test03b_light_cells_from_the_direction_too(precision, monkeypatch):
     assert "lightbins" in used(ks)
 
 
+def spheres_on_a_floor(n: int) -> Scene:
+    """``n`` spheres in two rows above a floor plane, two lights above: their shadows fall
+    on the floor and on each other."""
+    objs = [make_sphere(MIRROR if k % 2 else GREY, (-2.5 + 1.3 * (k % 5), -0.4 + 0.5 * (k // 5),
+                                                    -4.0 - 0.9 * (k // 5)), 0.55)
+            for k in range(n)]
+    objs.append(make_plane(GREY, (0, 1, 0), (0, -1, 0)))
+    # (low lights to the sides: long shadows across the floor and onto the neighbours)
+    lights = (PointLight((4, 4, 4), (6.0, 0.2, -4.5)), PointLight((3, 3, 3), (-5.0, 0.5, -3.0)))
+    return Scene((8.0, 6.0), (0.0, 0.3, 4.0), lights, tuple(objs), path=f"<floor {n}>")
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test03c_few_spheres_shadow_rays_go_through_the_light_bins(precision, monkeypatch):
+    """From more than SHADOW_SPHERES · UNROLL_MAX spheres on (5 of 8), shadow rays search the
+    spheres through the light bins while every other ray still unrolls them: the image and
+    the shadow rays' records are the unrolled search's, bit for bit; at 4 spheres they
+    unroll."""
+    T = backend.types(precision)
+    calls = []
+    search = lightbins.occluded_kind
+    monkeypatch.setattr(lightbins, "occluded_kind", lambda *a, **k: calls.append(a[1]) or
+                        search(*a, **k))
+    for n, binned in ((4, False), (7, True)):
+        scene = spheres_on_a_floor(n)
+        calls.clear()
+        ks, res = shaded(scene, T, True, 48)
+        assert bool(calls) == binned, n
+        assert not accel.looped(ks, "sphere") and not accel.looped(ks, "sphere", True)
+        blocked = np.concatenate([r[k] for r in res.records for k in r
+                                  if k.endswith(".blocked")])
+        assert blocked.sum() > 40, (n, blocked.sum())      # shadows to find
+        with monkeypatch.context() as m:
+            m.setattr(accel, "SHADOW_SPHERES", 1e9)         # unrolled
+            calls.clear()
+            _, res2 = shaded(scene, T, True, 48)
+            assert not calls
+        for c in "xyz":
+            a, b = (np.asarray(getattr(r.rgb, c).numpy()) for r in (res, res2))
+            assert np.array_equal(bits(a), bits(b)), (n, c)
+        for ra, rb in zip(res.records, res2.records):
+            for key in ra:
+                assert np.array_equal(bits(ra[key]), bits(rb[key])), (n, key)
+
+
 def test04_hall_has_grazing_reflections_and_duplicates(monkeypatch):
     """What mirror_hall is for: reflections off the floor within a few degrees of it, and
     duplicate objects (exact ties)."""
