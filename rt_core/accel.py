@@ -189,7 +189,8 @@ def looped(ks, kind: str, reflections: bool = False, camera: bool = False,
     in float32 bounded kinds loop above CAMERA_FACTOR times that if all are CAMERA_KINDS
     (every kind looped here is looped without ``camera`` too, not the other way round).
     ``shadows``: for shadow rays, where spheres also loop (through the light bins) when
-    there are more than SHADOW_SPHERES times that of them."""
+    there are more than SHADOW_SPHERES times that of them (so every kind looped without
+    ``shadows`` is looped with it)."""
     limit = ks.__dict__.get("_accel_opts", {}).get("unroll_max", UNROLL_MAX)
     if reflections:
         limit *= SECONDARY_FACTOR
@@ -345,7 +346,7 @@ def tables(ks) -> dict:
     if "tables" not in cache:
         cache["tables"] = {}
         for k in ks.kinds:
-            if looped(ks, k) or looped(ks, k, shadows=True):
+            if looped(ks, k, shadows=True):     # (every kind a ray loops over)
                 assert len(ks.by_kind[k]) < 2 ** 24, "object ids must be exact in float32"
                 cache["tables"][k] = _upload(ks, k, pack(k, ks.by_kind[k]))
     return cache["tables"]

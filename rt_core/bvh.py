@@ -262,8 +262,8 @@ def trees(ks) -> dict:
     if "bvh" not in cache:
         cache["bvh"] = {}
         for kind in accel.BOUNDED:
-            if not (ks.by_kind.get(kind) and (accel.looped(ks, kind) or
-                                              accel.looped(ks, kind, shadows=True))):
+            # (looped for shadow rays: every kind that any rays loop over)
+            if not (ks.by_kind.get(kind) and accel.looped(ks, kind, shadows=True)):
                 continue
             consts = ks.by_kind[kind]
             tree = build(*object_boxes(kind, consts))

@@ -18,7 +18,8 @@ GB = 1e9
 # bytes per traced pixel while a band's kernels run (rays, hits, shading state), by
 # precision and shading: measured peaks less the outputs on 1600x1200 renders of the bundled
 # scenes, the largest 50/100 (geometry) and 430/780 (shaded: scenes/shade_mirrors.txt, four
-# bounces), rounded up
+# bounces), rounded up (float32 camera rays that loop now evaluate their directions first,
+# render.camera_rays: 12 bytes a pixel more, inside the rounding up)
 KERNEL = {("f32", False): 80, ("f64", False): 130, ("f32", True): 500, ("f64", True): 900}
 # rtval compare: rt_core, Mitsuba's own buffers and the per-pixel classification (measured
 # 880 B/px f32, 1115 B/px f64); "shaded": --shaded, the course images of both (peak RSS at

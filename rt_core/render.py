@@ -52,7 +52,7 @@ def _empty_geometry(T, n: int) -> dict:
 # reading them (1920 columns, same process, median of 11, closest hits: 64 spheres 7.64
 # -> 5.82 ms, 1024 spheres 10.86 -> 8.03, 4096 13.13 -> 9.48, 64 finite planes 11.05 ->
 # 9.86).  float64 keeps them fused and finds the bins by the pixels' window offsets
-# instead (tracer.BIN_BY_OFFSETS: 0.91-0.98 of the evaluated rays' time, whose arrays are
+# instead (tracer.BIN_BY_OFFSETS: 0.90-0.98 of the evaluated rays' time, whose arrays are
 # twice float32's); unrolled scenes, where it gains little, keep them fused.
 EVAL_LOOPED_DIRECTIONS = True
 

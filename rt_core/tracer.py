@@ -567,6 +567,11 @@ _DECIDED: dict = {}
 GEOMETRY_RULES = ("t_min", "screen_clip", "clip_spheres", "edges", "ties")
 
 
+def forget_decisions() -> None:
+    """Drop the exact answers kept across renders (``rtval bench`` times a render's own)."""
+    _DECIDED.clear()
+
+
 def _decided(scene, cam, rules: Rules, pix, objs):
     key = (id(scene), cam.columns, cam.rows, cam.sampling, cam.row_shift,
            tuple(getattr(rules, k) for k in GEOMETRY_RULES))

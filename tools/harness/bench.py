@@ -230,7 +230,7 @@ def rt_tracer(name, scene, precision, d32, unroll_max=None, bins=None,
     ks = accel.configure(prepare(scene, T), unroll_max, bins)
     ks.exact_decisions = exact
     # (the bins of the kinds camera rays loop over: what the timed calls read)
-    if bins is not False and any(accel.looped(ks, k, camera=True) for k in ks.kinds):
+    if bins is not False and accel.camera_loops(ks):
         accel.binned(ks, dr.width(d))
     prep = (time.perf_counter() - t0) * 1e3
     state = {}
@@ -249,7 +249,7 @@ def camera_tracer(name, scene, precision, cam, backend_name: str = "llvm") -> Tr
     """rt_core on its own camera rays, as ``rtval render`` traces them: each ray's direction
     computed in the kernel from its pixel (in the tracer's precision; nothing read from
     memory), float64 deciding its flagged rays exactly, anew each call (the decisions kept
-    across renders of a scene, ``tracer._DECIDED``, are dropped first)."""
+    across renders of a scene are forgotten first: ``tracer.forget_decisions``)."""
     import drjit as dr
     from rt_core import accel, backend, tracer
     from rt_core.render import camera_rays
@@ -263,7 +263,7 @@ def camera_tracer(name, scene, precision, cam, backend_name: str = "llvm") -> Tr
     state = {}
 
     def run():
-        tracer._DECIDED.clear()
+        tracer.forget_decisions()
         t, oid, _ = closest_hit(ks, camera_rays(ks, cam), cam=cam)
         dr.eval(t, oid)
         state["id"] = oid
