@@ -60,7 +60,10 @@ def one_bounce(scene, precision, fused: bool, monkeypatch, columns=48):
 
 
 @pytest.mark.parametrize("precision", PRECISIONS)
-def test01_one_bounce_in_one_kernel_is_the_wavefront(precision, monkeypatch):
+@pytest.mark.parametrize("slots_in_if", [True, False])
+def test01_one_bounce_in_one_kernel_is_the_wavefront(precision, slots_in_if, monkeypatch):
+    """(The reflection hits' slots taken in a symbolic if, shading.SLOTS_IN_IF, or not.)"""
+    monkeypatch.setattr(shading, "SLOTS_IN_IF", slots_in_if)
     scenes = [parse_scene(REPO / "scenes" / f"{n}.txt")
               for n in ("mixed", "shade_mirrors", "shade_tiles")] + [mirrors()]
     capped = 0
@@ -293,11 +296,16 @@ def cull_differences(precision: str, monkeypatch) -> int:
 
 
 @pytest.mark.parametrize("precision", PRECISIONS)
-def test03_cull_keeps_grazing_hits(precision, monkeypatch):
+@pytest.mark.parametrize("const", [True, False])
+def test03_cull_keeps_grazing_hits(precision, const, monkeypatch):
+    """With the widening a constant of each object (cull.CONST_E) and a term of each ray."""
+    monkeypatch.setattr(cull, "CONST_E", const)
     assert cull_differences(precision, monkeypatch) == 0
 
 
-def test04_without_the_widening_grazing_hits_are_lost(monkeypatch):
+@pytest.mark.parametrize("const", [True, False])
+def test04_without_the_widening_grazing_hits_are_lost(const, monkeypatch):
+    monkeypatch.setattr(cull, "CONST_E", const)
     monkeypatch.setattr(cull, "GROW", 0.0)
     monkeypatch.setattr(cull, "SLACK", 0.0)
     monkeypatch.setattr(bvh, "PAD", {"f32": 0.0, "f64": 0.0})
