@@ -276,6 +276,13 @@ def build(ks, kind: str, center, side: int = SIDE) -> LightBins:
                      max(dmax, 0.0), counts)
 
 
+# Scenes whose every point is within the bins' reach of the light (bounded objects only)
+# trace no BVH walk for the long shadow rays: a packet never took it, but its code cost
+# every image's Python tracing and the kernel's size (shaded bench f32 spheres 16, same
+# process, median of 9, images identical: 0.97 of the time)
+NO_FAR = True
+
+
 def light_bins(ks, kind: str, center, rays: int | None = None) -> LightBins:
     """The kind's LightBins around ``center`` (built once per KernelScene, as fine as the
     ``rays`` of its first query ask: ``side_for``)."""
@@ -371,6 +378,31 @@ def occluded_kind(ks, kind: str, d, o, maxt, rules, skip, blocked, center, rows=
     def walk(blk):
         return (bvh.occluded_kind(ks, kind, d, o, maxt, rules, skip, blk | ~far),)
 
+    if NO_FAR and within_reach(ks, center, lb.dmax):
+        # no shading point is that far from the light: ``far`` only where maxt is NaN (no
+        # hit point), which the walk finds unblocked too (t < NaN fails), as the loop left
+        # them (their cells list no rows)
+        return near
     walked = dr.if_stmt((blocked,), far, walk, lambda blk: (blk,),
                         label=f"lightbins_{kind}_far")[0]
     return dr.select(far, walked, near)
+
+
+def within_reach(ks, center, dmax: float) -> bool:
+    """Does every point of every object lie within dmax of the light at ``center`` (a scene
+    of bounded objects only, whose boxes' farthest corners, with room for the shading's
+    rounding of |C − H|, are that near)?"""
+    from .accel import BOUNDED
+    cache = ks.__dict__.setdefault("_accel", {}).setdefault("reach", {})
+    key = tuple(float(c) for c in center)
+    if key not in cache:
+        far = np.inf
+        if all(k in BOUNDED for k in ks.kinds):
+            C = np.array(center, np.float64)
+            far = 0.0
+            for k in ks.kinds:
+                lo, hi = object_boxes(k, ks.by_kind[k])
+                corner = np.maximum(np.abs(lo - C), np.abs(hi - C))
+                far = max(far, float(np.sqrt((corner ** 2).sum(1)).max()))
+        cache[key] = far * (1 + 2.0 ** -10)
+    return cache[key] <= dmax

@@ -331,16 +331,19 @@ def test05_cull_keeps_images(precision, monkeypatch):
 
 # --- long shadow rays: light bins hand them to the BVH --------------------------------------
 
-def test06_long_shadow_rays_take_the_bvh(monkeypatch):
+@pytest.mark.parametrize("wall", ["plane", "fplane"])
+def test06_long_shadow_rays_take_the_bvh(wall, monkeypatch):
     """Spheres next to a light cast shadows on a far wall: those shadow rays are longer
     than the light bins' dmax, so they walk the BVH (inside a symbolic if that packets
     without one skip); the image and every shadow verdict are the plain loop's, and some
-    of those long rays are blocked."""
+    of those long rays are blocked.  The wall an infinite plane or a finite one (every
+    object bounded, but not within the spheres' bins' reach: lightbins.within_reach)."""
     from rt_core import lightbins
     from tests.test_bvh import assert_identical
     grey = Material((0.1, 0.1, 0.1), (1, 1, 1), (0, 0, 0))
     objs = tuple(make_sphere(grey, (x, y, -5.6), 0.25) for x in (-0.4, 0.4) for y in (-0.4, 0.4))
-    objs += (make_plane(grey, (0, 0, 1), (0, 0, -300)),)
+    objs += (make_plane(grey, (0, 0, 1), (0, 0, -300)) if wall == "plane" else
+             make_fplane(grey, (0, 0, 1), (-900, -900, -300), (1, 0, 0), (1800, 1800)),)
     centre = (0.0, 0.0, -5.0)
     scene = Scene((8.0, 6.0), (0.0, 0.0, 4.0), (PointLight((9, 9, 9), centre),), objs,
                   path="<long shadows>")
@@ -350,3 +353,25 @@ def test06_long_shadow_rays_take_the_bvh(monkeypatch):
     r = res.records[0]
     long_ = r["L0.cast"] & (r["L0.dist"] > dmax)
     assert long_.sum() > 100 and (long_ & r["L0.blocked"]).sum() > 20
+    assert not lightbins.within_reach(ks, rel, dmax)
+
+
+def test06b_no_walk_where_every_point_is_within_reach(monkeypatch):
+    """Bounded objects only, every one within the light bins' reach of each light: no BVH
+    walk is traced for long shadow rays (there are none), and the image and every shadow
+    verdict are those with the walk, and the plain loop's."""
+    from rt_core import lightbins
+    from tests.test_bvh import assert_identical
+    from tools.harness.bench_shaded import shaded_scene
+    scene = shaded_scene("spheres", 12)
+    results = {}
+    for no_far in (False, True):
+        monkeypatch.setattr(lightbins, "NO_FAR", no_far)
+        ks, res = assert_identical(scene, "f32", monkeypatch, columns=64)
+        results[no_far] = res
+    for light in scene.lights:
+        rel = tuple(c - v for c, v in zip(light.center, scene.viewpoint))
+        assert lightbins.within_reach(ks, rel, lightbins.light_bins(ks, "sphere", rel).dmax)
+    for key in results[True].records[0]:
+        assert np.array_equal(bits(results[False].records[0][key]),
+                              bits(results[True].records[0][key])), key
