@@ -82,6 +82,31 @@ def types(precision: str = "f32", backend: str = "llvm") -> Types:
     return Types(backend, precision, m, m.Float64, m.Array3f64, m.Bool, m.UInt32, m.Int32)
 
 
+# rt_core traces its kernels with Dr.Jit's local value numbering (its common-subexpression
+# elimination while tracing) off.  LLVM merges the same expressions anyway, so the kernels
+# run as fast; but the hash table Dr.Jit keeps for it never shrinks, and once a large scene
+# of any library in the process has grown it (Mitsuba's of 4096 finite planes, which
+# `rtval bench` loads before its spheres), every later operation traced pays for it
+# (benchmarks/after_large_scene.py, 16 spheres f32, wall ms before / after that scene, two
+# runs: primary rays on 3.56 / 3.86 and 3.49 / 3.68, off 3.42 / 3.64 and 3.41 / 3.43; shaded
+# image on 28.7 / 29.9 and 28.4 / 29.5, off 27.9 / 28.6 and 27.7 / 28.5).  In a fresh
+# process, same process interleaved, primary and shaded bench scenes, f32 and f64: off over
+# on 0.97-1.004 of the time.  Mitsuba keeps Dr.Jit's default.
+VALUE_NUMBERING = False
+
+
+def traced(fn):
+    """``fn`` traced in rt_core's Dr.Jit state (value numbering: ``VALUE_NUMBERING``)."""
+    import functools
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        import drjit as dr
+        with dr.scoped_set_flag(dr.JitFlag.ValueNumbering, VALUE_NUMBERING):
+            return fn(*args, **kwargs)
+    return wrapper
+
+
 def host_view(x):
     """A numpy view of ``x``'s memory where it has some on this host (an evaluated array of
     the LLVM backend: Dr.Jit hands numpy its buffer, no copy); None elsewhere (CUDA memory,

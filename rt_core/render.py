@@ -57,6 +57,7 @@ def _empty_geometry(T, n: int) -> dict:
 EVAL_LOOPED_DIRECTIONS = True
 
 
+@backends.traced
 def camera_rays(ks, cam: Camera):
     """The camera's unit ray directions for ``ks``'s kernels (``primary_directions``),
     evaluated where float32 camera rays loop (EVAL_LOOPED_DIRECTIONS)."""
@@ -67,6 +68,7 @@ def camera_rays(ks, cam: Camera):
     return d
 
 
+@backends.traced
 def trace_geometry(scene: Scene, cam: Camera, T: backends.Types, rules: Rules = Rules(),
                    log=None, directions: bool = False):
     """Dr.Jit arrays (flat, image order) of the primary-ray geometry AOVs, evaluated.
@@ -87,6 +89,7 @@ def trace_geometry(scene: Scene, cam: Camera, T: backends.Types, rules: Rules = 
     return out
 
 
+@backends.traced
 def render_image(scene: Scene, cam: Camera, T: backends.Types, rules: Rules = Rules(), *,
                  geometry: bool = True, shade: bool = False,
                  max_dist: float = DEFAULT_MAX_DIST, log=None, record: int = 0):
@@ -217,6 +220,7 @@ def write_images(path: str, images: dict, attrs: dict,
 TILE_PIXELS = 1 << 21      # 1920×1080 is one band
 
 
+@backends.traced
 def render_tiled(scene: Scene, cam: Camera, T: backends.Types, rules: Rules = Rules(), *,
                  tile_pixels: int = TILE_PIXELS, geometry: bool = True, shade: bool = False,
                  max_dist: float = DEFAULT_MAX_DIST, log=None, progress=None):

@@ -37,6 +37,7 @@ from types import SimpleNamespace
 import drjit as dr
 import numpy as np
 
+from .backend import traced
 from .rules import Rules
 from .scene import sub, unit
 from .kinds import KIND_CODE
@@ -246,6 +247,7 @@ def material(ks: KernelScene, tables: dict, oid, hit, u, v, rules: Rules = Rules
     return amb, dif, spec
 
 
+@traced
 def shade(ks: KernelScene, d, rules: Rules = Rules(), max_dist: float = DEFAULT_MAX_DIST, *,
           log=None, extra=None, record: int = 0, max_bounces: int | None = None,
           cam=None) -> ShadeResult:

@@ -21,7 +21,7 @@ import numpy as np
 import drjit as dr
 
 from . import accel, backend, cull
-from .backend import Types
+from .backend import Types, traced
 from .camera import Camera, primary_offsets
 from .decide import decide, decide_rays, prepare as prepare_exact
 from .rules import Rules
@@ -204,6 +204,7 @@ def _finite_obj(scene: Scene, obj) -> bool:
         return False
 
 
+@traced
 def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, cam=None,
                 dmax: float = 1.0, along=None):
     """(t, object id, hit mask) of the closest hit along o + t·d (o relative to the
@@ -662,6 +663,7 @@ def shadow_cells(ks: KernelScene, o, maxt, skip, toward, active=None) -> dict:
             for kind in ks.kinds if accel.light_binned(ks, kind, o)}
 
 
+@traced
 def occluded(ks: KernelScene, d, o, maxt, rules: Rules = Rules(), skip=None, active=None,
              toward=None, cells=None):
     """Shadow-ray test: mask of the rays o + t·d that hit any object (other than ``skip``)

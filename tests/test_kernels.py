@@ -781,3 +781,44 @@ def test13_camera_rays_find_their_bins_by_their_window_offsets(precision, monkey
     dr.eval(d)
     closest_hit(prepare(scenes[0], T), d, cam=make_camera(scenes[0], 40))
     assert given and all(v is d for v in given)
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test14_traced_without_value_numbering(precision, monkeypatch):
+    """rt_core's entry points (closest_hit, shade, render_image) trace with Dr.Jit's value
+    numbering off (backend.traced: its table, once grown by a large scene, slows every
+    later operation) and restore the caller's setting; the hits and the shaded image are bit
+    for bit those traced with it on (LLVM merges the same expressions either way)."""
+    from pathlib import Path
+    from rt_core import backend as backend_mod, shading
+    from rt_core.parser import parse_scene
+    from rt_core.render import camera_rays, render_image
+    seen = []
+    for mod in (tracer, shading):           # (each entry point widens its directions first)
+        monkeypatch.setattr(mod, "widened", lambda T, d, real=mod.widened: seen.append(
+            dr.flag(dr.JitFlag.ValueNumbering)) or real(T, d))
+    T = types(precision)
+    repo = Path(__file__).resolve().parents[1]
+    for name in ("mixed", "shade_mirrors"):
+        scene = parse_scene(repo / "scenes" / f"{name}.txt")
+        cam = make_camera(scene, 40)
+        out = {}
+        for vn in (True, False):
+            monkeypatch.setattr(backend_mod, "VALUE_NUMBERING", vn)
+            ks = prepare(scene, T)
+            d = camera_rays(ks, cam)
+            got = []
+            for call in (lambda: closest_hit(ks, d, cam=cam),
+                         lambda: (shading.shade(ks, d, cam=cam).rgb,),
+                         lambda: tuple(render_image(scene, cam, T, shade=True)[0].values())):
+                seen.clear()
+                assert dr.flag(dr.JitFlag.ValueNumbering)
+                res = call()
+                assert dr.flag(dr.JitFlag.ValueNumbering)       # the caller's, restored
+                assert seen and set(seen) == {vn}, (name, vn, seen)
+                got += [np.asarray(r.numpy() if isinstance(r, dr.ArrayBase) else r)
+                        for r in res]
+            out[vn] = got
+        for a, b in zip(out[True], out[False]):
+            assert np.array_equal(np.ascontiguousarray(a).view(np.uint8),
+                                  np.ascontiguousarray(b).view(np.uint8)), name
