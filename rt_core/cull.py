@@ -22,12 +22,24 @@ culled, the exact test decides as before.
 ``CONST_E``: the widening is a constant of each object instead of each ray's.  A ray whose
 origin has |o|∞ <= ``NEAR_ORIGIN``·S (every origin on a bounded object; the threshold rounded
 down) has e <= PAD·(NEAR_ORIGIN + 1)·S, so the radius r·(1 + 2⁻¹⁰) + PAD·(NEAR_ORIGIN + 1)·S
-is at least its own, and its square (rounded up, on the host) times a, one more rounding
-(u·rr²·a < u·|p|²·a on a culled ray), stays inside the slack; a ray from farther (a far point
-of an unbounded plane) gets |p|²·a's factor 0 and is never culled.  Per object that leaves
-one product of a per-ray number by a constant where the ray's radius took a sum and two
-products (shaded bench f32, same process, median of 9, images identical: spheres 16 0.98
-of the time, finite planes 16 1.00, mixed 16 1.01; the primary kernel of spheres 16 0.96).
+is at least its own (up to PAD·NEAR_ORIGIN·S larger: objects small against S are culled
+less), and its square is rounded up on the host.  The test is then fma(|p|², a·(1 − SLACK),
+−b²) > rr²·a; divided by a, its roundings come to about 17u·|p|² (|p|² 3u, a·(1 − SLACK)
+u, the fma u, b² 7u and a's 3u in it, the product rr²·a u, rr² itself u), and the centre's
+rounding to the kernel's precision (√3·u·S) is inside PAD·S: all far inside the slack
+(256u in float32; measured by a reviewer, 1.6 M grazing float32 rays: at least 248u
+left).  The fma also keeps |p|²·a from overflowing, which the per-ray form did for
+|d| ~ 10¹⁹.  The argument needs normal numbers: a ray is culled only where a lies in
+``A_RANGE`` (a float32 direction of |d| ~ 10⁻²³, a lane whose arithmetic kept subnormals,
+was culled wrongly by the per-ray form: tests/test_shade_speed.py test03d), and, like it,
+for a ray from farther than NEAR_ORIGIN·S (a far point of an unbounded plane) |p|²·a's
+factor is 0: never culled.  It also takes |p|²·a and rr²·a to be normal numbers, true but
+for scenes within ~2⁵⁰ of the precision's range; grazing rays in scenes of 10⁻²⁰ to 10¹⁶
+times a unit scene (float32; 10⁻¹⁶⁰ to 10¹⁴⁰ in float64), with directions of 10⁻²¹ to
+10¹⁹, found the same answers with the culls and without.  Per object that leaves one product of a per-ray number by a constant where the
+ray's radius took a sum and two products (shaded bench f32, same process, median of 9,
+images identical: spheres 16 0.98 of the time, finite planes 16 1.00, mixed 16 1.01; the
+primary kernel of spheres 16 0.96).
 """
 from __future__ import annotations
 
@@ -86,6 +98,10 @@ def bounding(ks) -> dict:
     return cache["cull"]
 
 
+# (CONST_E) the rays culled: a = |d|² in this range, so that it is a normal number
+A_RANGE = (2.0 ** -40, 2.0 ** 40)
+
+
 def near_origins(T, S: float) -> float:
     """NEAR_ORIGIN·S rounded down to T's precision: the largest |o|∞ of a culled ray."""
     return float(directed(np.array(NEAR_ORIGIN * S), T.precision, down=True))
@@ -106,9 +122,11 @@ class Rays:
         self.keep = dr.opaque(T.Float, 1 - SLACK)
         self.const = CONST_E
         if self.const:
-            # (a NaN |o|∞ compares false: 0, never culled)
-            self.ak = dr.select(m <= dr.opaque(T.Float, near_origins(T, S)),
-                                self.a * self.keep, 0)
+            # (a NaN |o|∞ or a compares false: 0, never culled)
+            ok = (m <= dr.opaque(T.Float, near_origins(T, S))) & \
+                (self.a >= dr.opaque(T.Float, A_RANGE[0])) & \
+                (self.a <= dr.opaque(T.Float, A_RANGE[1]))
+            self.ak = dr.select(ok, self.a * self.keep, 0)
         else:
             self.e = dr.opaque(T.Float, PAD[T.precision]) * (m + dr.opaque(T.Float, S))
 

@@ -303,6 +303,24 @@ def test03_cull_keeps_grazing_hits(precision, const, monkeypatch):
     assert cull_differences(precision, monkeypatch) == 0
 
 
+def test03d_cull_keeps_a_ray_of_subnormal_length():
+    """A reviewer's ray: from the viewpoint, |d|² subnormal in float32 (a ray of one lane,
+    whose arithmetic keeps subnormals), aimed at a sphere.  The culls leave rays with |d|²
+    outside cull.A_RANGE alone: it hits as without them (the per-ray form lost it)."""
+    grey = Material((1, 1, 1), (2, 2, 2), (0, 0, 0))
+    scene = Scene((8.0, 6.0), (0.0, 0.0, 4.0), (), (make_sphere(grey, (0.3, 0.5, -9), 0.5),
+                                                   make_sphere(grey, (3, 3, -9), 0.5)), "<x>")
+    T = backend.types("f32")
+    got = []
+    for on in (False, True):
+        ks = cull.configure(prepare(scene, T), on)
+        O = T.Array3(*[T.Float([0.0])] * 3)
+        D = T.Array3(*[T.Float([x]) for x in (3e-24, 5.49e-24, -9e-23)])
+        t, oid, _ = closest_hit(ks, D, O, Rules(), T.Int32([1]))
+        got.append((float(t.numpy()[0]), int(oid.numpy()[0])))
+    assert got[0][1] == 0 and got[1] == got[0]
+
+
 @pytest.mark.parametrize("const", [True, False])
 def test04_without_the_widening_grazing_hits_are_lost(const, monkeypatch):
     monkeypatch.setattr(cull, "CONST_E", const)
