@@ -2,6 +2,7 @@
 and that refuses, with a clear message, an LLVM too old to run Dr.Jit's kernels."""
 from __future__ import annotations
 
+import functools
 import os
 from dataclasses import dataclass
 from types import ModuleType
@@ -97,11 +98,9 @@ VALUE_NUMBERING = False
 
 def traced(fn):
     """``fn`` traced in rt_core's Dr.Jit state (value numbering: ``VALUE_NUMBERING``)."""
-    import functools
-
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
-        import drjit as dr
+        import drjit as dr                  # (this module imports without Dr.Jit)
         with dr.scoped_set_flag(dr.JitFlag.ValueNumbering, VALUE_NUMBERING):
             return fn(*args, **kwargs)
     return wrapper

@@ -19,27 +19,27 @@ p = C − o, b = p·d, a = |d|²: the least distance² of the points o + t·d, t
 8u·|p|²·a, and the test allows 2⁻¹⁶·|p|²·a.  A NaN anywhere fails the comparison: not
 culled, the exact test decides as before.
 
-``CONST_E``: the widening is a constant of each object instead of each ray's.  A ray whose
-origin has |o|∞ <= ``NEAR_ORIGIN``·S (every origin on a bounded object; the threshold rounded
-down) has e <= PAD·(NEAR_ORIGIN + 1)·S, so the radius r·(1 + 2⁻¹⁰) + PAD·(NEAR_ORIGIN + 1)·S
-is at least its own (up to PAD·NEAR_ORIGIN·S larger: objects small against S are culled
-less), and its square is rounded up on the host.  The test is then fma(|p|², a·(1 − SLACK),
-−b²) > rr²·a; divided by a, its roundings come to about 17u·|p|² (|p|² 3u, a·(1 − SLACK)
-u, the fma u, b² 7u and a's 3u in it, the product rr²·a u, rr² itself u), and the centre's
-rounding to the kernel's precision (√3·u·S) is inside PAD·S: all far inside the slack
-(256u in float32; measured by a reviewer, 1.6 M grazing float32 rays: at least 248u
-left).  The fma also keeps |p|²·a from overflowing, which the per-ray form did for
-|d| ~ 10¹⁹.  The argument needs normal numbers: a ray is culled only where a lies in
-``A_RANGE`` (a float32 direction of |d| ~ 10⁻²³, a lane whose arithmetic kept subnormals,
-was culled wrongly by the per-ray form: tests/test_shade_speed.py test03d), and, like it,
-for a ray from farther than NEAR_ORIGIN·S (a far point of an unbounded plane) |p|²·a's
-factor is 0: never culled.  It also takes |p|²·a and rr²·a to be normal numbers, true but
-for scenes within ~2⁵⁰ of the precision's range; grazing rays in scenes of 10⁻²⁰ to 10¹⁶
-times a unit scene (float32; 10⁻¹⁶⁰ to 10¹⁴⁰ in float64), with directions of 10⁻²¹ to
-10¹⁹, found the same answers with the culls and without.  Per object that leaves one product of a per-ray number by a constant where the
-ray's radius took a sum and two products (shaded bench f32, same process, median of 9,
-images identical: spheres 16 0.98 of the time, finite planes 16 1.00, mixed 16 1.01; the
-primary kernel of spheres 16 0.96).
+``CONST_E``: the widening is a constant of each object instead of each ray's. A ray whose
+origin has |o|∞ <= ``NEAR_ORIGIN``·S (every origin on a bounded object; the threshold
+rounded down) has e <= PAD·(NEAR_ORIGIN + 1)·S, so the radius r·(1 + 2⁻¹⁰) +
+PAD·(NEAR_ORIGIN + 1)·S is at least its own (up to PAD·NEAR_ORIGIN·S larger: objects small
+against S are culled less), and its square is rounded up on the host. The test is then
+fma(|p|², a·(1 − SLACK), −b²) > rr²·a; divided by a, its roundings come to about 17u·|p|²
+(|p|² 3u, a·(1 − SLACK) u, the fma u, b² 7u and a's 3u in it, the product rr²·a u, rr²
+itself u), and the centre's rounding to the kernel's precision (√3·u·S) is inside PAD·S:
+all far inside the slack (256u in float32; measured by a reviewer, 1.6 M grazing float32
+rays: at least 248u left). The fma also keeps |p|²·a from overflowing, which the per-ray
+form did for |d| ~ 10¹⁹. The argument needs normal numbers: a ray is culled only where a
+lies in ``A_RANGE`` (a float32 direction of |d| ~ 10⁻²³, a lane whose arithmetic kept
+subnormals, was culled wrongly by the per-ray form: tests/test_shade_speed.py test03d),
+and, like it, for a ray from farther than NEAR_ORIGIN·S (a far point of an unbounded plane)
+|p|²·a's factor is 0: never culled. It also takes |p|²·a and rr²·a to be normal numbers,
+true but for scenes within ~2⁵⁰ of the precision's range; grazing rays in scenes of 10⁻²⁰
+to 10¹⁶ times a unit scene (float32; 10⁻¹⁶⁰ to 10¹⁴⁰ in float64), with directions of 10⁻²¹
+to 10¹⁹, found the same answers with the culls and without. Per object that leaves one
+product of a per-ray number by a constant where the ray's radius took a sum and two
+products (shaded bench f32, same process, median of 9, images identical: spheres 16 0.98 of
+the time, finite planes 16 1.00, mixed 16 1.01; the primary kernel of spheres 16 0.96).
 """
 from __future__ import annotations
 

@@ -390,8 +390,9 @@ def occluded_kind(ks, kind: str, d, o, maxt, rules, skip, blocked, center, rows=
 
 def within_reach(ks, center, dmax: float) -> bool:
     """Does every point of every object lie within dmax of the light at ``center`` (a scene
-    of bounded objects only, whose boxes' farthest corners, with room for the shading's
-    rounding of |C − H|, are that near)?"""
+    of bounded objects only, whose boxes' farthest corners are that near, with room for
+    the roundings of H, C and |C − H| in the shading: 2⁻¹⁰ of that distance and of the
+    largest coordinate of C and the boxes, relative to the viewpoint, as H and C are)?"""
     from .accel import BOUNDED
     cache = ks.__dict__.setdefault("_accel", {}).setdefault("reach", {})
     key = tuple(float(c) for c in center)
@@ -399,10 +400,15 @@ def within_reach(ks, center, dmax: float) -> bool:
         far = np.inf
         if all(k in BOUNDED for k in ks.kinds):
             C = np.array(center, np.float64)
-            far = 0.0
+            far, scale = 0.0, float(np.abs(C).max())
             for k in ks.kinds:
                 lo, hi = object_boxes(k, ks.by_kind[k])
                 corner = np.maximum(np.abs(lo - C), np.abs(hi - C))
-                far = max(far, float(np.sqrt((corner ** 2).sum(1)).max()))
-        cache[key] = far * (1 + 2.0 ** -10)
+                # (np.max keeps a NaN, Python's max would drop it)
+                far = np.max([far, np.sqrt((corner ** 2).sum(1)).max()])
+                scale = np.max([scale, np.abs(lo).max(), np.abs(hi).max()])
+            far = float(far + 2.0 ** -10 * (far + scale))
+            if not np.isfinite(far):            # (a NaN box: never within reach)
+                far = np.inf
+        cache[key] = far
     return cache[key] <= dmax

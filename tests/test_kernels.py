@@ -788,7 +788,8 @@ def test14_traced_without_value_numbering(precision, monkeypatch):
     """rt_core's entry points (closest_hit, shade, render_image) trace with Dr.Jit's value
     numbering off (backend.traced: its table, once grown by a large scene, slows every
     later operation) and restore the caller's setting; the hits and the shaded image are bit
-    for bit those traced with it on (LLVM merges the same expressions either way)."""
+    for bit those traced with it on (LLVM merges the same expressions either way); and
+    every entry point (occluded, render's others) is wrapped so."""
     from pathlib import Path
     from rt_core import backend as backend_mod, shading
     from rt_core.parser import parse_scene
@@ -822,3 +823,8 @@ def test14_traced_without_value_numbering(precision, monkeypatch):
         for a, b in zip(out[True], out[False]):
             assert np.array_equal(np.ascontiguousarray(a).view(np.uint8),
                                   np.ascontiguousarray(b).view(np.uint8)), name
+    # every entry point is wrapped, also those only reached through another here
+    from rt_core import render
+    for fn in (closest_hit, occluded, shading.shade, camera_rays, render.trace_geometry,
+               render_image, render.render_tiled):
+        assert fn.__code__ is backend_mod.traced(len).__code__, fn.__name__
