@@ -60,10 +60,14 @@ def one_bounce(scene, precision, fused: bool, monkeypatch, columns=48):
 
 
 @pytest.mark.parametrize("precision", PRECISIONS)
-@pytest.mark.parametrize("slots_in_if", [True, False])
-def test01_one_bounce_in_one_kernel_is_the_wavefront(precision, slots_in_if, monkeypatch):
-    """(The reflection hits' slots taken in a symbolic if, shading.SLOTS_IN_IF, or not.)"""
+@pytest.mark.parametrize("slots_in_if, sums_in_slots", [(True, True), (False, False)])
+def test01_one_bounce_in_one_kernel_is_the_wavefront(precision, slots_in_if, sums_in_slots,
+                                                      monkeypatch):
+    """(The reflection hits' slots taken in a symbolic if, shading.SLOTS_IN_IF, or not;
+    their pixels' values so far in the slots, shading.SUMS_IN_SLOTS, or read from the
+    image.)"""
     monkeypatch.setattr(shading, "SLOTS_IN_IF", slots_in_if)
+    monkeypatch.setattr(shading, "SUMS_IN_SLOTS", sums_in_slots)
     scenes = [parse_scene(REPO / "scenes" / f"{n}.txt")
               for n in ("mixed", "shade_mirrors", "shade_tiles")] + [mirrors()]
     capped = 0
@@ -103,12 +107,16 @@ def test01b_one_bounce_through_the_reflection_bins_is_the_wavefront(precision, m
         assert np.array_equal(bits(images[False]), bits(images[True])), kind
 
 
-def test02_one_bounce_shades_reflection_hits_densely(monkeypatch):
+@pytest.mark.parametrize("sums_in_slots", [True, False])
+def test02_one_bounce_shades_reflection_hits_densely(sums_in_slots, monkeypatch):
     """The fused bounce is two JIT kernels: the primary rays with their reflection rays'
     closest hits, then the shading of the reflection rays that hit, one lane each (the
-    wavefront: two kernels over every reflection ray, and a compaction); then a third, as
-    narrow, writes the sums to their pixels.  The image is never copied (a scatter into an
-    array its own kernel gathers from would copy it whole: shading._scatter_sums)."""
+    wavefront: two kernels over every reflection ray, and a compaction), which writes the
+    sums to their pixels, their values so far read from the slots (shading.SUMS_IN_SLOTS;
+    without, a third kernel, as narrow, writes the sums).  The image is never copied (a
+    scatter into an array its own kernel gathers from would copy it whole:
+    shading._scatter_sums)."""
+    monkeypatch.setattr(shading, "SUMS_IN_SLOTS", sums_in_slots)
     scene = mirrors()
     T = backend.types("f32")
     cam = make_camera(scene, 32)
@@ -141,7 +149,7 @@ def test02_one_bounce_shades_reflection_hits_densely(monkeypatch):
     hits = int(np.count_nonzero(closest_hit(ks, R, dd * tt, Rules(),
                                             dr.gather(T.Int32, oid, k))[2].numpy()))
     assert 0 < hits < len(idx) < cam.columns * cam.rows
-    assert sizes[True] == [cam.columns * cam.rows, hits, hits]
+    assert sizes[True] == [cam.columns * cam.rows, hits] + ([] if sums_in_slots else [hits])
     assert sizes[False][0] == cam.columns * cam.rows and sizes[False][-1] == len(idx)
 
 
