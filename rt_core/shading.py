@@ -480,10 +480,11 @@ def _one_bounce(T, d, image, segment, out: ShadeResult, log, trace) -> ShadeResu
     The first kernel is the primary rays' bounce with the reflection rays' closest hits
     traced in place, in a symbolic ``dr.if_stmt`` on the lanes that reflect (a packet none
     of whose lanes reflects skips it), instead of as a compacted wavefront.  Each reflection
-    ray that hits takes a slot (an atomic counter) and writes there its pixel and what its
-    hit's shading needs, and its pixel's value so far; the second kernel shades those hits
-    only (shadow rays, material, the sum written into the pixel), densely: shaded in place, they ran at the lanes' hit rate
-    (a third of the lanes at 256 spheres), at the cost of whole packets.  Each pixel's
+    ray that hits takes a slot (an atomic counter) and writes there its pixel, what its
+    hit's shading needs and its pixel's value so far; the second kernel shades those hits
+    only (shadow rays, material, the sum written into the pixel), densely: shaded in place,
+    they ran at the lanes' hit rate (a third of the lanes at 256 spheres), at the cost of
+    whole packets.  Each pixel's
     arithmetic is the wavefront's, so the image is the same, bit for bit, whatever the
     slots' order."""
     n = dr.width(d)
