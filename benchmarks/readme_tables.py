@@ -77,10 +77,6 @@ def _f64_over_f32(c):
     return a["median_ms"] / b["median_ms"] if a and b else None
 
 
-def _f64_over_f32_camera(c):
-    return c.get("f64_vs_f32_camera")
-
-
 def primary_tables(runs) -> str:
     cases, counts, scenes = _layout(runs)
     exact = ("f64 exact / plain (" + "; ".join(scenes) + ")",
@@ -92,8 +88,9 @@ def primary_tables(runs) -> str:
                                 for s in scenes] for n in counts])
     camera = _table(["objects", "f64 / f32 speed, camera rays: " + NAMES[scenes[0]]] +
                     [NAMES[s] for s in scenes[1:]],
-                    [[str(n)] + [_cell([_f64_over_f32_camera(c) for c in cases.get((s, n), [])],
-                                       unit="") for s in scenes] for n in counts])
+                    [[str(n)] + [_cell([c.get("f64_vs_f32_camera")
+                                        for c in cases.get((s, n), [])], unit="")
+                                 for s in scenes] for n in counts])
     return "\n".join(ratio_table(runs, exact) + [""] + speed + [""] + camera)
 
 

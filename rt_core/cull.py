@@ -107,6 +107,20 @@ def near_origins(T, S: float) -> float:
     return float(directed(np.array(NEAR_ORIGIN * S), T.precision, down=True))
 
 
+def _radius2(ks, oid: int) -> float:
+    """(CONST_E) the square of object ``oid``'s widened radius r·(1 + GROW) + PAD·(NEAR_ORIGIN
+    + 1)·S, rounded up: its float64 product's rounding, then the kernel's precision (host,
+    once per KernelScene and object)."""
+    from .bvh import PAD
+    cache = ks.__dict__.setdefault("_accel", {}).setdefault("cull_rr2", {})
+    if oid not in cache:
+        T, S = ks.T, bounding(ks)[None]
+        rr = bounding(ks)[oid][1] * (1 + GROW) + PAD[T.precision] * (NEAR_ORIGIN + 1) * S
+        cache[oid] = float(directed(np.array(rr * rr * (1 + 2.0 ** -40)), T.precision,
+                                    down=False))
+    return cache[oid]
+
+
 class Rays:
     """Per-ray numbers of the test, computed once for all objects: a = |d|² and the
     widening e = PAD·(|o|∞ + S); with ``CONST_E``, a·(1 − SLACK) where |o|∞ <= NEAR_ORIGIN·S
@@ -141,11 +155,7 @@ def may_hit(ks, rays: Rays, oid: int):
     centre, radius = entry
     p = opaque3(T.Array3, centre) - rays.o
     if rays.const:
-        from .bvh import PAD
-        S = bounding(ks)[None]
-        rr = radius * (1 + GROW) + PAD[T.precision] * (NEAR_ORIGIN + 1) * S
-        # (rr², rounded up: its float64 product's rounding, then the kernel's precision)
-        rr2 = float(directed(np.array(rr * rr * (1 + 2.0 ** -40)), T.precision, down=False))
+        rr2 = _radius2(ks, oid)
         b = dr.dot(p, rays.d)
         b = dr.select(b < 0, 0, b)          # max(b, 0), a NaN kept
         far = dr.fma(dr.squared_norm(p), rays.ak, -b * b) > dr.opaque(T.Float, rr2) * rays.a

@@ -376,14 +376,15 @@ def occluded_kind(ks, kind: str, d, o, maxt, rules, skip, blocked, center, rows=
                             labels=("i", "blocked"), label=f"lightbins_{kind}")
     # the long rays (rare: from far points of unbounded planes) through the BVH, in a
     # symbolic if: a packet without one skips the walk's set-up too (three divisions a ray)
-    def walk(blk):
-        return (bvh.occluded_kind(ks, kind, d, o, maxt, rules, skip, blk | ~far),)
-
     if NO_FAR and within_reach(ks, center, lb.dmax):
         # no shading point is that far from the light: ``far`` only where maxt is NaN (no
         # hit point), which the walk finds unblocked too (t < NaN fails), as the loop left
         # them (their cells list no rows)
         return near
+
+    def walk(blk):
+        return (bvh.occluded_kind(ks, kind, d, o, maxt, rules, skip, blk | ~far),)
+
     walked = dr.if_stmt((blocked,), far, walk, lambda blk: (blk,),
                         label=f"lightbins_{kind}_far")[0]
     return dr.select(far, walked, near)

@@ -484,9 +484,8 @@ def _one_bounce(T, d, image, segment, out: ShadeResult, log, trace) -> ShadeResu
     hit's shading needs and its pixel's value so far; the second kernel shades those hits
     only (shadow rays, material, the sum written into the pixel), densely: shaded in place,
     they ran at the lanes' hit rate (a third of the lanes at 256 spheres), at the cost of
-    whole packets.  Each pixel's
-    arithmetic is the wavefront's, so the image is the same, bit for bit, whatever the
-    slots' order."""
+    whole packets.  Each pixel's arithmetic is the wavefront's, so the image is the same,
+    bit for bit, whatever the slots' order."""
     n = dr.width(d)
     U, F, I, A3 = T.UInt32, T.Float, T.Int32, T.Array3
     s0 = segment(d, None, None, None, None, None, 0, None)

@@ -234,15 +234,19 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, c
     single_kind = len(ks.kinds) == 1
     near = cone_a = offsets = None
     gos = {}
+
+    def culled(obj, near):
+        # (rays with an origin) the lanes that test ``obj``: not leaving it, and not
+        # certainly missing its bounding sphere (rt_core/cull.py)
+        go = dr.opaque(T.Int32, obj.id) != skip
+        reach = cull.may_hit(ks, near, obj.id)
+        return go if reach is None else go & reach
     if skip is not None and PRE_CULL:
         # rays with an origin: every unrolled object's cull before the first object's test
         near = cull.Rays(ks, d if along is None else along, o)
-        for kind in ks.kinds:
-            if not accel.looped(ks, kind, o is not None, camera=o is None):
-                for obj in ks.by_kind[kind]:
-                    go = dr.opaque(T.Int32, obj.id) != skip
-                    reach = cull.may_hit(ks, near, obj.id)
-                    gos[obj.id] = go if reach is None else go & reach
+        gos = {obj.id: culled(obj, near) for kind in ks.kinds
+               if not accel.looped(ks, kind, o is not None, camera=o is None)
+               for obj in ks.by_kind[kind]}
     for kind in ks.kinds:
         # many objects: one loop, constants as data
         if accel.looped(ks, kind, o is not None, camera=o is None):
@@ -263,15 +267,10 @@ def closest_hit(ks: KernelScene, d, o=None, rules: Rules = Rules(), skip=None, c
                     s = st.set(state)
                     s.fold(t, hit, oid, rules, single_kind)
                     return s.state()
-                go = gos.get(obj.id)
-                if go is None:
-                    if near is None:
-                        near = cull.Rays(ks, d, o)
-                    go = oid != skip
-                    reach = cull.may_hit(ks, near, obj.id)
-                    if reach is not None:
-                        go &= reach
-                st.set(dr.if_stmt(st.state(), go, test, lambda *s: s,
+                if obj.id not in gos:
+                    near = near or cull.Rays(ks, d, o)
+                    gos[obj.id] = culled(obj, near)
+                st.set(dr.if_stmt(st.state(), gos[obj.id], test, lambda *s: s,
                                   label="closest_object"))
                 continue
             def test(*state, obj=obj, oid=oid, live=None):
@@ -653,11 +652,12 @@ def position(ks: KernelScene, d, t, hit, o=None):
 
 def shadow_cells(ks: KernelScene, o, maxt, skip, toward, active=None) -> dict:
     """{kind: its light-bin rows} of the shadow rays from ``o`` toward the light ``toward``
-    (as ``occluded`` would look them up: its ``cells``), read on the ``active`` lanes.  The shading makes every light's
-    before the first light's search: each lookup waits for its division and gather, and
-    made between the loops each would wait for the loop before it too (shaded bench, f32,
-    same process, median of 9, images identical, three measurements: finite planes 16
-    0.92 of the time, mixed 16 0.88-0.89, spheres 16 0.96-0.99, spheres 256 0.94-0.97)."""
+    (as ``occluded`` would look them up: its ``cells``), read on the ``active`` lanes.  The
+    shading makes every light's before the first light's search: each lookup waits for its
+    division and gather, and made between the loops each would wait for the loop before it
+    too (shaded bench, f32, same process, median of 9, images identical, three
+    measurements: finite planes 16 0.92 of the time, mixed 16 0.88-0.89, spheres 16
+    0.96-0.99, spheres 256 0.94-0.97)."""
     from . import lightbins
     return {kind: lightbins.cells(ks, kind, o, maxt, skip, toward, active)
             for kind in ks.kinds if accel.light_binned(ks, kind, o)}
