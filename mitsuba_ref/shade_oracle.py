@@ -309,7 +309,7 @@ def ray_trace(scene, base, d, total_dist, skip, rules: Rules, max_dist: float, p
 
 def other_sides(scene, columns: int, rows: int, pixel: int, sampling: str = "corners",
                 rules: Rules = Rules(), max_dist: float = 1000.0, runs: int = 32,
-                bounces: int = 64, first=None, limit: float | None = None):
+                bounces: int = 64, first=None, limit: float | None = None, targets=None):
     """The 8-bit colours of one pixel (index in image order, row 0 the top) that its
     decisions within their float64 bound can give, taken either way in every combination
     (``_Alt``): a float64 tracer may take any of them.  None where they cannot all be
@@ -320,7 +320,11 @@ def other_sides(scene, columns: int, rows: int, pixel: int, sampling: str = "cor
     colour is the caller's answer.  ``first``: the unflipped path from ``shade_pixels``
     (its 'paths' entry, recorded at this ``limit``), not traced again.  ``limit``: a
     decision is near below this margin (default float64's, ``_Alt.LIMIT``; a wider one asks
-    what a tracer computing in lower precision may take either way)."""
+    what a tracer computing in lower precision may take either way).  ``targets``: colours
+    the caller asks about; True as soon as every one of them is among the colours found
+    (they are then among the whole set's: the answer the set would give), else as
+    without."""
+    want = _wanted(targets)
     colours, todo, done = set(), [frozenset()], set()
     while todo:
         flips = todo.pop()
@@ -341,8 +345,15 @@ def other_sides(scene, columns: int, rows: int, pixel: int, sampling: str = "cor
         if bounces < 0 or len(flips) + len(new) > 8:
             return None                 # (2^8 paths: more than ``runs`` anyway)
         colours.add(colour)
+        if want is not None and want <= colours:
+            return True
         todo.extend(flips | {k} for k in new)
     return colours
+
+
+def _wanted(targets):
+    """The set of colours (int tuples) of ``targets``, or None."""
+    return None if targets is None else {tuple(int(c) for c in t) for t in targets}
 
 
 def reaches(scene, columns: int, rows: int, pixel: int, targets, sampling: str = "corners",
@@ -408,7 +419,8 @@ def _path(scene, columns: int, rows: int, pixel: int, sampling: str, rules: Rule
 
 def other_sides_of(scene, columns: int, rows: int, pixels, sampling: str = "corners",
                    rules: Rules = Rules(), max_dist: float = 1000.0, runs: int = 32,
-                   bounces: int = 64, firsts=None, limit: float | None = None) -> list:
+                   bounces: int = 64, firsts=None, limit: float | None = None,
+                   targets=None) -> list:
     """``other_sides`` of each of ``pixels`` (``firsts``: their unflipped paths or None), the
     same answers.  Where shade_batch covers the scene, the pixels' paths are traced
     together, a round at a time: each round, every pixel's paths not traced yet (its near
@@ -417,13 +429,16 @@ def other_sides_of(scene, columns: int, rows: int, pixels, sampling: str = "corn
     can have dozens of paths.  A pixel's answer depends only on the set of its paths, which
     every order reaches whole: the colours, or None where one path raises, there are more
     than ``runs``, their bounces exceed ``bounces`` or one has more than 8 near
-    decisions."""
+    decisions.  ``targets``: each pixel's colours asked about (other_sides' ``targets``):
+    a pixel whose colours found so far hold all of its own is True and traces no more."""
     from mitsuba_ref import shade_batch
     pixels = [int(p) for p in pixels]
     firsts = list(firsts) if firsts is not None else [None] * len(pixels)
+    targets = list(targets) if targets is not None else [None] * len(pixels)
     if not shade_batch.supported(scene):
         return [other_sides(scene, columns, rows, p, sampling, rules, max_dist, runs, bounces,
-                            f, limit) for p, f in zip(pixels, firsts)]
+                            f, limit, t) for p, f, t in zip(pixels, firsts, targets)]
+    want = [_wanted(t) for t in targets]
     todo = [[frozenset()] for _ in pixels]
     done = [set() for _ in pixels]
     left = [bounces] * len(pixels)
@@ -459,6 +474,9 @@ def other_sides_of(scene, columns: int, rows: int, pixels, sampling: str = "corn
                 answer[k] = None
                 continue
             colours[k].add(colour)
+            if want[k] is not None and want[k] <= colours[k]:
+                answer[k] = True
+                continue
             todo[k] += [flips | {key} for key in new]
 
 

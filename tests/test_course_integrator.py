@@ -619,6 +619,12 @@ def test22_a_boundary_pixel_has_mitsubas_colour_on_a_side(monkeypatch):
     from tools.harness.shaded import classify_shaded
     oracle = classify_shaded(sc, broken.ours, broken.theirs, "corners", broken.rules,
                              broken.max_dist)
+    # each pixel's combinations enumerated whole (no early out): the same classes
+    import tools.harness.shaded as sh
+    monkeypatch.setattr(sh, "EARLY_OUT", False)
+    whole = classify_shaded(sc, broken.ours, broken.theirs, "corners", broken.rules,
+                            broken.max_dist)
+    assert (whole == oracle).all() and (oracle == SHADED_CODE["boundary"]).sum() > 50
     # boundary only where the unbroken comparison has it, or where rounding excuses the
     # pixel too (each differing channel one level off and near its level: not asked), or
     # where the path meets a plane beyond its stand-in square (the reach: structural)

@@ -294,6 +294,49 @@ def test12_other_sides_of(limit, rules, monkeypatch):
     assert answers == {"none", "several", "one"} and few > 0
 
 
+@pytest.mark.parametrize("limit", [None, F32_LIMIT], ids=["f64", "f32"])
+def test12b_other_sides_of_with_targets(limit, monkeypatch):
+    """With ``targets`` (the colours classify_shaded asks about), a pixel whose colours found
+    so far hold all of them is True and traces no more paths; otherwise the answer is the
+    one without (the colour set, or None).  True only where the whole set holds them, or
+    where it cannot be enumerated (None) and ``reaches`` finds them; the per-pixel
+    other_sides the same; fewer paths traced in all."""
+    lanes = []
+    paths = shade_oracle._paths
+    monkeypatch.setattr(shade_oracle, "_paths",
+                        lambda *a: lanes.append(len(a[7])) or paths(*a))
+    kinds, traced = set(), {}
+    for scene in SCENES[::2]:
+        W = 12
+        H = scene.default_rows(W)
+        pick, _ = _near_pixels(scene, W, H, Rules(), limit)
+        if not pick:
+            continue
+        lanes.clear()
+        full = shade_oracle.other_sides_of(scene, W, H, pick, limit=limit)
+        traced["full"] = traced.get("full", 0) + sum(lanes)
+        own = [shade_oracle._path(scene, W, H, p, "corners", Rules(), 1000.0, frozenset(),
+                                  limit)[0] for p in pick]
+        # both sides' colours where a pixel has two, else its own and one no side gives
+        aims = [(o, next(iter(a - {o}))) if a and len(a) > 1 else (o, (1, 2, 3))
+                for o, a in zip(own, full)]
+        lanes.clear()
+        got = shade_oracle.other_sides_of(scene, W, H, pick, limit=limit, targets=aims)
+        traced["aimed"] = traced.get("aimed", 0) + sum(lanes)
+        for p, a, t, g in zip(pick, full, aims, got):
+            if g is True:
+                assert a is None or set(t) <= a, (scene.path, p, t, a)
+                if a is None:
+                    assert shade_oracle.reaches(scene, W, H, p, t, limit=limit) is True
+            else:
+                assert g == a and (a is None or not set(t) <= a), (scene.path, p, t, a, g)
+            assert g == shade_oracle.other_sides(scene, W, H, p, limit=limit, targets=t), \
+                (scene.path, p)
+            kinds.add("found" if g is True else "none" if g is None else "set")
+    assert kinds == {"found", "none", "set"}, kinds
+    assert traced["aimed"] < traced["full"], traced
+
+
 def test13_other_sides_of_limits():
     """other_sides' limits, at their edges: as many paths as ``runs`` and no more, as many
     bounces as ``bounces``: other_sides_of answers as other_sides does at each."""

@@ -60,6 +60,9 @@ SHADED_MODES = ("shaded", ORACLE_MODE)
 # in its note)
 SHADED_KINDS = ("sphere", "plane", "fplane", "tplane", "cylinder", "triangle", "disk")
 SHADED_CODE = {c: i for i, c in enumerate(SHADED_CLASSES)}
+# other_sides_of stops a pixel's combinations once the colours asked about are found
+# (False: every combination enumerated, as before; the same classes either way)
+EARLY_OUT = True
 # named colours of the classes image (evidence, HTML report): those of rtval check's classes
 SHADED_COLOURS = {c: rgb for c, (_, rgb) in CHECK_COLORS.items() if c in SHADED_CLASSES}
 SHADED_COLOUR_NAMES = {c: name for c, (name, _) in CHECK_COLORS.items() if c in SHADED_CLASSES}
@@ -161,8 +164,6 @@ def classify_shaded(scene: Scene, ours: np.ndarray, theirs: np.ndarray, sampling
     if len(asked):
         want = theirs.reshape(-1, 3)[pix[asked]].tolist()
         own = ours.reshape(-1, 3)[pix[asked]].tolist()
-        sides = other_sides_of(scene, W, H, pix[asked], sampling, rules, max_dist,
-                               firsts=[orc["paths"][i] for i in asked], limit=near)
         # each pixel's two colours must both be ones its decisions give: Mitsuba's, and
         # rt_core's too (it is the unflipped path's only where rt_core is right: a review's
         # mutations of rt_core's shading, 1 to 250 levels off, passed as boundary); where the
@@ -170,10 +171,17 @@ def classify_shaded(scene: Scene, ours: np.ndarray, theirs: np.ndarray, sampling
         # paths; not found, or not within them: not excused).  A path beyond the stand-in
         # square excuses Mitsuba's colour (its scene cannot see there), not rt_core's: the
         # oracle traces the plane itself
+        aims = [(o,) if far else (w, o) for w, o, far in zip(want, own, beyond[asked])]
+        # (a pixel stops once both are found: the rest of its combinations would not change
+        # the answer)
+        sides = other_sides_of(scene, W, H, pix[asked], sampling, rules, max_dist,
+                               firsts=[orc["paths"][i] for i in asked], limit=near,
+                               targets=aims if EARLY_OUT else None)
         gives = []
-        for i, w, o, s, far in zip(asked, want, own, sides, beyond[asked]):
-            targets = (o,) if far else (w, o)
-            if s is None:
+        for i, targets, s in zip(asked, aims, sides):
+            if s is True:
+                gives.append(True)
+            elif s is None:
                 gives.append(reaches(scene, W, H, int(pix[i]), targets, sampling, rules,
                                      max_dist, first=orc["paths"][i], limit=near) is True)
             else:
