@@ -237,6 +237,28 @@ def test08b_readme_tables_refuse_what_is_not_a_run(tmp_path):
         assert len(lines) == 1 and str(bad) in lines[0] and "Traceback" not in r.stderr
 
 
+def test08c_validate_split_clocks_each_function(tmp_path):
+    """benchmarks/validate_split.py: a validate of one scene (rays and shaded, float32) in
+    its process, each clocked function once with its phase: the geometry trace, Mitsuba's
+    rays, the classifier, the shaded render and Mitsuba's course image."""
+    r = subprocess.run([sys.executable, "benchmarks/validate_split.py", "scenes/mixed.txt",
+                        "--precision", "f32", "--mode", "rays", "--shaded-columns", "16",
+                        "--exact-columns", "0", "--oracle-columns", "0", "-o", str(tmp_path)],
+                       cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    rows = {ln.split()[1]: ln.split() for ln in r.stdout.splitlines()
+            if ln.split()[:1] in (["rt_core"], ["mitsuba"], ["classify"], ["oracles"])}
+    want = {"rt_core.render.trace_geometry": "rt_core", "rt_core.render.render_image": "rt_core",
+            "mitsuba_ref.reference.trace_rays": "mitsuba",
+            "tools.harness.shaded.mitsuba_course_image": "mitsuba",
+            "mitsuba_ref.explain.classify": "classify",
+            "tools.harness.shaded.classify_shaded": "classify"}
+    for name, phase in want.items():
+        assert name in rows and rows[name][0] == phase and rows[name][3] == "1", \
+            (name, rows.get(name), r.stdout[-2000:])
+    assert (tmp_path / "report.json").exists()
+
+
 def test09_the_scene_helpers_keep_the_benchmarks_variant(monkeypatch):
     """(Without a GPU: scalar_rgb stands in for cuda_ad_rgb) once a benchmark has set its
     backend's variant, building the scene (convert.scene_dict) keeps it: a CUDA benchmark's
