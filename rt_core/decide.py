@@ -27,6 +27,7 @@ import decimal
 import functools
 import math
 from fractions import Fraction
+from types import SimpleNamespace
 
 import numpy as np
 from gmpy2 import mpq as Q
@@ -267,6 +268,18 @@ class _Screen:
         self.fy = np.array([getattr(o, "fy", z3) for o in objs], np.float64).reshape(n, 3)
         self.np, self.ny = col("np"), col("ny")
         self.fw2, self.fh2 = col("fw2"), col("fh2")
+        # each test on its own kind's columns only (a sphere's on spheres, a plane's on the
+        # plane kinds, the edges on finite planes): a flagged ray of 4,096 spheres took
+        # 0.46 ms, mostly the planes' arrays
+        self.spheres = self._rows(np.flatnonzero(self.sphere & ~self.quadric))
+        self.planes = self._rows(np.flatnonzero(~self.sphere & ~self.quadric))
+        at = np.flatnonzero(self.fplane[self.planes.idx])
+        self.fplanes = self._rows(self.planes.idx[at])
+        self.fplanes.at = at                    # (their columns among the planes')
+
+    def _rows(self, idx):
+        names = ("fQ", "nQ", "fcc", "fN", "fNQ", "nN", "fp", "fy", "np", "ny", "fw2", "fh2")
+        return SimpleNamespace(idx=idx, **{k: getattr(self, k)[idx] for k in names})
 
 
 def surely_missed(objs, fE: np.ndarray) -> np.ndarray:
@@ -281,28 +294,38 @@ def surely_missed(objs, fE: np.ndarray) -> np.ndarray:
     fE = np.asarray(fE, np.float64).reshape(-1, 3)
     nE = np.sqrt((fE * fE).sum(1))[:, None]
     fEE = nE * nE
+    out = np.zeros((len(fE), len(S.sphere)), bool)      # (quadrics: never screened)
     with np.errstate(all="ignore"):
-        # spheres: centre behind the viewpoint, or the discriminant far below 0
-        b = fE @ S.fQ.T
-        D = b * b - fEE * S.fcc
-        sph = (b < -SCREEN * S.nQ * nE) | (D < -SCREEN * (b * b + fEE * np.abs(S.fcc) + 1e-300))
-        # plane kinds: behind the viewpoint (nearly parallel: left to the exact test)
-        nd = fE @ S.fN.T
-        scale = np.abs(fE) @ np.abs(S.fN).T
-        open_ = np.abs(nd) > SCREEN * scale
-        s = S.fNQ / nd
-        behind = open_ & (s < 0) & (np.abs(S.fNQ) > SCREEN * S.nN * S.nQ)
-        # finite planes: the hit far outside an edge
-        H = s[..., None] * fE[:, None, :] - S.fQ[None]
-        a = (H * S.fp[None]).sum(-1)
-        bb = (H * S.fy[None]).sum(-1)
-        nH = np.sqrt((H * H).sum(-1)) + S.nQ
-        pa, ya = S.np * nH, S.ny * nH
-        out = ((a < -SCREEN * pa) | (bb < -SCREEN * ya) |
-               (a * a > S.fw2 * (1 + SCREEN) + SCREEN * pa * pa) |
-               (bb * bb > S.fh2 * (1 + SCREEN) + SCREEN * ya * ya))
-        fpl = open_ & (s > 0) & out & S.fplane
-    return np.where(S.sphere, sph, behind | fpl) & ~S.quadric[None, :]
+        g = S.spheres
+        if len(g.idx):
+            # spheres: centre behind the viewpoint, or the discriminant far below 0
+            b = fE @ g.fQ.T
+            D = b * b - fEE * g.fcc
+            out[:, g.idx] = (b < -SCREEN * g.nQ * nE) | \
+                (D < -SCREEN * (b * b + fEE * np.abs(g.fcc) + 1e-300))
+        g = S.planes
+        if len(g.idx):
+            # plane kinds: behind the viewpoint (nearly parallel: left to the exact test)
+            nd = fE @ g.fN.T
+            scale = np.abs(fE) @ np.abs(g.fN).T
+            open_ = np.abs(nd) > SCREEN * scale
+            s = g.fNQ / nd
+            res = open_ & (s < 0) & (np.abs(g.fNQ) > SCREEN * g.nN * g.nQ)
+            f = S.fplanes
+            if len(f.idx):
+                # finite planes: the hit far outside an edge
+                sf = s[:, f.at]
+                H = sf[..., None] * fE[:, None, :] - f.fQ[None]
+                a = (H * f.fp[None]).sum(-1)
+                bb = (H * f.fy[None]).sum(-1)
+                nH = np.sqrt((H * H).sum(-1)) + f.nQ
+                pa, ya = f.np * nH, f.ny * nH
+                far = ((a < -SCREEN * pa) | (bb < -SCREEN * ya) |
+                       (a * a > f.fw2 * (1 + SCREEN) + SCREEN * pa * pa) |
+                       (bb * bb > f.fh2 * (1 + SCREEN) + SCREEN * ya * ya))
+                res[:, f.at] |= open_[:, f.at] & (sf > 0) & far
+            out[:, g.idx] = res
+    return out
 
 
 def _less(a, b) -> int:

@@ -646,3 +646,44 @@ def test12_huge_normals_screen_without_overflow(normal, tmp_path):
     ids, _ = _render(path, W, H, Rules())
     ex = _exact(path, W, H, range(W * H), Rules())
     assert (ids.ravel() == ex.id).all() and (ids == 0).sum() > 10
+
+
+@pytest.mark.skipif(not COURSE.is_dir(), reason="../shared/course-scenes is not there")
+def test13_the_float_screen_drops_only_exact_misses(monkeypatch):
+    """decide.surely_missed, each kind's test on its own columns: an object it drops for a
+    ray is one the exact test misses, on every object of the course and bundled scenes that
+    mix spheres, planes, finite planes and quadrics (rays toward each object's anchor and
+    random ones); and it drops many of each of those three kinds (a screen that dropped
+    nothing would pass the first check and cost every flagged ray every object's exact
+    test)."""
+    from rt_core import decide
+    from tools.harness.validate import load_supported
+    scenes, _ = load_supported(default_scene_paths(), False)
+    rng = random.Random(7)
+    dropped = {"sphere": 0, "plane": 0, "fplane": 0}
+    checked = 0
+    for sc in scenes:
+        kinds = {o.kind for o in sc.objects}
+        if len(kinds & set(dropped)) < 2:
+            continue
+        objs = decide.prepare(sc)
+        V = [float(c) for c in sc.viewpoint]
+        rays = []
+        for o in sc.objects:
+            at = getattr(o, "center", None) or getattr(o, "point", None)
+            if at is not None:
+                rays.append([float(a) - v + rng.uniform(-0.3, 0.3) for a, v in zip(at, V)])
+        rays += [[rng.uniform(-4, 4), rng.uniform(-3, 3), -float(V[2]) or -1.0]
+                 for _ in range(20)]
+        miss = decide.surely_missed(objs, rays)
+        # the exact test of each (ray, object) alone, the screen off
+        with monkeypatch.context() as m:
+            m.setattr(decide, "surely_missed", lambda o, E: np.zeros((len(E), len(o)), bool))
+            for j, o in enumerate(objs):
+                one = decide.Prepared([o])
+                hits = decide.decide_rays(sc, Rules(), rays, objs=one)[0] == 0
+                assert not (hits & miss[:, j]).any(), (sc.path, j, o.kind)
+                if o.kind in dropped:
+                    dropped[o.kind] += int(miss[:, j].sum())
+                checked += len(rays)
+    assert checked > 5000 and all(v > 100 for v in dropped.values()), (checked, dropped)
