@@ -97,8 +97,8 @@ MARGIN = 2.0 ** -12
 # zero-padded to stride(kind) numbers, a power of two, and a loop reads a row with one packet
 # gather (``KindTable.view``): Dr.Jit loads each 8-number block of it that the kernel uses
 # with one vector load per lane.  Separate scalar gathers cost ~3x more: LLVM's znver3
-# target scalarizes every masked gather into 8 branches and inserts (measured: README
-# "Speed").
+# target scalarizes every masked gather into 8 branches and inserts (measured:
+# docs/speed.md).
 LAYOUT = {"sphere": ("qx", "qy", "qz", "radius", "c", "id", "grp", "bo", "bs"),
           "plane": ("qx", "qy", "qz", "nq", "nx", "ny", "nz", "g", "id", "grp", "bz"),
           "fplane": ("qx", "qy", "qz", "nq", "nx", "ny", "nz", "g", "w", "xx", "xy", "xz", "h",

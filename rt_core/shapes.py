@@ -648,7 +648,7 @@ def sphere_t(d, o, obj: ObjectConstants, rules: Rules, vz: float, cert: bool = F
 
 
 # The unrolled sphere tests of camera rays (tracer.closest_hit) sit behind a packet-wide
-# branch on ``sphere_live``: most packets miss most spheres there (measured: README "Speed").
+# branch on ``sphere_live``: most packets miss most spheres there (measured: docs/speed.md).
 # CULL_MARGIN: the relative margin on |q×d|², far above the few roundings (2⁻²⁴ each in
 # float32) that separate its comparison's values from the sphere test's own
 CULL_MARGIN = 2.0 ** -18

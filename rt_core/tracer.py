@@ -35,10 +35,10 @@ from .shapes_torus import torus_surface
 # Unrolled spheres of camera rays, when a scene has at least this many: each behind a
 # packet-wide branch past its test when every ray of the packet certainly misses it.
 # Measured single-thread in-process: 8 spheres 17% faster, 4 about even to 12%, 2 even,
-# 1 sphere twice as slow (README "Speed")
+# 1 sphere twice as slow (docs/speed.md)
 SPHERE_BRANCH_MIN = 4
 # float64's from one sphere on: its square roots and divisions cost 3-4 times float32's a
-# lane (README "Speed"), so the branch pays sooner.  Finite planes (on their bounding balls)
+# lane (docs/speed.md), so the branch pays sooner.  Finite planes (on their bounding balls)
 # from 4 bounded objects on, of any kind: what matters is how much of the view each covers
 # (bench scenes, one process: finite planes 3 1.03 of the time, 4 0.84, 16 0.51; mixed 4,
 # 2 of them finite planes, 0.91)
@@ -522,14 +522,14 @@ def _decide_flagged(ks: KernelScene, cam, rules: Rules, st: Best, d):
     count = dr.zeros(T.UInt32, max(2, -(-n >> FLAG_SHIFT)))
     # (ReduceMode.Local: a packet's lanes add up before one atomic each; Dr.Jit's default
     # on LLVM gives each thread a copy of the counts and adds the copies in a kernel of its
-    # own, 4% of a 4-sphere image: README "Speed")
+    # own, 4% of a 4-sphere image: docs/speed.md)
     dr.scatter_reduce(dr.ReduceOp.Add, count, T.UInt32(1),
                       dr.arange(T.UInt32, n) >> FLAG_SHIFT, flag, mode=dr.ReduceMode.Local)
     dr.eval(t, oid, count)
     pix = _flagged(T, oid, count.numpy())
     ks.__dict__["decided"] = len(pix)
     if not len(pix):
-        # (nothing to scatter: no kernel, 4% of a 4-sphere image's time; README "Speed")
+        # (nothing to scatter: no kernel, 4% of a 4-sphere image's time; docs/speed.md)
         return t, oid, oid >= 0
     objs = ks.__dict__.get("_exact_objects")
     if objs is None:

@@ -354,8 +354,8 @@ def test08_scenes_differing_in_numbers_reuse_kernels(layout, precision):
 def test09_looped_rows_and_bins_are_packet_gathers(precision):
     """A looped kind reads each table row, and each ray its bin's (start, end), with packet
     gathers (one vector load per lane, Dr.Jit's gather_NxT functions): no scalar
-    llvm.masked.gather, which LLVM's znver3 target scalarizes into 8 branches (README
-    "Speed").  Dr.Jit falls back to scalar gathers from a table at an unaligned address, so
+    llvm.masked.gather, which LLVM's znver3 target scalarizes into 8 branches
+    (docs/speed.md).  Dr.Jit falls back to scalar gathers from a table at an unaligned address, so
     this also checks accel.device_array's alignment."""
     T = types(precision)
     ir = hit_kernel(scene_of(spheres(12) + fplanes(12)), T)["ir"].getvalue()

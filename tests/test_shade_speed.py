@@ -1,4 +1,4 @@
-"""What makes shaded images faster without changing them (README "Shaded images").
+"""What makes shaded images faster without changing them (docs/speed.md "Shaded images").
 
 * One reflection bounce in the primary rays' kernel (rt_core/shading.py ``_one_bounce``,
   max_bounces = 1): the image, the bounce count and the cap are those of the compacted

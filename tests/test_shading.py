@@ -344,7 +344,7 @@ def test06_one_kernel_per_bounce_no_lights_no_shadow_code():
     # Each bounce is one kernel: closest hit, surface, one shadow ray per light, shading and
     # the next rays, nothing in between going through memory.  (It used to be one pass per
     # light plus a hit and a shade pass, each evaluated: 2.5x slower at 1-16 objects, every
-    # pass writing and re-reading the hit data; README "Speed".)  The reflection bounces
+    # pass writing and re-reading the hit data; docs/speed.md.)  The reflection bounces
     # after it run in one kernel too (the tail), and a narrow one writes their sums to their
     # pixels (shading._scatter_sums)
     scene = parse_scene(REPO / "scenes" / "mixed.txt")
