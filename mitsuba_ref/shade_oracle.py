@@ -32,6 +32,7 @@ bound times diffuse·E/d, huge at tiny scales) joins the intensity's bound (``FA
 """
 from __future__ import annotations
 
+import collections
 import functools
 import math
 
@@ -325,9 +326,13 @@ def other_sides(scene, columns: int, rows: int, pixel: int, sampling: str = "cor
     (they are then among the whole set's: the answer the set would give), else as
     without."""
     want = _wanted(targets)
-    colours, todo, done = set(), [frozenset()], set()
+    # breadth first, the order of ``reaches``' levels and of other_sides_of's rounds: with
+    # ``targets``, True only where reaches would find them within its budget too (a review:
+    # depth first found a fourth-level combination after 5 paths where the levels above it
+    # held more than REACH_RUNS, and the pixel went from wrong to boundary)
+    colours, todo, done = set(), collections.deque([frozenset()]), set()
     while todo:
-        flips = todo.pop()
+        flips = todo.popleft()
         if flips in done:
             continue
         if len(done) >= runs:

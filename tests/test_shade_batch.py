@@ -317,9 +317,18 @@ def test12b_other_sides_of_with_targets(limit, monkeypatch):
         traced["full"] = traced.get("full", 0) + sum(lanes)
         own = [shade_oracle._path(scene, W, H, p, "corners", Rules(), 1000.0, frozenset(),
                                   limit)[0] for p in pick]
-        # both sides' colours where a pixel has two, else its own and one no side gives
-        aims = [(o, next(iter(a - {o}))) if a and len(a) > 1 else (o, (1, 2, 3))
-                for o, a in zip(own, full)]
+        # both sides' colours where a pixel has two; where its sides cannot all be
+        # enumerated, its own and the colour of its first near decision taken the other way
+        # (found early: then the answer rests on reaches); else its own and one no side gives
+        def aim(p, o, a):
+            if a is None:
+                first = shade_oracle._path(scene, W, H, p, "corners", Rules(), 1000.0,
+                                           frozenset(), limit)
+                one = shade_oracle._path(scene, W, H, p, "corners", Rules(), 1000.0,
+                                         frozenset(first[1][:1]), limit) if first[1] else None
+                return (o, one[0]) if one else (o, (1, 2, 3))
+            return (o, next(iter(a - {o}))) if len(a) > 1 else (o, (1, 2, 3))
+        aims = [aim(p, o, a) for p, o, a in zip(pick, own, full)]
         lanes.clear()
         got = shade_oracle.other_sides_of(scene, W, H, pick, limit=limit, targets=aims)
         traced["aimed"] = traced.get("aimed", 0) + sum(lanes)
@@ -333,8 +342,48 @@ def test12b_other_sides_of_with_targets(limit, monkeypatch):
             assert g == shade_oracle.other_sides(scene, W, H, p, limit=limit, targets=t), \
                 (scene.path, p)
             kinds.add("found" if g is True else "none" if g is None else "set")
-    assert kinds == {"found", "none", "set"}, kinds
+            if g is True and a is None:
+                kinds.add("found where none")
+    assert kinds == {"found", "none", "set", "found where none"}, kinds
     assert traced["aimed"] < traced["full"], traced
+
+
+@pytest.mark.parametrize("name", ["deep_decisions", "deep_decisions_batched"])
+def test12c_targets_found_deep_do_not_excuse(name):
+    """A review's scene (tests/scenes/): pixel 51's edge decision, taken the other way, leads
+    to 12 more near decisions (spotlight cones), and Mitsuba's colour stands 4 cones deep
+    on the other branch.  The levels above hold more paths than ``reaches``' budget, so
+    the pixel was not excused (the sides cannot all be enumerated, and the search gives
+    up); the per-pixel other_sides, depth first, found both colours after 5 paths and
+    excused it.  Breadth first (as reaches and other_sides_of's rounds) it answers None,
+    and the pixel stays wrong, with the early out and without; also where shade_batch
+    traces it (the disk a finite plane)."""
+    from tools.harness import shaded
+    sc = parse_text((REPO / "tests" / "scenes" / f"{name}.txt").read_text())
+    assert shade_batch.supported(sc) == name.endswith("batched")
+    W, H, pixel = 12, 9, 51
+    root = shade_oracle._path(sc, W, H, pixel, "corners", Rules(), 1000.0, frozenset(),
+                              F32_LIMIT)
+    spots = [k for k in root[1] if k[1] == "spot"]
+    deep = shade_oracle._path(sc, W, H, pixel, "corners", Rules(), 1000.0,
+                              frozenset(spots), F32_LIMIT)
+    assert len(spots) == 4 and deep[0] != root[0]
+    aims = (deep[0], root[0])                       # (Mitsuba's, rt_core's)
+    assert shade_oracle.reaches(sc, W, H, pixel, aims, limit=F32_LIMIT) is None
+    assert shade_oracle.reaches(sc, W, H, pixel, aims, limit=F32_LIMIT, runs=10 ** 4)
+    assert shade_oracle.other_sides(sc, W, H, pixel, limit=F32_LIMIT, targets=aims) is None
+    assert shade_oracle.other_sides_of(sc, W, H, [pixel], limit=F32_LIMIT,
+                                       targets=[aims]) == [None]
+    ours = np.zeros((H, W, 3), np.uint8)
+    theirs = ours.copy()
+    ours.reshape(-1, 3)[pixel], theirs.reshape(-1, 3)[pixel] = root[0], deep[0]
+    for early in (True, False):
+        shaded.EARLY_OUT = early
+        try:
+            got = shaded.classify_shaded(sc, ours, theirs, "corners", Rules(), 1000.0)
+        finally:
+            shaded.EARLY_OUT = True
+        assert got.reshape(-1)[pixel] == shaded.SHADED_CODE["wrong"], early
 
 
 def test13_other_sides_of_limits():
