@@ -12,6 +12,7 @@ from __future__ import annotations
 import collections
 import functools
 import importlib
+import shutil
 import sys
 import tempfile
 import time
@@ -71,8 +72,10 @@ def clocked(seconds: collections.Counter, calls: collections.Counter):
 
 def main() -> int:
     args = sys.argv[1:]
+    made = None
     if "-o" not in args and "--output" not in args:
-        args += ["-o", tempfile.mkdtemp(prefix="validate_split-")]
+        made = tempfile.mkdtemp(prefix="validate_split-")
+        args += ["-o", made]
     seconds, calls = collections.Counter(), collections.Counter()
     clocked(seconds, calls)
     from tools.cli import main as rtval
@@ -82,13 +85,18 @@ def main() -> int:
     except SystemExit as e:
         code = e.code
     wall = time.perf_counter() - t0
+    if code not in (0, 1, None):
+        # (validate refused its input and said why: no table, and no folder left behind)
+        if made is not None:
+            shutil.rmtree(made, ignore_errors=True)
+        return code
     print(f"\nrtval validate: {wall:.2f} s wall (exit {code}); by function, wall seconds "
           "(nested calls of one function counted once; functions of one phase may nest):")
     print(f"{'phase':9s} {'function':48s} {'seconds':>8s} {'calls':>6s} {'ms/call':>8s}")
     for (phase, name), s in sorted(seconds.items(), key=lambda kv: (kv[0][0], -kv[1])):
         n = calls[(phase, name)]
         print(f"{phase:9s} {name:48s} {s:8.3f} {n:6d} {s / n * 1e3:8.2f}")
-    return 0 if code in (0, None) else 1
+    return 0 if code in (0, None) else 1      # (1: some comparison failed; the table stands)
 
 
 if __name__ == "__main__":

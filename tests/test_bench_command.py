@@ -3,6 +3,7 @@ runs."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -257,6 +258,19 @@ def test08c_validate_split_clocks_each_function(tmp_path):
         assert name in rows and rows[name][0] == phase and rows[name][3] == "1", \
             (name, rows.get(name), r.stdout[-2000:])
     assert (tmp_path / "report.json").exists()
+
+
+def test08d_validate_split_passes_on_validates_refusal(tmp_path):
+    """benchmarks/validate_split.py on input validate refuses (a missing scene, an unknown
+    option): validate's one line and exit code, no table, and the folder it made for the
+    report removed."""
+    for args, code in ((["/nonexistent/scene.txt"], 2), (["--bogus"], 64)):
+        r = subprocess.run([sys.executable, "benchmarks/validate_split.py", *args], cwd=REPO,
+                           capture_output=True, text=True, timeout=120,
+                           env={**os.environ, "TMPDIR": str(tmp_path)})
+        assert r.returncode == code and r.stdout == "", (args, r.stdout)
+        assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr
+        assert not list(tmp_path.iterdir()), list(tmp_path.iterdir())
 
 
 def test09_the_scene_helpers_keep_the_benchmarks_variant(monkeypatch):
