@@ -5,7 +5,9 @@ function called inside itself counted once), under the phase it is charged to.
 
     python benchmarks/validate_split.py [validate's options, e.g. -o DIR or scenes]
 
-The clocks cost about a microsecond a call: the run's own split moves by well under 1%.
+Validate runs in this process (``--serial``, unless the options name ``--workers``,
+``--serial`` or ``--scheduler``: the clocks see only this process).  The clocks cost about a
+microsecond a call: the run's own split moves by well under 1%.
 """
 from __future__ import annotations
 
@@ -23,14 +25,15 @@ sys.path.insert(0, str(REPO))
 
 # (phase, module, function, modules that imported it by name)
 TIMED = [
-    ("rt_core", "rt_core.render", "trace_geometry", ("tools.harness.compare",)),
+    ("rt_core", "rt_core.render", "trace_geometry", ("tools.harness.compare",
+                                                     "tools.harness.exact_compare")),
     ("rt_core", "rt_core.render", "render_image", ("tools.harness.shaded",)),
     ("rt_core", "rt_core.tracer", "_decide_flagged", ()),
     ("rt_core", "rt_core.decide", "decide_rays", ("rt_core.tracer",)),
     ("mitsuba", "mitsuba_ref.reference", "trace_rays", ("tools.harness.compare",)),
     ("mitsuba", "mitsuba_ref.reference", "render_camera", ("tools.harness.compare",)),
     ("mitsuba", "tools.harness.shaded", "mitsuba_course_image", ()),
-    ("oracles", "tools.harness.exact_compare", "compare_exact", ()),
+    ("oracles", "mitsuba_ref.exact", "trace_exact", ("tools.harness.exact_compare",)),
     ("oracles", "mitsuba_ref.shade_oracle", "render_shade_oracle", ()),
     ("classify", "mitsuba_ref.explain", "classify", ("tools.harness.compare",)),
     ("classify", "mitsuba_ref.explain", "over_bound", ("tools.harness.compare",)),
@@ -73,9 +76,14 @@ def clocked(seconds: collections.Counter, calls: collections.Counter):
 def main() -> int:
     args = sys.argv[1:]
     made = None
-    if "-o" not in args and "--output" not in args:
+    named = lambda *opts: any(a == o or a.startswith(o + "=") or (len(o) == 2 and
+                                                                   a.startswith(o))
+                              for a in args for o in opts)
+    if not named("-o", "--output"):
         made = tempfile.mkdtemp(prefix="validate_split-")
         args += ["-o", made]
+    if not named("--workers", "--serial", "--scheduler"):
+        args += ["--serial"]            # (the clocks are in this process)
     seconds, calls = collections.Counter(), collections.Counter()
     clocked(seconds, calls)
     from tools.cli import main as rtval
@@ -90,12 +98,16 @@ def main() -> int:
         if made is not None:
             shutil.rmtree(made, ignore_errors=True)
         return code
+    # (after --json's JSON on standard output, the table goes to standard error)
+    out = sys.stderr if named("--json") else sys.stdout
     print(f"\nrtval validate: {wall:.2f} s wall (exit {code}); by function, wall seconds "
-          "(nested calls of one function counted once; functions of one phase may nest):")
-    print(f"{'phase':9s} {'function':48s} {'seconds':>8s} {'calls':>6s} {'ms/call':>8s}")
+          "(nested calls of one function counted once; functions of one phase may nest):",
+          file=out)
+    print(f"{'phase':9s} {'function':48s} {'seconds':>8s} {'calls':>6s} {'ms/call':>8s}",
+          file=out)
     for (phase, name), s in sorted(seconds.items(), key=lambda kv: (kv[0][0], -kv[1])):
         n = calls[(phase, name)]
-        print(f"{phase:9s} {name:48s} {s:8.3f} {n:6d} {s / n * 1e3:8.2f}")
+        print(f"{phase:9s} {name:48s} {s:8.3f} {n:6d} {s / n * 1e3:8.2f}", file=out)
     return 0 if code in (0, None) else 1      # (1: some comparison failed; the table stands)
 
 

@@ -435,7 +435,11 @@ def other_sides_of(scene, columns: int, rows: int, pixels, sampling: str = "corn
     every order reaches whole: the colours, or None where one path raises, there are more
     than ``runs``, their bounces exceed ``bounces`` or one has more than 8 near
     decisions.  ``targets``: each pixel's colours asked about (other_sides' ``targets``):
-    a pixel whose colours found so far hold all of its own is True and traces no more."""
+    a pixel whose colours found so far hold all of its own is True and traces no more.
+    With targets the answers may differ in one way: a round is traced whole or not (not
+    where it would take the pixel past ``runs``), where other_sides traces its paths one
+    at a time, so other_sides may find the targets within ``runs`` where this answers
+    None (``reaches``, breadth first with a larger budget, then finds them too)."""
     from mitsuba_ref import shade_batch
     pixels = [int(p) for p in pixels]
     firsts = list(firsts) if firsts is not None else [None] * len(pixels)

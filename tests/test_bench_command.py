@@ -239,23 +239,28 @@ def test08b_readme_tables_refuse_what_is_not_a_run(tmp_path):
 
 
 def test08c_validate_split_clocks_each_function(tmp_path):
-    """benchmarks/validate_split.py: a validate of one scene (rays and shaded, float32) in
-    its process, each clocked function once with its phase: the geometry trace, Mitsuba's
-    rays, the classifier, the shaded render and Mitsuba's course image."""
+    """benchmarks/validate_split.py: a validate of two scenes (rays and shaded, float32; the
+    torus's exact comparison) in its process, each clocked function with its phase and
+    calls: the geometry traces (the exact comparison's too, which validate charges to
+    rt_core), Mitsuba's rays, the classifier, the shaded renders, Mitsuba's course images,
+    the exact oracle; the report where ``--output=`` puts it."""
     r = subprocess.run([sys.executable, "benchmarks/validate_split.py", "scenes/mixed.txt",
-                        "--precision", "f32", "--mode", "rays", "--shaded-columns", "16",
-                        "--exact-columns", "0", "--oracle-columns", "0", "-o", str(tmp_path)],
+                        "scenes/torus.txt", "--precision", "f32", "--mode", "rays",
+                        "--shaded-columns", "16", "--exact-columns", "8",
+                        "--oracle-columns", "0", f"--output={tmp_path}"],
                        cwd=REPO, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     rows = {ln.split()[1]: ln.split() for ln in r.stdout.splitlines()
             if ln.split()[:1] in (["rt_core"], ["mitsuba"], ["classify"], ["oracles"])}
-    want = {"rt_core.render.trace_geometry": "rt_core", "rt_core.render.render_image": "rt_core",
-            "mitsuba_ref.reference.trace_rays": "mitsuba",
-            "tools.harness.shaded.mitsuba_course_image": "mitsuba",
-            "mitsuba_ref.explain.classify": "classify",
-            "tools.harness.shaded.classify_shaded": "classify"}
-    for name, phase in want.items():
-        assert name in rows and rows[name][0] == phase and rows[name][3] == "1", \
+    want = {"rt_core.render.trace_geometry": ("rt_core", 3),
+            "rt_core.render.render_image": ("rt_core", 2),
+            "mitsuba_ref.reference.trace_rays": ("mitsuba", 2),
+            "tools.harness.shaded.mitsuba_course_image": ("mitsuba", 2),
+            "mitsuba_ref.explain.classify": ("classify", 2),
+            "tools.harness.shaded.classify_shaded": ("classify", 2),
+            "mitsuba_ref.exact.trace_exact": ("oracles", 1)}
+    for name, (phase, calls) in want.items():
+        assert name in rows and rows[name][0] == phase and rows[name][3] == str(calls), \
             (name, rows.get(name), r.stdout[-2000:])
     assert (tmp_path / "report.json").exists()
 

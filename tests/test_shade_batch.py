@@ -339,8 +339,11 @@ def test12b_other_sides_of_with_targets(limit, monkeypatch):
                     assert shade_oracle.reaches(scene, W, H, p, t, limit=limit) is True
             else:
                 assert g == a and (a is None or not set(t) <= a), (scene.path, p, t, a, g)
-            assert g == shade_oracle.other_sides(scene, W, H, p, limit=limit, targets=t), \
-                (scene.path, p)
+            # per pixel the same, except that it takes a round's paths one at a time within
+            # ``runs`` where other_sides_of takes a round whole or not: it may find the
+            # targets where other_sides_of answers None (reaches then finds them too)
+            one = shade_oracle.other_sides(scene, W, H, p, limit=limit, targets=t)
+            assert one == g or (g is None and one is True), (scene.path, p, one, g)
             kinds.add("found" if g is True else "none" if g is None else "set")
             if g is True and a is None:
                 kinds.add("found where none")
