@@ -251,35 +251,31 @@ class _Screen:
     """The float copies of every object as arrays (``surely_missed``)."""
 
     def __init__(self, objs):
-        n = len(objs)
+        self.n = n = len(objs)
         z3 = (0.0, 0.0, 0.0)
         col = lambda name, dflt=0.0: np.array([getattr(o, name, dflt) for o in objs],
                                               np.float64)
-        self.sphere = np.array([o.kind == "sphere" for o in objs], bool)
-        self.fplane = np.array([o.kind == "fplane" for o in objs], bool)
+        vec = lambda name: np.array([getattr(o, name, z3) for o in objs],
+                                    np.float64).reshape(n, 3)
+        cols = {"fQ": vec("fQ"), "nQ": col("nQ"), "fcc": col("fcc"), "fN": vec("fN"),
+                "fNQ": col("fNQ"), "nN": col("nN"), "fp": vec("fp"), "fy": vec("fy"),
+                "np": col("np"), "ny": col("ny"), "fw2": col("fw2"), "fh2": col("fh2")}
+        sphere = np.array([o.kind == "sphere" for o in objs], bool)
+        fplane = np.array([o.kind == "fplane" for o in objs], bool)
         # quadrics have no float screen; an object whose copies are not finite neither
-        self.quadric = np.array([o.kind in QUADRICS or not getattr(o, "screened", True)
-                                 for o in objs], bool)
-        self.fQ = np.array([o.fQ for o in objs], np.float64).reshape(n, 3)
-        self.nQ, self.fcc = col("nQ"), col("fcc")
-        self.fN = np.array([getattr(o, "fN", z3) for o in objs], np.float64).reshape(n, 3)
-        self.fNQ, self.nN = col("fNQ"), col("nN")
-        self.fp = np.array([getattr(o, "fp", z3) for o in objs], np.float64).reshape(n, 3)
-        self.fy = np.array([getattr(o, "fy", z3) for o in objs], np.float64).reshape(n, 3)
-        self.np, self.ny = col("np"), col("ny")
-        self.fw2, self.fh2 = col("fw2"), col("fh2")
+        quadric = np.array([o.kind in QUADRICS or not getattr(o, "screened", True)
+                            for o in objs], bool)
+
+        def rows(idx):
+            return SimpleNamespace(idx=idx, **{k: v[idx] for k, v in cols.items()})
         # each test on its own kind's columns only (a sphere's on spheres, a plane's on the
         # plane kinds, the edges on finite planes): a flagged ray of 4,096 spheres took
         # 0.46 ms, mostly the planes' arrays
-        self.spheres = self._rows(np.flatnonzero(self.sphere & ~self.quadric))
-        self.planes = self._rows(np.flatnonzero(~self.sphere & ~self.quadric))
-        at = np.flatnonzero(self.fplane[self.planes.idx])
-        self.fplanes = self._rows(self.planes.idx[at])
+        self.spheres = rows(np.flatnonzero(sphere & ~quadric))
+        self.planes = rows(np.flatnonzero(~sphere & ~quadric))
+        at = np.flatnonzero(fplane[self.planes.idx])
+        self.fplanes = rows(self.planes.idx[at])
         self.fplanes.at = at                    # (their columns among the planes')
-
-    def _rows(self, idx):
-        names = ("fQ", "nQ", "fcc", "fN", "fNQ", "nN", "fp", "fy", "np", "ny", "fw2", "fh2")
-        return SimpleNamespace(idx=idx, **{k: getattr(self, k)[idx] for k in names})
 
 
 def surely_missed(objs, fE: np.ndarray) -> np.ndarray:
@@ -294,7 +290,7 @@ def surely_missed(objs, fE: np.ndarray) -> np.ndarray:
     fE = np.asarray(fE, np.float64).reshape(-1, 3)
     nE = np.sqrt((fE * fE).sum(1))[:, None]
     fEE = nE * nE
-    out = np.zeros((len(fE), len(S.sphere)), bool)      # (quadrics: never screened)
+    out = np.zeros((len(fE), S.n), bool)      # (quadrics: never screened)
     with np.errstate(all="ignore"):
         g = S.spheres
         if len(g.idx):

@@ -3,11 +3,11 @@ reading goes through OpenImageIO (``read_exr``, ``imageio.read_channels``).
 
 The OpenEXR binding writes, not OpenImageIO: it takes each channel's array as it is and
 compresses with the library's worker threads, where OpenImageIO's writer needs the channels
-interleaved first and wrote the same 14-channel 1920-column PIZ image 1.6x slower (docs/speed.md,
-"Who writes the EXR").  Writes go to a temporary name in the target directory, are checked to be complete (the
-binding does not report a failed flush when the file is closed: a small EXR on a full disk
-would be lost silently) and are renamed into place, so a failed or interrupted write never
-leaves a partial file.
+interleaved first and wrote the same 14-channel 1920-column PIZ image 1.6x slower
+(docs/speed.md, "Who writes the EXR").  Writes go to a temporary name in the target
+directory, are checked to be complete (the binding does not report a failed flush when the
+file is closed: a small EXR on a full disk would be lost silently) and are renamed into
+place, so a failed or interrupted write never leaves a partial file.
 """
 from __future__ import annotations
 
@@ -21,10 +21,10 @@ import OpenEXR
 from .outputs import atomic_write, attr_text  # noqa: F401
 
 
-# Compression, chosen by measurement (README "The whole command"): PIZ is lossless, read by every OpenEXR
-# since 1.x, and with the library's worker threads wrote a 7680-column shaded EXR in 10.5 s
-# (ZIP: 15.6 s, 16% larger).  ZSTD and HTJ2K are faster and 2-4x smaller, but only OpenEXR
-# 3.4 and later read them: they are options (``rtval render --compression``).
+# Compression, chosen by measurement (README "The whole command"): PIZ is lossless, read by
+# every OpenEXR since 1.x, and with the library's worker threads wrote a 7680-column shaded
+# EXR in 10.5 s (ZIP: 15.6 s, 16% larger).  ZSTD and HTJ2K are faster and 2-4x smaller, but
+# only OpenEXR 3.4 and later read them: they are options (``rtval render --compression``).
 COMPRESSIONS = {"none": OpenEXR.NO_COMPRESSION, "zip": OpenEXR.ZIP_COMPRESSION,
                 "piz": OpenEXR.PIZ_COMPRESSION, "zstd": OpenEXR.ZSTD_COMPRESSION,
                 "htj2k": OpenEXR.HTJ2K256_COMPRESSION}
