@@ -145,8 +145,9 @@ def test06_cuda_backend_bench_smoke(tmp_path):
         assert r.returncode == 0, r.stderr
         res = json.loads(out.read_text())
         assert res["meta"]["backend"] == "cuda" and res["meta"]["gpu"]
+        assert res["meta"]["cases_in"].startswith("a process each")
         for c in res["cases"]:
-            assert c["backend"] == "cuda" and c["ratio_f32_vs_mitsuba"] > 0
+            assert c["backend"] == "cuda" and c["ratio_f32_vs_mitsuba"] > 0 and c["pid"]
             if not mode:
                 assert c["tracers"]["mitsuba"]["differ_from_f32"] <= 0.01 * c["rays"]
             else:
@@ -300,8 +301,8 @@ def test09_the_scene_helpers_keep_the_benchmarks_variant(monkeypatch):
 @pytest.mark.parametrize("args, said", [
     (("--tracers", "mitsuba", "--runs", "5", "--scene", "/nonexistent.txt"),
      "--scene, --runs, --tracers not used by the default mode"),
-    (("--command", "--threads", "1", "--objects", "4", "--reps", "7"),
-     "--objects, --reps, --threads not used by --command"),
+    (("--command", "--threads", "1", "--objects", "4", "--reps", "7", "--one-process"),
+     "--objects, --reps, --threads, --one-process not used by --command"),
     (("--shaded", "--runs", "2"), "--runs not used by --shaded")],
     ids=["default", "command", "shaded"])
 def test09_options_of_another_mode_are_usage_errors(args, said):
@@ -311,3 +312,90 @@ def test09_options_of_another_mode_are_usage_errors(args, said):
                        capture_output=True, text=True, timeout=120)
     err = r.stderr.strip()
     assert r.returncode == 64 and len(err.splitlines()) == 1 and said in err, err
+
+
+# --- each case in a process of its own (tools/harness/isolate.py) ----------------------------
+
+def test10_each_case_runs_in_a_process_of_its_own(tmp_path, monkeypatch):
+    """rtval bench's default, both modes: every case in a new process, with the same answers
+    as in one process (``isolated=False``, --one-process), and its folder removed."""
+    import tempfile
+    from tools.harness import bench, bench_shaded
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    iso = bench.run_bench([1, 4], ["spheres"], columns=32, reps=1)
+    one = bench.run_bench([1, 4], ["spheres"], columns=32, reps=1, isolated=False)
+    pids = [c["pid"] for c in iso["cases"]]
+    assert len(set(pids)) == 2 and os.getpid() not in pids
+    assert all("pid" not in c for c in one["cases"])
+    assert (iso["meta"]["cases_in"], one["meta"]["cases_in"]) == \
+        (bench.PROCESS[True], bench.PROCESS[False])
+    for a, b in zip(iso["cases"], one["cases"]):
+        assert (a["scene"], a["objects"], a["rays"]) == (b["scene"], b["objects"], b["rays"])
+        assert set(a["tracers"]) == set(b["tracers"])
+        assert {k: v.get("differ_from_f32") for k, v in a["tracers"].items()} == \
+            {k: v.get("differ_from_f32") for k, v in b["tracers"].items()}
+    sh = bench_shaded.run_shaded([1], ["spheres"], columns=32, reps=1,
+                                 tracers=["rt_core-f32", "mitsuba"])
+    assert sh["cases"][0]["pid"] not in (os.getpid(), *pids)
+    assert sh["meta"]["cases_in"] == bench.PROCESS[True]
+    assert sh["cases"][0]["tracers"]["rt_core-f32"]["pixels_differ_from_mitsuba"] <= 0.02 * 32 * 18
+    assert os.listdir(tmp_path) == []
+
+
+def test10b_a_case_that_fails_ends_the_run_in_one_line(tmp_path, monkeypatch):
+    """A case's process that fails: its last line, named for the case, and its exit code
+    where it is a user's error (2); its folder removed."""
+    import tempfile
+    from rt_core.usererror import InputError
+    from tools.harness import bench
+    from tools.harness.isolate import run_case
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    with pytest.raises(InputError) as e:
+        run_case("bench nosuch N=1", "tools.harness.bench", "bench_case",
+                 {"kind": "nosuch", "n": 1})
+    msg = str(e.value)
+    assert msg.startswith("bench nosuch N=1: its process failed (exit 1): ValueError: bench "
+                          "scene must be one of") and "\n" not in msg, msg
+    assert e.value.exit_code == 1 and os.listdir(tmp_path) == []
+    if not _has_cuda():
+        # (the backend reaches the case's process: there, no CUDA device)
+        with pytest.raises(InputError) as e:
+            bench.run_bench([1], ["mixed"], columns=32, reps=1, backend_name="cuda")
+        assert "CUDA" in str(e.value) and e.value.exit_code == 2, str(e.value)
+        assert os.listdir(tmp_path) == []
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                with open(f"/proc/{d}/stat") as f:
+                    stat = f.read()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                out.append(int(d))
+    return out
+
+
+def test10c_sigterm_ends_the_cases_process_too(tmp_path):
+    """SIGTERM to rtval bench while a case runs in its own process: exit 143 in one line,
+    the case's process gone, its folder removed."""
+    import signal
+    import time
+    p = subprocess.Popen([sys.executable, "-m", "tools.cli", "bench", "--objects", "4096",
+                          "--scenes", "spheres", "--reps", "500", "--keep-cache"],
+                         cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         env={**os.environ, "TMPDIR": str(tmp_path)})
+    t0 = time.monotonic()
+    while not (kids := _children(p.pid)):
+        assert p.poll() is None and time.monotonic() - t0 < 120, "no case's process appeared"
+        time.sleep(0.05)
+    time.sleep(1.0)                     # (well into its imports or its case)
+    p.send_signal(signal.SIGTERM)
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == 128 + signal.SIGTERM and "Traceback" not in err, err
+    assert err.strip().splitlines()[-1] == "rtval: terminated by SIGTERM", err
+    assert not [k for k in kids if os.path.exists(f"/proc/{k}")]
+    assert not [n for n in os.listdir(tmp_path) if n.startswith("rtval-case-")]

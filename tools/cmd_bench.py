@@ -26,8 +26,8 @@ def add_parser(sub) -> None:
     p = sub.add_parser("bench", help="throughput of rt_core against Mitsuba",
                        description="Trace identical 1920x1080 camera rays with rt_core (f32, "
                                    "f64) and Mitsuba 3 (ray_intersect_preliminary) against N "
-                                   "finite planes, N spheres and a mixed scene, interleaved in "
-                                   "one process: Mrays/s, first call (compilation), scene "
+                                   "finite planes, N spheres and a mixed scene, interleaved, "
+                                   "each case in a process of its own: Mrays/s, first call (compilation), scene "
                                    "preparation, peak memory, and the ratio rt_core/Mitsuba. "
                                    "Compare ratios, not absolute times, on a shared machine.")
     p.add_argument("--objects", type=at_most(MAX_OBJECTS, "the scenes' tables grow with it"),
@@ -47,6 +47,10 @@ def add_parser(sub) -> None:
     p.add_argument("--brute", action="store_true",
                    help="also time rt_core f32 without screen-space bins (a loop over every "
                         "object) and fully unrolled (up to 64 objects)")
+    p.add_argument("--one-process", action="store_true",
+                   help="run every case in this process (default: each in a process of its "
+                        "own, after a warm-up case there; in one process the later cases run "
+                        "slower for what the earlier ones left in Dr.Jit)")
     p.add_argument("--keep-cache", action="store_true",
                    help="use Dr.Jit's on-disk kernel cache (default: an empty one, so that "
                         "first calls show compilation)")
@@ -97,6 +101,7 @@ def _not_used(args) -> str | None:
         mode = "--command"
         unused = {"--objects": args.objects is not None, "--reps": args.reps is not None,
                   "--threads": args.threads is not None, "--brute": args.brute,
+                  "--one-process": args.one_process,
                   "--scenes": list(args.scenes) != list(SCENES),
                   "--columns": args.columns != 1920}
     else:
@@ -145,7 +150,8 @@ def run(args) -> int:
               f"{case.get('ratio_f32_vs_mitsuba', 0):.2f}x Mitsuba", file=sys.stderr)
     objects = list(dict.fromkeys(args.objects or DEFAULT_OBJECTS))      # each count once
     result = run_bench(objects, args.scenes, args.columns, args.reps or 9, args.brute,
-                       progress=progress, backend_name=args.backend)
+                       progress=progress, backend_name=args.backend,
+                       isolated=not args.one_process, threads=args.threads)
     return _emit(args, result, table)
 
 
@@ -160,7 +166,8 @@ def run_shaded(args) -> int:
     objects = list(dict.fromkeys(args.objects or SHADED_OBJECTS))
     result = bench(objects, args.scenes, args.columns, args.reps or 5, args.lights,
                    list(dict.fromkeys(args.tracers)), progress=progress,
-                   backend_name=args.backend)
+                   backend_name=args.backend, isolated=not args.one_process,
+                   threads=args.threads)
     return _emit(args, result, shaded_table)
 
 

@@ -372,18 +372,37 @@ def bench_case(kind: str, n: int, columns: int = 1920, reps: int = 9, brute: boo
 
 
 def run_bench(objects=DEFAULT_OBJECTS, scenes=SCENES, columns: int = 1920, reps: int = 9,
-              brute: bool = False, progress=None, backend_name: str = "llvm") -> dict:
-    """Every scene kind × object count; returns {'meta', 'cases', 'growth'}."""
+              brute: bool = False, progress=None, backend_name: str = "llvm",
+              isolated: bool = True, threads: int | None = None) -> dict:
+    """Every scene kind × object count; returns {'meta', 'cases', 'growth'}.  ``isolated``:
+    each case in a process of its own (tools/harness/isolate.py), else all in this one;
+    ``threads``: Dr.Jit's worker threads of an isolated case's process."""
     from rt_core.render import versions
     cases = []
     for kind in scenes:
         for n in objects:
-            cases.append(bench_case(kind, n, columns, reps, brute,
-                                    backend_name=backend_name))
+            kw = {"kind": kind, "n": n, "columns": columns, "reps": reps, "brute": brute,
+                  "backend_name": backend_name}
+            cases.append(in_own_process(f"bench {kind} N={n}", "bench_case", kw, threads)
+                         if isolated else bench_case(**kw))
             if progress:
                 progress(cases[-1])
-    return {"meta": {"columns": columns, "reps": reps, **versions(), **machine(backend_name)},
+    return {"meta": {"columns": columns, "reps": reps, "cases_in": PROCESS[isolated],
+                     **versions(), **machine(backend_name)},
             "cases": cases, "growth": growth(cases)}
+
+
+# where run_bench's and run_shaded's cases ran (the JSON's meta.cases_in)
+PROCESS = {True: "a process each (after a warm-up case there)", False: "one process"}
+
+
+def in_own_process(label: str, function: str, kw: dict, threads=None,
+                   module: str = "tools.harness.bench") -> dict:
+    """``function(**kw)`` of ``module`` in a process of its own, after a warm-up case there:
+    the mixed scene of one object at 64 columns, one call a side."""
+    from tools.harness.isolate import run_case
+    warm = dict(kw, kind="mixed", n=1, columns=64, reps=1)
+    return run_case(label, module, function, kw, warm, threads)
 
 
 def machine(backend_name: str = "llvm") -> dict:

@@ -34,7 +34,7 @@ import numpy as np
 
 from rt_core.scene import Material, PointLight, Scene
 
-from .bench import SCENES, bench_scene, first_call, machine, round_robin
+from .bench import PROCESS, SCENES, bench_scene, first_call, in_own_process, machine, round_robin
 
 SHADED_OBJECTS = (1, 16, 256, 4096)
 DEFAULT_LIGHTS = 4
@@ -248,18 +248,24 @@ def shaded_case(kind: str, n: int, columns: int = 1920, reps: int = 5,
 
 def run_shaded(objects=SHADED_OBJECTS, scenes=SCENES, columns: int = 1920, reps: int = 5,
                lights: int = DEFAULT_LIGHTS, tracers=TRACERS, progress=None,
-               backend_name: str = "llvm") -> dict:
-    """Every scene kind × object count; returns {'mode', 'meta', 'cases'}."""
+               backend_name: str = "llvm", isolated: bool = True,
+               threads: int | None = None) -> dict:
+    """Every scene kind × object count; returns {'mode', 'meta', 'cases'}.  ``isolated``,
+    ``threads``: as bench.run_bench's."""
     from rt_core.render import versions
     cases = []
     for kind in scenes:
         for n in objects:
-            cases.append(shaded_case(kind, n, columns, reps, lights, tracers, backend_name))
+            kw = {"kind": kind, "n": n, "columns": columns, "reps": reps, "lights": lights,
+                  "tracers": list(tracers), "backend_name": backend_name}
+            cases.append(in_own_process(f"bench --shaded {kind} N={n}", "shaded_case", kw,
+                                        threads, module=__name__)
+                         if isolated else shaded_case(**kw))
             if progress:
                 progress(cases[-1])
     return {"mode": "shaded", "meta": {"columns": columns, "reps": reps, "lights": lights,
-                                       "max_dist": MAX_DIST, **versions(),
-                                       **machine(backend_name)},
+                                       "max_dist": MAX_DIST, "cases_in": PROCESS[isolated],
+                                       **versions(), **machine(backend_name)},
             "cases": cases}
 
 
