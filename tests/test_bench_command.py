@@ -357,6 +357,18 @@ def test10b_a_case_that_fails_ends_the_run_in_one_line(tmp_path, monkeypatch):
     assert msg.startswith("bench nosuch N=1: its process failed (exit 1): ValueError: bench "
                           "scene must be one of") and "\n" not in msg, msg
     assert e.value.exit_code == 1 and os.listdir(tmp_path) == []
+    # the error's own line, not what the process printed after it (at exit)
+    mod = tmp_path.parent / f"{tmp_path.name}-mod"
+    mod.mkdir()
+    (mod / "late_words.py").write_text(
+        "import atexit, sys\n"
+        "atexit.register(lambda: print('a warning at exit', file=sys.stderr))\n"
+        "def fails(**kw):\n    raise ValueError('the case broke')\n")
+    monkeypatch.setenv("PYTHONPATH", str(mod))
+    with pytest.raises(InputError) as e:
+        run_case("bench late", "late_words", "fails", {})
+    assert str(e.value) == "bench late: its process failed (exit 1): ValueError: the case broke"
+    assert os.listdir(tmp_path) == []
     if not _has_cuda():
         # (the backend reaches the case's process: there, no CUDA device)
         with pytest.raises(InputError) as e:

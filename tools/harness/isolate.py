@@ -42,7 +42,13 @@ def run_case(label: str, module: str, function: str, kwargs: dict, warm: dict | 
         r = subprocess.run([sys.executable, "-m", "tools.harness.isolate", spec_path, out],
                            cwd=REPO, capture_output=True, text=True)
         if r.returncode != 0 or not os.path.exists(out):
-            last = (r.stderr.strip().splitlines() or ["(no message)"])[-1]
+            # its error's line, as the child wrote it (what Dr.Jit or nanobind print at
+            # exit may follow it on stderr), else stderr's last line (a crash)
+            try:
+                with open(out + ".error") as f:
+                    last = f.read().strip()
+            except OSError:
+                last = (r.stderr.strip().splitlines() or ["(no message)"])[-1]
             err = InputError(f"{label}: its process failed (exit {r.returncode}): {last}")
             err.exit_code = r.returncode if r.returncode in (1, 2) else 1
             raise err
@@ -59,13 +65,22 @@ def main(argv: list[str]) -> int:
         dr.set_thread_count(spec["threads"])
     fn = getattr(importlib.import_module(spec["module"]), spec["function"])
     from rt_core.errors import USER_ERRORS
+
+    def said(line: str) -> None:
+        with open(out + ".error", "w") as f:
+            f.write(line)
     try:
         if spec.get("warm"):
             fn(**spec["warm"])
         case = dict(fn(**spec["kwargs"]), pid=os.getpid())   # (the process it ran in)
     except USER_ERRORS as e:
-        print(str(e).splitlines()[0] if str(e) else type(e).__name__, file=sys.stderr)
+        said(str(e).splitlines()[0] if str(e) else type(e).__name__)
+        print(f"rtval bench: {str(e).splitlines()[0] if str(e) else type(e).__name__}",
+              file=sys.stderr)
         return getattr(e, "exit_code", 2)
+    except Exception as e:              # a bug: its traceback on stderr, its last line here
+        said(f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}".rstrip(": "))
+        raise
     with open(out, "w") as f:
         json.dump(case, f)
     return 0
