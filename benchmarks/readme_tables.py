@@ -127,11 +127,22 @@ def main(paths) -> int:
         runs.append(run)
     primary = [r for r in runs if _kind(r) == "primary"]
     shaded = [r for r in runs if _kind(r) == "shaded"]
-    for label, group, fn in (("primary rays", primary, primary_tables),
-                             ("shaded images", shaded, shaded_table)):
+    groups = (("primary rays", primary, primary_tables), ("shaded images", shaded, shaded_table))
+    for label, group, _ in groups:
+        # (runs from before the JSON said where its cases ran had them all in one process)
+        ways = {r["meta"].get("cases_in", "one process") for r in group}
+        if len(ways) > 1:
+            print(f"readme_tables: the {label} runs ran their cases differently "
+                  f"({'; '.join(sorted(ways))}); give runs made one way (`rtval bench` "
+                  "runs each case in a process of its own, `--one-process` all in one)",
+                  file=sys.stderr)
+            return 2
+    for label, group, fn in groups:
         if group:
             commits = sorted({r["meta"].get("commit", "?") for r in group})
-            print(f"<!-- {label}: {len(group)} runs, commit {', '.join(commits)} -->")
+            where = group[0]["meta"].get("cases_in", "one process")
+            print(f"<!-- {label}: {len(group)} runs, commit {', '.join(commits)}, cases in "
+                  f"{where} -->")
             print(fn(group))
             print()
     return 0

@@ -218,10 +218,19 @@ def test08_readme_tables_from_bench_runs(tmp_path):
     med = (ratios[0] + ratios[1]) / 2
     assert row.split(" | ")[1] == f"{med:.2f}× [{ratios[0]:.2f}–{ratios[1]:.2f}]", row
     assert "2 runs" in r.stdout and "f64 / f32 speed" in r.stdout
+    assert "cases in a process each (after a warm-up case there) -->" in r.stdout
     cams = sorted(json.loads(p.read_text())["cases"][0]["f64_vs_f32_camera"] for p in paths)
     head = r.stdout.index("f64 / f32 speed, camera rays")
     row = next(l for l in r.stdout[head:].splitlines() if l.startswith("| 1 |"))
     assert row == f"| 1 | {(cams[0] + cams[1]) / 2:.2f} [{cams[0]:.2f}–{cams[1]:.2f}] |", row
+    # runs whose cases ran differently are not one table's: one line, exit 2
+    one = json.loads(paths[1].read_text())
+    one["meta"]["cases_in"] = "one process"
+    paths[1].write_text(json.dumps(one))
+    r = subprocess.run([sys.executable, "benchmarks/readme_tables.py", *map(str, paths)],
+                       cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and r.stdout == "" and len(r.stderr.strip().splitlines()) == 1
+    assert "ran their cases differently" in r.stderr, r.stderr
 
 
 def test08b_readme_tables_refuse_what_is_not_a_run(tmp_path):
