@@ -127,7 +127,8 @@ def main(paths) -> int:
         runs.append(run)
     primary = [r for r in runs if _kind(r) == "primary"]
     shaded = [r for r in runs if _kind(r) == "shaded"]
-    groups = (("primary rays", primary, primary_tables), ("shaded images", shaded, shaded_table))
+    groups = (("primary rays", primary, primary_tables),
+              ("shaded images", shaded, shaded_table))
     for label, group, _ in groups:
         # (runs from before the JSON said where its cases ran had them all in one process)
         ways = {r["meta"].get("cases_in", "one process") for r in group}

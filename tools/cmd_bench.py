@@ -27,8 +27,9 @@ def add_parser(sub) -> None:
                        description="Trace identical 1920x1080 camera rays with rt_core (f32, "
                                    "f64) and Mitsuba 3 (ray_intersect_preliminary) against N "
                                    "finite planes, N spheres and a mixed scene, interleaved, "
-                                   "each case in a process of its own: Mrays/s, first call (compilation), scene "
-                                   "preparation, peak memory, and the ratio rt_core/Mitsuba. "
+                                   "each case in a process of its own: Mrays/s, first call "
+                                   "(compilation), scene preparation, peak memory, and the "
+                                   "ratio rt_core/Mitsuba. "
                                    "Compare ratios, not absolute times, on a shared machine.")
     p.add_argument("--objects", type=at_most(MAX_OBJECTS, "the scenes' tables grow with it"),
                    nargs="+", default=None,

@@ -34,7 +34,8 @@ import numpy as np
 
 from rt_core.scene import Material, PointLight, Scene
 
-from .bench import PROCESS, SCENES, bench_scene, first_call, in_own_process, machine, round_robin
+from .bench import (PROCESS, SCENES, bench_scene, first_call, in_own_process, machine,
+                    round_robin)
 
 SHADED_OBJECTS = (1, 16, 256, 4096)
 DEFAULT_LIGHTS = 4

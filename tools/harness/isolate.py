@@ -11,7 +11,8 @@ The child first runs a small case of the same function (``warm``): what the firs
 run in one process pays once (Dr.Jit's LLVM back end, Mitsuba's variant and plugins) is then
 paid before the measured case, not inside its first call.  It writes the case's JSON to a
 file in a temporary folder, which the parent reads and removes.  A child that fails ends the
-run with one line, its own last line.  A signal that ends the parent ends the child too
+run with one line: its error's, which it writes to a file beside the JSON (stderr's last line
+where it wrote none: a crash).  A signal that ends the parent ends the child too
 (``subprocess.run`` kills it on the way out).
 
     python -m tools.harness.isolate SPEC.json OUT.json   (the child; SPEC from ``run_case``)
