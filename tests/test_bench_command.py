@@ -344,11 +344,29 @@ def test10_each_case_runs_in_a_process_of_its_own(tmp_path, monkeypatch):
         assert {k: v.get("differ_from_f32") for k, v in a["tracers"].items()} == \
             {k: v.get("differ_from_f32") for k, v in b["tracers"].items()}
     sh = bench_shaded.run_shaded([1], ["spheres"], columns=32, reps=1,
-                                 tracers=["rt_core-f32", "mitsuba"])
+                                 tracers=["rt_core-f32", "mitsuba"], threads=1)
     assert sh["cases"][0]["pid"] not in (os.getpid(), *pids)
+    assert sh["cases"][0]["drjit_threads"] == 1       # (--threads reaches the case's process)
     assert sh["meta"]["cases_in"] == bench.PROCESS[True]
     assert sh["cases"][0]["tracers"]["rt_core-f32"]["pixels_differ_from_mitsuba"] <= 0.02 * 32 * 18
     assert os.listdir(tmp_path) == []
+
+
+def test10a_the_warm_up_makes_what_every_case_shares_and_none_of_the_case(tmp_path,
+                                                                          monkeypatch):
+    """The case's process warms up on another scene kind first: with an empty kernel cache,
+    the measured case's first call still compiles rt_core's kernels of that case (the
+    warm-up made none of them: one of the same kind and count did, for mixed 1), while
+    Mitsuba's kernel, the same for every scene, was made in the warm-up, as the first case
+    of a run in one process made it for the rest."""
+    from tools.harness import bench
+    for kind in ("mixed", "spheres"):
+        # (an empty cache each: mixed's warm-up is spheres 1, whose kernels it would hold)
+        monkeypatch.setenv("DRJIT_CACHE_DIR", str(tmp_path / kind))
+        case = bench.run_bench([1], [kind], columns=32, reps=1)["cases"][0]
+        tr = case["tracers"]
+        assert tr["rt_core-f32"]["compiled"] >= 1 and tr["rt_core-f64"]["compiled"] >= 1, kind
+        assert tr["mitsuba"]["compiled"] == 0, (kind, tr["mitsuba"])
 
 
 def test10b_a_case_that_fails_ends_the_run_in_one_line(tmp_path, monkeypatch):
@@ -365,6 +383,7 @@ def test10b_a_case_that_fails_ends_the_run_in_one_line(tmp_path, monkeypatch):
     msg = str(e.value)
     assert msg.startswith("bench nosuch N=1: its process failed (exit 1): ValueError: bench "
                           "scene must be one of") and "\n" not in msg, msg
+    assert msg.endswith("; --one-process runs it here, with its traceback"), msg
     assert e.value.exit_code == 1 and os.listdir(tmp_path) == []
     # the error's own line, not what the process printed after it (at exit)
     mod = tmp_path.parent / f"{tmp_path.name}-mod"
@@ -376,7 +395,8 @@ def test10b_a_case_that_fails_ends_the_run_in_one_line(tmp_path, monkeypatch):
     monkeypatch.setenv("PYTHONPATH", str(mod))
     with pytest.raises(InputError) as e:
         run_case("bench late", "late_words", "fails", {})
-    assert str(e.value) == "bench late: its process failed (exit 1): ValueError: the case broke"
+    assert str(e.value) == ("bench late: its process failed (exit 1): ValueError: the case "
+                            "broke; --one-process runs it here, with its traceback")
     assert os.listdir(tmp_path) == []
     if not _has_cuda():
         # (the backend reaches the case's process: there, no CUDA device)
@@ -400,23 +420,75 @@ def _children(pid: int) -> list[int]:
     return out
 
 
-def test10c_sigterm_ends_the_cases_process_too(tmp_path):
-    """SIGTERM to rtval bench while a case runs in its own process: exit 143 in one line,
-    the case's process gone, its folder removed."""
-    import signal
+def _start_long_bench(tmp_path):
+    """rtval bench on a long case, once that case's process runs: (the process, its child)."""
     import time
     p = subprocess.Popen([sys.executable, "-m", "tools.cli", "bench", "--objects", "4096",
                           "--scenes", "spheres", "--reps", "500", "--keep-cache"],
                          cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                          env={**os.environ, "TMPDIR": str(tmp_path)})
     t0 = time.monotonic()
-    while not (kids := _children(p.pid)):
-        assert p.poll() is None and time.monotonic() - t0 < 120, "no case's process appeared"
-        time.sleep(0.05)
+    try:
+        while not (kids := _children(p.pid)):
+            assert p.poll() is None and time.monotonic() - t0 < 120, "no case's process"
+            time.sleep(0.05)
+    except BaseException:
+        p.kill()
+        p.communicate()
+        raise
     time.sleep(1.0)                     # (well into its imports or its case)
-    p.send_signal(signal.SIGTERM)
-    _, err = p.communicate(timeout=120)
-    assert p.returncode == 128 + signal.SIGTERM and "Traceback" not in err, err
-    assert err.strip().splitlines()[-1] == "rtval: terminated by SIGTERM", err
-    assert not [k for k in kids if os.path.exists(f"/proc/{k}")]
-    assert not [n for n in os.listdir(tmp_path) if n.startswith("rtval-case-")]
+    return p, kids
+
+
+def _gone(pids, within: float = 20.0) -> bool:
+    import time
+    t0 = time.monotonic()
+    while any(os.path.exists(f"/proc/{k}") for k in pids):
+        if time.monotonic() - t0 > within:
+            return False
+        time.sleep(0.05)
+    return True
+
+
+def test10c_sigterm_ends_the_cases_process_too(tmp_path):
+    """SIGTERM to rtval bench while a case runs in its own process: exit 143 in one line,
+    the case's process gone, its folder removed.  SIGKILL to rtval bench: the case's
+    process dies with it (the kernel's parent-death signal), not running on alone."""
+    import signal
+    p, kids = _start_long_bench(tmp_path)
+    try:
+        p.send_signal(signal.SIGTERM)
+        _, err = p.communicate(timeout=120)
+        assert p.returncode == 128 + signal.SIGTERM and "Traceback" not in err, err
+        assert err.strip().splitlines()[-1] == "rtval: terminated by SIGTERM", err
+        assert _gone(kids, 0.0)
+        assert not [n for n in os.listdir(tmp_path) if n.startswith("rtval-case-")]
+    finally:
+        p.kill()
+        p.communicate()
+    p, kids = _start_long_bench(tmp_path)
+    try:
+        p.kill()
+        p.communicate(timeout=60)
+        assert _gone(kids), "the case's process outlived rtval bench's SIGKILL"
+    finally:
+        for k in kids:
+            with __import__("contextlib").suppress(OSError):
+                os.kill(k, signal.SIGKILL)
+
+
+@pytest.mark.parametrize("one", [False, True], ids=["default", "one-process"])
+def test10d_the_command_line_picks_where_cases_run(tmp_path, one):
+    """rtval bench runs each case in its own process unless --one-process, both modes; the
+    JSON says which, and each case its process."""
+    for mode in ([], ["--shaded", "--tracers", "rt_core-f32", "mitsuba"]):
+        out = tmp_path / "b.json"
+        r = subprocess.run([sys.executable, "-m", "tools.cli", "bench", *mode, "--objects", "1",
+                            "--scenes", "spheres", "--columns", "32", "--reps", "1",
+                            "--keep-cache", "-o", str(out)] + (["--one-process"] if one else []),
+                           cwd=REPO, capture_output=True, text=True, timeout=300)
+        assert r.returncode == 0, r.stderr
+        res = json.loads(out.read_text())
+        assert res["meta"]["cases_in"] == ("one process" if one else
+                                           "a process each (after a warm-up case there)")
+        assert all(("pid" in c) != one for c in res["cases"]), res["cases"]

@@ -6,6 +6,7 @@ a memory limit is an address-space rlimit on the child process.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import resource
 import signal
@@ -127,6 +128,41 @@ def test03_full_file_system_small_write_is_not_lost(full_dir, opt, name):
     r = rtval("render", SEED, "--columns", 4, "--rows", 3, opt, full_dir / name)
     one_line(r, 2, f"{full_dir / name}: cannot write: no space left on device")
     assert sorted(p.name for p in full_dir.iterdir()) == ["fill"]
+
+
+def test03b_full_temporary_folder_bench(full_dir, tmp_path, monkeypatch):
+    """rtval bench runs each case in its own process, its files in a temporary folder (where
+    Python's tempfile finds TMPDIR unwritable it takes another): a full one is one line,
+    what to do, and nothing left there, on both sides."""
+    import json
+    import tempfile
+    from rt_core.usererror import InputError
+    from tools.harness.isolate import run_case
+    top = full_dir / "top"                  # (its last free bytes too: a JSON is small)
+    with open(top, "wb", buffering=0) as f:
+        with contextlib.suppress(OSError):
+            while True:
+                f.write(b"\0" * 256)
+    try:
+        # the parent: the case's spec cannot be written
+        monkeypatch.setattr(tempfile, "tempdir", str(full_dir))
+        with pytest.raises(InputError) as e:
+            run_case("bench spheres N=1", "builtins", "dict", {"a": 1})
+        assert e.value.exit_code == 2 and "no space left on device" in str(e.value) and \
+            "free some space there" in str(e.value), str(e.value)
+        assert sorted(p.name for p in full_dir.iterdir()) == ["fill", "top"]
+        # the case's process: its result cannot be written
+        spec = tmp_path / "spec.json"
+        spec.write_text(json.dumps({"module": "builtins", "function": "dict",
+                                    "kwargs": {"a": 1}, "parent": os.getpid()}))
+        r = subprocess.run([sys.executable, "-m", "tools.harness.isolate", str(spec),
+                            str(full_dir / "case.json")], cwd=REPO, capture_output=True,
+                           text=True, timeout=300)
+        one_line(r, 2, "cannot write the case's result", "no space left on device",
+                 "free some space there")
+        assert sorted(p.name for p in full_dir.iterdir()) == ["fill", "top"]
+    finally:
+        top.unlink()
 
 
 def test04_full_file_system_other_commands(full_dir, tmp_path):

@@ -1,4 +1,5 @@
-"""rtval bench: rt_core f32/f64 against Mitsuba's preliminary intersection, in one process."""
+"""rtval bench: rt_core f32/f64 against Mitsuba's preliminary intersection, each case in a
+process of its own (tools/harness/isolate.py)."""
 from __future__ import annotations
 
 import json
@@ -50,11 +51,12 @@ def add_parser(sub) -> None:
                         "object) and fully unrolled (up to 64 objects)")
     p.add_argument("--one-process", action="store_true",
                    help="run every case in this process (default: each in a process of its "
-                        "own, after a warm-up case there; in one process the later cases run "
-                        "slower for what the earlier ones left in Dr.Jit)")
+                        "own, after a warm-up case there: in one process a case's times "
+                        "depended on the cases run before it)")
     p.add_argument("--keep-cache", action="store_true",
                    help="use Dr.Jit's on-disk kernel cache (default: an empty one, so that "
-                        "first calls show compilation)")
+                        "rt_core's first calls show compilation; Mitsuba's primary-ray kernel, "
+                        "the same for every scene, is made in the first case or warm-up)")
     p.add_argument("--shaded", action="store_true",
                    help="time the course's whole shading instead (primary hit, one shadow ray "
                         "per light per hit, one reflection bounce with its shadows) against "

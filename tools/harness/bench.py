@@ -399,9 +399,11 @@ PROCESS = {True: "a process each (after a warm-up case there)", False: "one proc
 def in_own_process(label: str, function: str, kw: dict, threads=None,
                    module: str = "tools.harness.bench") -> dict:
     """``function(**kw)`` of ``module`` in a process of its own, after a warm-up case there:
-    the mixed scene of one object at 64 columns, one call a side."""
+    one object of another scene kind than the case's (none of the case's own kernels made
+    there) at 64 columns, a first call and one timed call a side."""
     from tools.harness.isolate import run_case
-    warm = dict(kw, kind="mixed", n=1, columns=64, reps=1)
+    warm = dict(kw, kind="fplanes" if kw["kind"] == "spheres" else "spheres", n=1,
+                columns=64, reps=1)
     return run_case(label, module, function, kw, warm, threads)
 
 

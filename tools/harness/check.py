@@ -43,6 +43,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .pipes import Tail as _Tail
+
 CLASSES = ("match", "rounding", "boundary", "variant", "wrong")
 # named colours of the class image (legend in the report)
 # (told apart by the colour-blind too: no green beside the red, a red that is not dark, a
@@ -1397,36 +1399,6 @@ def _signal_name(sig: int) -> str | None:
         return signal.Signals(sig).name
     except ValueError:
         return None
-
-
-class _Tail:
-    """The last KEEP bytes a pipe carries, read in a thread until it closes (a tracer may
-    print gigabytes of debug lines), or until ``stop`` (a child that left the process group
-    may hold the pipe open: its reading is abandoned then)."""
-    KEEP = 1 << 14
-
-    def __init__(self, pipe):
-        import threading
-        self.buf = b""
-        self.thread = threading.Thread(target=self._read, args=(pipe,), daemon=True)
-        self.thread.start()
-
-    def _read(self, pipe):
-        with contextlib.suppress(OSError, ValueError):
-            with pipe:
-                while chunk := os.read(pipe.fileno(), 1 << 16):
-                    self.buf = (self.buf + chunk)[-self.KEEP:]
-
-    def stop(self):
-        self.thread.join(timeout=2)
-
-    def last_line(self) -> str:
-        """The last line said, without terminal escapes and control characters (they made
-        the JUnit XML ill-formed), at most 200 characters."""
-        text = re.sub(r"\x1b\[[0-9;?]*[ -/]*[@-~]", "", self.buf.decode("utf-8", "replace"))
-        text = "".join(c if c.isprintable() or c == "\n" else " " for c in text)
-        lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
-        return lines[-1][:200] if lines else ""
 
 
 def seconds_per_check(columns: int) -> float:

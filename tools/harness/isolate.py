@@ -1,30 +1,36 @@
 """One benchmark case in a Python process of its own (``rtval bench``'s default, every mode
 but ``--command``, which starts a process per run anyway).
 
-In one process a case's times depend on the cases before it: Dr.Jit keeps what earlier cases
-loaded (their kernels, tables that never shrink), and the later cases trace and run slower.
-Measured (primary rays, 1920 columns, same commit): spheres 16's rt_core float32 took 3.80 ms
-after the finite-plane cases, 3.40 ms on its own, while Mitsuba's 7.78 and 7.98 ms stayed
-within its spread (docs/speed.md, "Each case in a process of its own").
+In one process a case's times depended on the cases before it (primary rays, 1920 columns,
+same commit: spheres 16's rt_core float32 took 3.80 ms after the finite-plane cases, 3.40 ms
+on its own, while Mitsuba's 7.78 and 7.98 ms stayed within its spread; the cause is not
+found: docs/speed.md, "Each case in a process of its own").
 
-The child first runs a small case of the same function (``warm``): what the first case of a
-run in one process pays once (Dr.Jit's LLVM back end, Mitsuba's variant and plugins) is then
-paid before the measured case, not inside its first call.  It writes the case's JSON to a
-file in a temporary folder, which the parent reads and removes.  A child that fails ends the
-run with one line: its error's, which it writes to a file beside the JSON (stderr's last line
-where it wrote none: a crash).  A signal that ends the parent ends the child too
-(``subprocess.run`` kills it on the way out).
+The child first runs a small warm-up case of the same function (``warm``, another scene kind
+than the case's, so that none of the case's own kernels is made there): what the first case
+of a run in one process paid once (Dr.Jit's LLVM back end, Mitsuba's variant and plugins, its
+scene-independent kernels) is then paid before the measured case, not inside its first call.
+It writes the case's JSON, with the process's ``pid`` and Dr.Jit's thread count, to a file in
+a temporary folder, which the parent reads and removes.  A child that fails ends the run with
+one line: its error's, which it writes to a file beside the JSON (what a library prints at
+exit may follow it on stderr), or the signal that killed it.  The child dies with its parent:
+by ``subprocess.run``'s kill when a signal ends the parent, and by the kernel's parent-death
+signal when the parent is killed outright.
 
     python -m tools.harness.isolate SPEC.json OUT.json   (the child; SPEC from ``run_case``)
 """
 from __future__ import annotations
 
+import contextlib
 import importlib
 import json
 import os
+import signal
 import subprocess
 import sys
 import tempfile
+
+from tools.harness.pipes import Tail
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -32,58 +38,118 @@ REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 def run_case(label: str, module: str, function: str, kwargs: dict, warm: dict | None = None,
              threads: int | None = None) -> dict:
     """``module.function(**kwargs)`` (a JSON-able dict) in a new Python process, after
-    ``module.function(**warm)`` there; ``threads``: Dr.Jit's worker threads there."""
+    ``module.function(**warm)`` there; ``threads``: Dr.Jit's worker threads there.  A
+    failure raises InputError: the child's exit code where it said why (a user's error: its
+    code; a bug: 1), 128 + the signal's number where a signal killed it."""
     from rt_core.usererror import InputError
     spec = {"module": module, "function": function, "kwargs": kwargs, "warm": warm,
-            "threads": threads}
-    with tempfile.TemporaryDirectory(prefix="rtval-case-") as d:
+            "threads": threads, "parent": os.getpid()}
+    try:
+        tmp = tempfile.TemporaryDirectory(prefix="rtval-case-")
+        d = tmp.name
         spec_path, out = os.path.join(d, "spec.json"), os.path.join(d, "case.json")
         with open(spec_path, "w") as f:
             json.dump(spec, f)
-        r = subprocess.run([sys.executable, "-m", "tools.harness.isolate", spec_path, out],
-                           cwd=REPO, capture_output=True, text=True)
-        if r.returncode != 0 or not os.path.exists(out):
-            # its error's line, as the child wrote it (what Dr.Jit or nanobind print at
-            # exit may follow it on stderr), else stderr's last line (a crash)
-            try:
-                with open(out + ".error") as f:
-                    last = f.read().strip()
-            except OSError:
-                last = (r.stderr.strip().splitlines() or ["(no message)"])[-1]
-            err = InputError(f"{label}: its process failed (exit {r.returncode}): {last}")
-            err.exit_code = r.returncode if r.returncode in (1, 2) else 1
+    except OSError as e:
+        if "tmp" in locals():
+            tmp.cleanup()
+        raise InputError(f"{label}: cannot write its files in {tempfile.gettempdir()}: "
+                         f"{(e.strerror or str(e)).lower()}; free some space there or set "
+                         "TMPDIR to a folder that has some") from None
+    with tmp:
+        p = subprocess.Popen([sys.executable, "-m", "tools.harness.isolate", spec_path, out],
+                             cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        said = Tail(p.stderr)           # (its last lines only: a case may print a lot)
+        try:
+            code = p.wait()
+        except BaseException:           # a signal, Ctrl-C: the case ends with the run
+            p.kill()
+            p.wait()
+            raise
+        finally:
+            said.stop()
+        if code == 0 and os.path.exists(out):
+            with open(out) as f:
+                return json.load(f)
+        if code < 0:
+            name = _signal_name(-code)
+            err = InputError(f"{label}: its process was killed by {name}"
+                             + (" (what the system's out-of-memory killer sends: try fewer "
+                                "--columns or --objects)" if name == "SIGKILL" else ""))
+            err.exit_code = 128 - code
             raise err
-        with open(out) as f:
-            return json.load(f)
+        try:
+            with open(out + ".error") as f:
+                why = f.read().strip()
+        except OSError:
+            why = ""
+        why = why or said.last_line() or "(no message)"
+        err = InputError(f"{label}: its process failed (exit {code}): {why}"
+                         + ("; --one-process runs it here, with its traceback"
+                            if code == 1 else ""))
+        err.exit_code = code
+        raise err
+
+
+def _signal_name(sig: int) -> str:
+    try:
+        return signal.Signals(sig).name
+    except ValueError:
+        return f"signal {sig}"
+
+
+def _die_with_parent(parent: int) -> None:
+    """Have the kernel kill this process when its parent dies (Linux's PR_SET_PDEATHSIG), and
+    exit now if it already has."""
+    try:
+        import ctypes
+        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL))   # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+    if os.getppid() != parent:
+        os._exit(1)
 
 
 def main(argv: list[str]) -> int:
     spec_path, out = argv
     with open(spec_path) as f:
         spec = json.load(f)
+    _die_with_parent(spec["parent"])
+    import drjit as dr
     if spec.get("threads"):
-        import drjit as dr
         dr.set_thread_count(spec["threads"])
     fn = getattr(importlib.import_module(spec["module"]), spec["function"])
     from rt_core.errors import USER_ERRORS
 
     def said(line: str) -> None:
-        with open(out + ".error", "w") as f:
-            f.write(line)
+        try:
+            with open(out + ".error", "w") as f:
+                f.write(line)
+        except OSError:                 # (a full disk: the parent reads stderr instead)
+            with contextlib.suppress(OSError):
+                os.unlink(out + ".error")
+            print(line, file=sys.stderr)
     try:
         if spec.get("warm"):
             fn(**spec["warm"])
-        case = dict(fn(**spec["kwargs"]), pid=os.getpid())   # (the process it ran in)
+        # (the process it ran in, and its Dr.Jit thread count)
+        case = dict(fn(**spec["kwargs"]), pid=os.getpid(), drjit_threads=dr.thread_count())
     except USER_ERRORS as e:
         said(str(e).splitlines()[0] if str(e) else type(e).__name__)
-        print(f"rtval bench: {str(e).splitlines()[0] if str(e) else type(e).__name__}",
-              file=sys.stderr)
         return getattr(e, "exit_code", 2)
     except Exception as e:              # a bug: its traceback on stderr, its last line here
         said(f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}".rstrip(": "))
         raise
-    with open(out, "w") as f:
-        json.dump(case, f)
+    try:
+        with open(out, "w") as f:
+            json.dump(case, f)
+    except OSError as e:
+        with contextlib.suppress(OSError):
+            os.unlink(out)
+        said(f"cannot write the case's result in {os.path.dirname(out)}: "
+             f"{(e.strerror or str(e)).lower()}; free some space there or set TMPDIR to a "
+             "folder that has some")
+        return 2
     return 0
 
 
