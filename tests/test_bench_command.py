@@ -391,12 +391,33 @@ def test10b_a_case_that_fails_ends_the_run_in_one_line(tmp_path, monkeypatch):
     (mod / "late_words.py").write_text(
         "import atexit, sys\n"
         "atexit.register(lambda: print('a warning at exit', file=sys.stderr))\n"
-        "def fails(**kw):\n    raise ValueError('the case broke')\n")
+        "def fails(**kw):\n    raise ValueError('the case broke')\n"
+        "def quits(**kw):\n    sys.exit(0)\n"
+        "def reads(**kw):\n    open('/nonexistent/scene.txt')\n"
+        "def warns(**kw):\n    print('a warning of the case', file=sys.stderr)\n"
+        "    return {'a': 1}\n")
     monkeypatch.setenv("PYTHONPATH", str(mod))
     with pytest.raises(InputError) as e:
         run_case("bench late", "late_words", "fails", {})
     assert str(e.value) == ("bench late: its process failed (exit 1): ValueError: the case "
                             "broke; --one-process runs it here, with its traceback")
+    assert os.listdir(tmp_path) == []
+    # a process that ends well without a result has failed all the same (not exit 0)
+    with pytest.raises(InputError) as e:
+        run_case("bench quits", "late_words", "quits", {})
+    assert e.value.exit_code == 1 and "its process failed (exit 1)" in str(e.value)
+    # a file error worded as the command line words it in one process, its code kept
+    with pytest.raises(InputError) as e:
+        run_case("bench reads", "late_words", "reads", {})
+    assert str(e.value) == ("bench reads: its process failed (exit 2): /nonexistent/scene.txt: "
+                            "no such file or directory") and e.value.exit_code == 2
+    # what a case that succeeds says on stderr is passed on, as in one process
+    import contextlib
+    import io
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        assert run_case("bench warns", "late_words", "warns", {})["a"] == 1
+    assert "a warning of the case" in err.getvalue()
     assert os.listdir(tmp_path) == []
     if not _has_cuda():
         # (the backend reaches the case's process: there, no CUDA device)
@@ -471,6 +492,15 @@ def test10c_sigterm_ends_the_cases_process_too(tmp_path):
         p.kill()
         p.communicate(timeout=60)
         assert _gone(kids), "the case's process outlived rtval bench's SIGKILL"
+        # its folder stays, and the next run's first case removes it
+        left = [n for n in os.listdir(tmp_path) if n.startswith("rtval-case-")]
+        assert len(left) == 1, left
+        r = subprocess.run([sys.executable, "-m", "tools.cli", "bench", "--objects", "1",
+                            "--scenes", "spheres", "--columns", "32", "--reps", "1",
+                            "--keep-cache"], cwd=REPO, capture_output=True, text=True,
+                           timeout=300, env={**os.environ, "TMPDIR": str(tmp_path)})
+        assert r.returncode == 0, r.stderr
+        assert not [n for n in os.listdir(tmp_path) if n.startswith("rtval-case-")]
     finally:
         for k in kids:
             with __import__("contextlib").suppress(OSError):

@@ -14,8 +14,9 @@ It writes the case's JSON, with the process's ``pid`` and Dr.Jit's thread count,
 a temporary folder, which the parent reads and removes.  A child that fails ends the run with
 one line: its error's, which it writes to a file beside the JSON (what a library prints at
 exit may follow it on stderr), or the signal that killed it.  The child dies with its parent:
-by ``subprocess.run``'s kill when a signal ends the parent, and by the kernel's parent-death
-signal when the parent is killed outright.
+killed by the parent when a signal ends it, and by the kernel's parent-death signal when the
+parent is killed outright.  The temporary folder is ``rtval-case-TAG-PID-*``: one a killed
+run left is removed by the next (``rt_core.outputs.scratch_dir``).
 
     python -m tools.harness.isolate SPEC.json OUT.json   (the child; SPEC from ``run_case``)
 """
@@ -40,35 +41,45 @@ def run_case(label: str, module: str, function: str, kwargs: dict, warm: dict | 
     """``module.function(**kwargs)`` (a JSON-able dict) in a new Python process, after
     ``module.function(**warm)`` there; ``threads``: Dr.Jit's worker threads there.  A
     failure raises InputError: the child's exit code where it said why (a user's error: its
-    code; a bug: 1), 128 + the signal's number where a signal killed it."""
+    code; a bug, or no result: 1), 128 + the signal's number where a signal killed it.  What
+    the child says on stderr is passed on (its last 16 KiB)."""
+    import shutil
+    from rt_core.outputs import scratch_dir
     from rt_core.usererror import InputError
     spec = {"module": module, "function": function, "kwargs": kwargs, "warm": warm,
             "threads": threads, "parent": os.getpid()}
+    d = None
     try:
-        tmp = tempfile.TemporaryDirectory(prefix="rtval-case-")
-        d = tmp.name
+        # (rtval-case-TAG-PID-*: the ones killed runs left are removed by the next)
+        d = scratch_dir("case")
         spec_path, out = os.path.join(d, "spec.json"), os.path.join(d, "case.json")
         with open(spec_path, "w") as f:
             json.dump(spec, f)
     except OSError as e:
-        if "tmp" in locals():
-            tmp.cleanup()
+        if d is not None:
+            shutil.rmtree(d, ignore_errors=True)
         raise InputError(f"{label}: cannot write its files in {tempfile.gettempdir()}: "
                          f"{(e.strerror or str(e)).lower()}; free some space there or set "
                          "TMPDIR to a folder that has some") from None
-    with tmp:
-        p = subprocess.Popen([sys.executable, "-m", "tools.harness.isolate", spec_path, out],
-                             cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-        said = Tail(p.stderr)           # (its last lines only: a case may print a lot)
+    try:
+        p = said = None
         try:
+            p = subprocess.Popen([sys.executable, "-m", "tools.harness.isolate", spec_path,
+                                  out], cwd=REPO, stdout=subprocess.DEVNULL,
+                                 stderr=subprocess.PIPE)
+            said = Tail(p.stderr)       # (its last lines only: a case may print a lot)
             code = p.wait()
         except BaseException:           # a signal, Ctrl-C: the case ends with the run
-            p.kill()
-            p.wait()
+            if p is not None:
+                p.kill()
+                p.wait()
             raise
         finally:
-            said.stop()
+            if said is not None:
+                said.stop()
         if code == 0 and os.path.exists(out):
+            if said.buf.strip():        # (its warnings, as in one process)
+                sys.stderr.write(said.buf.decode("utf-8", "replace"))
             with open(out) as f:
                 return json.load(f)
         if code < 0:
@@ -84,11 +95,14 @@ def run_case(label: str, module: str, function: str, kwargs: dict, warm: dict | 
         except OSError:
             why = ""
         why = why or said.last_line() or "(no message)"
+        code = code or 1                # (exit 0 and no result: a failure all the same)
         err = InputError(f"{label}: its process failed (exit {code}): {why}"
                          + ("; --one-process runs it here, with its traceback"
                             if code == 1 else ""))
         err.exit_code = code
         raise err
+    finally:
+        shutil.rmtree(d, ignore_errors=True)
 
 
 def _signal_name(sig: int) -> str:
@@ -135,7 +149,11 @@ def main(argv: list[str]) -> int:
         # (the process it ran in, and its Dr.Jit thread count)
         case = dict(fn(**spec["kwargs"]), pid=os.getpid(), drjit_threads=dr.thread_count())
     except USER_ERRORS as e:
-        said(str(e).splitlines()[0] if str(e) else type(e).__name__)
+        # (worded as the CLI words it in one process)
+        if isinstance(e, OSError) and e.filename:
+            said(f"{e.filename}: {(e.strerror or str(e)).lower()}")
+        else:
+            said(str(e).splitlines()[0] if str(e) else type(e).__name__)
         return getattr(e, "exit_code", 2)
     except Exception as e:              # a bug: its traceback on stderr, its last line here
         said(f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}".rstrip(": "))
