@@ -228,6 +228,16 @@ def _near_pixels(scene, W, H, rules, limit):
     return [p for p in range(W * H) if got["seen"][p]], got
 
 
+def _scenes_with_near_pixels(scenes, rules, limit, W: int = 12):
+    """(scene, W, H, its near pixels, _near_pixels' shade) of each of ``scenes`` that has
+    any, at W columns."""
+    for scene in scenes:
+        H = scene.default_rows(W)
+        pick, got = _near_pixels(scene, W, H, rules, limit)
+        if pick:
+            yield scene, W, H, pick, got
+
+
 @pytest.mark.parametrize("limit", [None, F32_LIMIT], ids=["f64", "f32"])
 def test11_paths_with_decisions_flipped(limit):
     """Each near decision of a pixel taken the other way, alone and all together: the batch's
@@ -235,12 +245,7 @@ def test11_paths_with_decisions_flipped(limit):
     (no hit to take: a sphere's discriminant, a plane parallel to the ray) the batch says so
     ('raised')."""
     lanes, raised = [], 0
-    for scene in SCENES[::3]:
-        W = 12
-        H = scene.default_rows(W)
-        pick, got = _near_pixels(scene, W, H, Rules(), limit)
-        if not pick:
-            continue
+    for scene, W, H, pick, got in _scenes_with_near_pixels(SCENES[::3], Rules(), limit):
         todo = [(p, frozenset([k])) for p in pick for k in got["seen"][p]] + \
             [(p, frozenset(got["seen"][p])) for p in pick]
         px = np.array([p for p, _ in todo])
@@ -268,12 +273,7 @@ def test12_other_sides_of(limit, rules, monkeypatch):
     calls = []
     shade = shade_batch.shade
     monkeypatch.setattr(shade_batch, "shade", lambda *a, **k: calls.append(1) or shade(*a, **k))
-    for scene in SCENES[1::2]:
-        W = 12
-        H = scene.default_rows(W)
-        pick, got = _near_pixels(scene, W, H, rules, limit)
-        if not pick:
-            continue
+    for scene, W, H, pick, _ in _scenes_with_near_pixels(SCENES[1::2], rules, limit):
         firsts = None
         if limit is None:
             firsts = shade_oracle.shade_pixels(scene, W, H, pick, "corners", rules)["paths"]
@@ -306,12 +306,7 @@ def test12b_other_sides_of_with_targets(limit, monkeypatch):
     monkeypatch.setattr(shade_oracle, "_paths",
                         lambda *a: lanes.append(len(a[7])) or paths(*a))
     kinds, traced = set(), {}
-    for scene in SCENES[::2]:
-        W = 12
-        H = scene.default_rows(W)
-        pick, _ = _near_pixels(scene, W, H, Rules(), limit)
-        if not pick:
-            continue
+    for scene, W, H, pick, _ in _scenes_with_near_pixels(SCENES[::2], Rules(), limit):
         lanes.clear()
         full = shade_oracle.other_sides_of(scene, W, H, pick, limit=limit)
         traced["full"] = traced.get("full", 0) + sum(lanes)
