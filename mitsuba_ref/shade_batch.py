@@ -263,10 +263,10 @@ class Groups(list):
 
     def __init__(self, obs):
         super().__init__()
-        for kind, kinds in (("sphere", ("sphere",)), ("plane", oracle.PLANE_KINDS)):
+        for name, kinds in (("sphere", ("sphere",)), ("plane", oracle.PLANE_KINDS)):
             mine = [ob for ob in obs if ob.kind in kinds]
             if mine:
-                self.append(_Group(kind, mine))
+                self.append(_Group(name, mine))
         self.nobj = len(obs)
         self.order = sorted(((k, r) for k, g in enumerate(self) for r in range(len(g.rows))),
                             key=lambda kr: self[kr[0]].rows[kr[1]])

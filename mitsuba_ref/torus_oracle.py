@@ -128,7 +128,7 @@ def _ferr(ob, base, d, t):
 
 def torus_hits(ob, base, d, rules):
     """The oracle's verdict: the smallest t > 0 where f changes sign."""
-    from .oracle import EF, Cand, scale3, sum3
+    from .oracle import EF, scale3, sum3
     coef = _poly(ob, base, d)
     cands = [_polish(ob, base, d, t) for t in _real_roots(coef)]
     # critical points of f: the roots of f' (polished on f' numerically)

@@ -146,7 +146,7 @@ def torus_t(d, o, obj, rules, vz: float, cert=False):
     if o is not None:
         q = q - o
     ax = opaque3(A3, obj.n)
-    R, r = opaque(F, obj.size[0]), opaque(F, obj.size[1])
+    R = opaque(F, obj.size[0])
     Bv, k = opaque(F, obj.radius), opaque(F, obj.c)
     inv = dr.rsqrt(dr.squared_norm(d))
     e = d * inv

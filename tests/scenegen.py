@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 import random
 
-from rt_core.scene import (KINDS, Material, PointLight, Scene, make_fplane, make_plane,
+from rt_core.scene import (Material, PointLight, Scene, make_fplane, make_plane,
                            make_sphere, make_tplane, plane_frame)
 
 

@@ -478,7 +478,6 @@ def test08_margins_rounding_cannot_decide(rules, layout, monkeypatch):
     grid does not show that): rt_core f64's answer is exact arithmetic's on the same rays.
     The flagged rays' directions are read in place (host memory) with the notes' rules, and
     gathered by a kernel (as on CUDA) with the others."""
-    import drjit as dr
     from rt_core import accel
     if rules != Rules():
         monkeypatch.setattr(backend, "host_view", lambda x: None)
@@ -578,7 +577,6 @@ def test10_untamed_objects_keep_the_nan_safe_minimum(layout, monkeypatch):
     value can be NaN: every host number within shapes.TAME.  An object at 1e152, or a
     far viewpoint, is untamed; table rows carry the flag.  Untamed (TAME = 0: dr.minimum
     everywhere), the near-decision rays of test08 get the same answers."""
-    import drjit as dr
     from rt_core import accel, shapes
     from rt_core.parser import parse_text
     from rt_core.tracer import closest_hit, prepare

@@ -10,7 +10,6 @@ import contextlib
 import os
 import resource
 import signal
-import stat
 import subprocess
 import shutil
 import sys
@@ -22,7 +21,7 @@ import pytest
 
 from rt_core import backend
 from rt_core.camera import make_camera
-from rt_core.exrio import ExrError, incomplete, read_exr, write_exr
+from rt_core.exrio import incomplete, read_exr, write_exr
 from rt_core.memory import guard, render_bytes
 from rt_core.outputs import TMP_PREFIX, WriteError, atomic_write
 from rt_core.parser import parse_scene

@@ -71,7 +71,6 @@ def test02b_the_references_read_a_zero_centerline_by_their_own_rule(monkeypatch)
     make a zero one the y axis themselves: with rt_core's rule broken (the x axis), the
     comparison with Mitsuba fails instead of passing on rt_core's own axis (a review)."""
     from rt_core import quadrics
-    from tools.harness.agree import agree
     from tools.harness.compare import compare
     text = "8 6\n0 0 5\n22\n" + M + "-1 -1 -4\n0 0 0\n0.8 2.5\n10\n8 8 8\n0 3 1\n"
     ok = parse_text(text, "cyl0.txt")

@@ -49,7 +49,6 @@ def test02_lens_without_flags_by_its_line_shape():
 
 # --- nw's torus ---------------------------------------------------------------------------------
 
-import dataclasses
 import random
 from fractions import Fraction
 

@@ -389,7 +389,6 @@ def _local_cluster(plan: Plan, scratch: str):
     here SIGINT is ignored only while the fork server starts."""
     import multiprocessing.forkserver
 
-    import dask
     from distributed import LocalCluster
     old = signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
