@@ -129,7 +129,7 @@ def open_input(path, what: str = "image", error=ImageError):
         inp = oiio.ImageInput.open(path, config)
     if inp is None:
         reason = _reason(_error_of(oiio), path)
-        said = _text_before_pnm(path)
+        said = _text_before_pnm(path) or _pnm_header_problem(path)
         if said:
             raise error(f"{path}: {said}")
         raise error(f"{path}: cannot read it as an image ({reason}); "
@@ -158,6 +158,72 @@ def _text_before_pnm(path: str) -> str | None:
                 f"{first}: the tracer printed messages to standard output, where the image "
                 "goes? (print them to stderr, or remove them)")
     return None
+
+
+# a PNM file's extensions: a file named so that does not start with a PNM magic is said
+# to be no PPM (OpenImageIO: "Could not parse spec for file")
+PNM_SUFFIXES = (".ppm", ".pnm", ".pgm", ".pbm")
+_FIELDS = ("width", "height", "maxval")
+
+
+def _pnm_header_problem(path: str) -> str | None:
+    """What is wrong with the header of a file OpenImageIO could not open as a PNM, in the
+    course programs' words: a magic number the course does not write ('p6', 'P7'), a field
+    that is not a number, no maxval, or no whitespace byte after the maxval (the samples
+    written right after it).  None where the file does not look like a PNM (its first byte
+    not 'P' or 'p', and its name not .ppm, .pnm, .pgm, .pbm)."""
+    try:
+        with open(path, "rb") as f:
+            data = f.read(1 << 12)
+    except OSError:
+        return None
+    named = os.path.splitext(path)[1].lower() in PNM_SUFFIXES
+    magic = data[:2]
+    if not re.fullmatch(rb"P[1-6]", magic):
+        course = "a PPM starts with 'P6' (binary samples) or 'P3' (ASCII)"
+        if re.fullmatch(rb"p[1-6]", magic):
+            return f"the magic number is {magic.decode()!r}, lower case; {course}"
+        if re.fullmatch(rb"[Pp][0-9A-Za-z]", magic):
+            return f"the magic number is {magic.decode()!r}, not a PPM's; {course}"
+        if named:
+            shown = data[:16].decode("latin-1")
+            return (f"not a PPM: {course}, this file with {shown!r}"
+                    + (" (text)" if _text(data[:64]) is not None else ""))
+        return None
+    if magic in (b"P1", b"P4"):              # (bitmaps: no maxval; left to OpenImageIO)
+        return None
+    header = f"a {magic.decode()} header is '{magic.decode()} width height maxval' and one " \
+        "whitespace byte (a newline) before the samples"
+    i, n = 2, len(data)
+    for field in _FIELDS:
+        while i < n and (data[i:i + 1].isspace() or data[i:i + 1] == b"#"):
+            if data[i:i + 1] == b"#":            # a comment, to the line's end
+                while i < n and data[i:i + 1] not in (b"\n", b"\r"):
+                    i += 1
+            else:
+                i += 1
+        if i >= n:
+            return f"the header ends before its {field}; {header}"
+        j = i
+        while j < n and data[j:j + 1].isdigit():
+            j += 1
+        if j == i:                       # not a number where the field goes
+            tok = re.match(rb"[^\s#]{1,12}", data[i:])
+            if field == "maxval" and not _text_token(tok):
+                return (f"no maxval after the height (byte {i} is 0x{data[i]:02x}, not a "
+                        f"digit: the samples start there?); {header}")
+            return (f"the header's {field} is {tok.group().decode('latin-1')!r}, not a "
+                    f"number; {header}")
+        if field == "maxval" and j < n and not data[j:j + 1].isspace():
+            return (f"no whitespace byte after the maxval {data[i:j].decode()} (byte {j} is "
+                    f"0x{data[j]:02x}): the samples were written right after it; {header}")
+        i = j
+    return None
+
+
+def _text_token(tok) -> bool:
+    """Is a header token's match printable text (a word), not sample bytes?"""
+    return tok is not None and all(32 < b < 127 for b in tok.group())
 
 
 def _text(data: bytes) -> str | None:
@@ -285,7 +351,7 @@ def read_image(path: str) -> np.ndarray:
                              f"{path}: cannot read the pixels, truncated or corrupt "
                              f"({_reason(_error_of(inp), path)})")
         if inp.format_name() == "pnm" and spec.get_int_attribute("pnm:binary", 1):
-            said = _pnm_surplus(path)
+            said = _pnm_surplus(path) or _binary_samples_over(path)
             if said:
                 raise ImageError(f"{path}: {said}")
     finally:
@@ -370,6 +436,9 @@ def _pnm_diagnosis(path: str, spec) -> str | None:
                     f"{'P6' if magic == 'P3' else 'P5'} for bytes, or the samples as numbers")
         return _ascii_diagnosis(path, start - 1, w, h, w * h * ch)
     one = w * h * ch
+    said = _ascii_under_binary(magic, data, start)
+    if said and body != one * (2 if maxval > 255 else 1):
+        return said
     if maxval > 255 and one <= body < 2 * one:
         return (f"maxval {maxval} means two bytes a sample, but the file holds {body} "
                 f"bytes for {w}x{h} pixels, one a sample: write maxval 255")
@@ -409,6 +478,18 @@ def pnm_maxval(path: str) -> int | None:
     return got[2][3] if got and got[2][0] in _CHANNELS else None
 
 
+def _ascii_under_binary(magic: str, data: bytes, start: int) -> str | None:
+    """A binary PNM header (P6, P5) over samples written as numbers in text (printf's
+    "%d "): its bytes digits and white space only, a few of each."""
+    body = data[start:start + 4096]
+    if magic not in ("P6", "P5") or len(body) < 8 or \
+            body.strip(b"0123456789 \t\r\n") or not re.search(rb"\d\s+\d", body):
+        return None
+    return (f"a {magic} (binary) header over ASCII samples (numbers written as text): write "
+            f"{'P3' if magic == 'P6' else 'P2'} for numbers, or the samples as bytes "
+            "(fwrite, putc)")
+
+
 def _pnm_surplus(path: str) -> str | None:
     """What is wrong with a binary PNM that holds more samples than its header says, which
     OpenImageIO reads without a word: a header whose lines end in CR LF (written in text
@@ -422,6 +503,8 @@ def _pnm_surplus(path: str) -> str | None:
     ch = _CHANNELS[magic]
     row = w * ch * (2 if maxval > 255 else 1)
     need, body = row * h, size - start
+    if body != need and _ascii_under_binary(magic, data, start):
+        return _ascii_under_binary(magic, data, start)
     if body > need and data[start - 1:start + 1] == b"\r\n":
         return ("the header's lines end in CR LF (a file written in text mode?): after "
                 "maxval a PPM takes one byte, so its samples would start a byte late; write "
@@ -449,6 +532,30 @@ def _pnm_surplus(path: str) -> str | None:
                 f"{body}, {(body - need) / row:.3g} row{'s' if body - need != row else ''} more: "
                 "write as many rows as the header says")
     return None
+
+
+def _binary_samples_over(path: str) -> str | None:
+    """A binary PPM or PGM (P6, P5) with a sample above its maxval (a maxval other than 255
+    or 65535, the largest a sample's bytes hold), as _ascii_samples_in_range for ASCII
+    ones: OpenImageIO scales the samples by 255/maxval and clamps, so a tracer's 255 under
+    maxval 1 would read as white.  The first such sample is named by its pixel."""
+    got = _pnm_start(path)
+    if got is None or got[2][0] not in ("P6", "P5") or got[2][3] in (255, 65535):
+        return None
+    _, _, (magic, w, h, maxval, start) = got
+    ch = _CHANNELS[magic]
+    dt = np.dtype(">u2") if maxval > 255 else np.dtype(np.uint8)
+    try:
+        px = np.fromfile(path, dt, w * h * ch, offset=start)
+    except (OSError, ValueError):
+        return None
+    over = np.flatnonzero(px > maxval)
+    if not len(over):
+        return None
+    k = int(over[0]) // ch
+    return (f"sample {int(px[over[0]])} above the maxval {maxval} (column {k % w}, row "
+            f"{k // w}; {len(over)} samples in all); clamp each colour to 0..{maxval} before "
+            f"writing it, or write maxval 255")
 
 
 def _ascii_samples_in_range(path: str) -> None:

@@ -71,7 +71,30 @@ def test03_course_ppm_bytes_and_channels_of_each_format(tmp_path):
      "a P3 (ASCII) header over binary samples: write P6 for bytes"),
     ("short.png", None, "truncated or corrupt"),
     ("header.png", 500, "cannot read it as an image ("),      # cut in its text chunk
-    ("text.ppm", b"P6 garbage\n", "cannot read it as an image ("),
+    ("text.ppm", b"P6 garbage\n", "the header's width is 'garbage', not a number; a P6 "
+     "header is 'P6 width height maxval' and one whitespace byte"),
+    # header mistakes OpenImageIO said only 'Could not parse spec for file' about (a
+    # student's review): the maxval's newline left out, no maxval, a magic in lower case,
+    # a magic the course does not write, a text file named .ppm
+    ("nows.ppm", b"P6\n4 3\n255" + bytes(36), "no whitespace byte after the maxval 255 "
+     "(byte 10 is 0x00): the samples were written right after it"),
+    ("nomax.ppm", b"P6\n4 3\n" + bytes(36), "no maxval after the height (byte 7 is 0x00"),
+    ("lower.ppm", b"p6\n4 3\n255\n" + bytes(36), "the magic number is 'p6', lower case; a "
+     "PPM starts with 'P6' (binary samples) or 'P3' (ASCII)"),
+    ("p7.ppm", b"P7\n4 3\n255\n" + bytes(36), "the magic number is 'P7', not a PPM's"),
+    ("hello.ppm", b"hello\n", "not a PPM: a PPM starts with 'P6' (binary samples) or 'P3' "
+     "(ASCII), this file with 'hello\\n' (text)"),
+    # samples printed as numbers under a binary header: it read as rows too many, or too
+    # few bytes (a student's review)
+    ("p6ascii.ppm", b"P6\n4 3\n255\n" + b"0 0 0 " * 12, "a P6 (binary) header over ASCII "
+     "samples (numbers written as text): write P3 for numbers, or the samples as bytes"),
+    ("p6ascii2.ppm", b"P6\n4 3\n255\n12 34 56 78\n", "a P6 (binary) header over ASCII"),
+    # a binary sample above a maxval below 255, which OpenImageIO scaled and clamped: a
+    # tracer's 255 under maxval 1 read as white (an ASCII one is refused: over.ppm)
+    ("max1.ppm", b"P6\n2 1\n1\n" + bytes([0, 1, 0, 0, 255, 1]),
+     "sample 255 above the maxval 1 (column 1, row 0; 1 samples in all)"),
+    ("max1000.ppm", b"P5\n2 1\n1000\n" + np.array([5, 1001], ">u2").tobytes(),
+     "sample 1001 above the maxval 1000 (column 1, row 0"),
     ("maxval0.ppm", b"P6 4 3 0\n" + bytes(36), "maxval is 0; expected 1 to 65535"),
     ("over.ppm", b"P3\n# c\n2 1\n255\n1 2 3\n300 0 0\n", "ppm:6: sample 300 above the maxval 255"),
     # on the maxval's own line, after a comment naming a larger number
