@@ -745,6 +745,37 @@ def test08j_a_misspelt_placeholder_is_a_usage_error(capsys):
     assert misspelt_placeholder("jq '{count}' {scene} > {out}") is None
 
 
+def test08j2_a_quoted_path_placeholder_is_a_usage_error(ctracer, tmp_path, capsys):
+    """'< "{scene}"' passed until a scene's folder had a space, then the shell said only
+    "cannot open ''/tmp/my scenes/...''" (a student's review): rtval quotes the paths it
+    fills in, so a path placeholder in quotes of its own, or in single quotes, is a usage
+    error (64) saying so; a number in quotes, and sh -c "..." around a path, work, and are
+    not refused (the command below checks a scene in a folder with a space)."""
+    from tools.cli import main
+    from tools.harness.check import quoted_placeholder
+    tracer = ctracer / "course"
+    scene = str(REPO / "scenes" / "mixed.txt")
+    for cmd, bad in ((f'{tracer} {{columns}} {{rows}} < "{{scene}}" > {{out}}', "{scene}"),
+                     (f"{tracer} {{columns}} {{rows}} < {{scene}} > '{{out}}'", "{out}"),
+                     (f"sh -c '{tracer} {{columns}} {{rows}} < {{scene}} > {{out}}'",
+                      "{scene}")):
+        with pytest.raises(SystemExit) as e:
+            main(["check", "--run", cmd, "--columns", "8", scene])
+        assert e.value.code == 64
+        err = capsys.readouterr().err
+        assert f"{bad} is inside" in err and "quotes break on a path with a space" in err, err
+    for ok in ("./ray {columns} \"{rows}\" < {scene} > {out}", "awk '{print $1}' {scene}",
+               'sh -c "./ray < {scene} > {out}"', './ray \\"{scene} > {out}'):
+        assert quoted_placeholder(ok) is None, ok
+    spaced = tmp_path / "my scenes"
+    spaced.mkdir()
+    (spaced / "my sphere.txt").write_text((REPO / "scenes" / "sphere.txt").read_text())
+    code = main(["check", "--run", f'sh -c "{tracer} {{columns}} {{rows}} < {{scene}} > '
+                 '{out}"', "--columns", "16", str(spaced / "my sphere.txt")])
+    out = capsys.readouterr().out
+    assert code == 0 and "PASS" in out, out
+
+
 def test08k_a_directory_of_images_is_checked_scene_by_scene(ctracer, tmp_path, capsys):
     """--images DIR: each scene's image DIR/STEM.ppm (or .png), checked as --run checks what
     the tracer writes: a good image passes, a bug's fails, a missing one is an error (exit

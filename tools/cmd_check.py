@@ -86,11 +86,14 @@ def run(args) -> int:
         if args.hits:
             args.usage_error("--hits is for a given image; with --run put {hits} in the "
                              "command")
-        from tools.harness.check import misspelt_placeholder
+        from tools.harness.check import misspelt_placeholder, quoted_placeholder
         said = misspelt_placeholder(args.run)
         if said:
             args.usage_error(f"--run: {said} (the placeholders: {{scene}} {{out}} "
                              "{columns} {rows} {hits})")
+        said = quoted_placeholder(args.run)
+        if said:
+            args.usage_error(f"--run: {said}")
         from tools.harness.parallel import plan_of
         results = check_run(args.run, args.inputs, args.columns, args.rows, args.timeout,
                             plan_of(args), progress=watch, **kw)

@@ -1301,6 +1301,40 @@ def misspelt_placeholder(template: str) -> str | None:
     return None
 
 
+def quoted_placeholder(template: str) -> str | None:
+    """A path placeholder ({scene}, {out}, {hits}) inside shell quotes: rtval puts each path
+    there quoted for the shell already, so quotes around it break on a path with a space or
+    a quote (a student's review: '< "{scene}"' passed until a folder had a space, then the
+    shell said "cannot open"); None when there is none.  (A number, {columns} or {rows},
+    needs no quotes and takes them; sh -c "./ray < {scene}" passes the path's own quotes on
+    to the inner shell.)"""
+    quote, i, n = None, 0, len(template)
+    while i < n:
+        ch = template[i]
+        if ch == "\\" and quote != "'":             # (an escaped character: skipped)
+            i += 2
+            continue
+        if quote is None and ch in "'\"":
+            quote = ch
+        elif ch == quote:
+            quote = None
+        elif quote is not None:
+            m = re.match(r"\{(scene|out|hits)\}", template[i:])
+            # (in single quotes the path's own quotes end them; double quotes hold them,
+            # as in sh -c "./ray < {scene}", unless they hold the placeholder alone)
+            if m and (quote == "'" or (template[i - 1] == '"' and
+                                       template[i + m.end():i + m.end() + 1] == '"')):
+                kind_ = "double" if quote == '"' else "single"
+                alone = template[i - 1] == quote and \
+                    template[i + m.end():i + m.end() + 1] == quote
+                return (f"{m.group()} is inside {kind_} "
+                        f"quotes; rtval quotes the path it puts there for the shell, so the "
+                        f"quotes break on a path with a space: write {m.group()} without them"
+                        + ("" if alone else " (in sh -c '...', use double quotes)"))
+        i += 1
+    return None
+
+
 # names meant for a placeholder that no spelling distance finds ('{count}', '{print $1}'
 # stay as written; a command that needs jq's '{width}' shorthand writes '{width: .width}')
 PLACEHOLDER_ALIASES = {"output": "out", "outfile": "out", "out_file": "out", "ouput": "out",
