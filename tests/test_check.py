@@ -191,6 +191,62 @@ def test03_each_deviation_is_named(ctracer, build, scene, rule, value, tmp_path)
     assert strict.counts["wrong"] + strict.counts["boundary"] >= f.pixels // 2, strict.counts
 
 
+def test03b_common_mistakes_are_named(tmp_path):
+    """A student's review: pixel-centre sampling, a grey (P5) image and a course variant
+    failed under the rules given were reported as counts of wrong pixels only, and a
+    shading bug's text named no pixel.  Each gets its hint now, and the wrong line a pixel
+    to look at (its colour in the image and in rt_core's) and which way most are off."""
+    from rt_core import backend
+    from rt_core.camera import make_camera
+    from rt_core.imageio import write_ppm
+    from rt_core.parser import parse_scene
+    from rt_core.render import render_image
+    from rt_core.rules import Rules
+    scene = REPO / "scenes" / "shade_shadows.txt"
+    sc = parse_scene(scene)
+
+    def course(sampling="corners", rules=Rules()):
+        imgs, _ = render_image(sc, make_camera(sc, 64, None, sampling, rules),
+                               backend.types("f64"), rules, geometry=False, shade=True)
+        rgb = np.clip(np.stack([imgs[c] for c in "RGB"], -1), 0, 1)
+        return np.floor(255 * rgb).astype(np.uint8)
+
+    def checked(name, img, **kw):
+        path = tmp_path / name
+        if img.ndim == 2:                               # a P5: one sample a pixel
+            path.write_bytes(b"P5\n%d %d\n255\n" % (img.shape[1], img.shape[0]) +
+                             img.tobytes())
+        else:
+            write_ppm(str(path), img)
+        return check_image(scene, path, **kw)
+    right = course()
+    r = checked("centres.ppm", course("centers"))
+    assert r.status == "fail" and any("sampled at the pixels' centres" in h
+                                      for h in r.hints), r.hints
+    assert not any("centres" in h for h in checked("right.ppm", right).hints)
+    grey = np.round(right.astype(np.float64).mean(-1)).astype(np.uint8)
+    r = checked("grey.pgm", grey)
+    assert r.status == "fail" and any(h.startswith("your image is grey (R = G = B")
+                                      for h in r.hints), r.hints
+    # a course variant (rows one higher) under the notes' rules: failed, and the hint names
+    # the variant; without --rules it is the variant named, and a pass
+    shifted = course(rules=Rules(rows="shifted"))
+    r = checked("shifted.ppm", shifted, rules=Rules.parse("notes"))
+    assert r.status == "fail" and any(
+        h.startswith("the image follows a course variant the rules given do not (0 pixels")
+        and "every row is sampled one row too high" in h for h in r.hints), r.hints
+    assert checked("shifted2.ppm", shifted).status == "pass"
+    # darker everywhere (an ambient-only tracer, say): a wrong pixel shown, and the way
+    dark = right // 2
+    r = checked("dark.ppm", dark)
+    ex = r.worst["example"]
+    assert ex["yours"] == dark[ex["row"], ex["column"]].tolist()
+    assert ex["rt_core"] == right[ex["row"], ex["column"]].tolist() != ex["yours"]
+    line = next(d for d in details(r) if d.startswith("wrong: "))
+    assert f"at column {ex['column']}, row {ex['row']}: yours {tuple(ex['yours'])}, " \
+        f"rt_core's {tuple(ex['rt_core'])}" in line and "yours darker at 100% of them" in line
+
+
 BUGS = [("course_alias_xform", REPO / "scenes" / "fplane_tilted.txt"),
         ("course_inv_square", REPO / "scenes" / "shade_shadows.txt"),
         ("course_no_shadows", REPO / "scenes" / "shade_shadows.txt"),
@@ -689,7 +745,8 @@ def test08_run_reports_each_failure_per_scene(ctracer, tmp_path):
     res = check_run(good, scenes, 40, None)
     assert [r.status for r in res] == ["pass", "pass"]
     cases = {"sleep 30": "timed out", "kill -SEGV $$": "crashed with SIGSEGV",
-             "exit 3": "exited with status 3", "echo P6 garbage > {out}": "PPM",
+             "exit 3": "exited with status 3",
+             "echo P6 garbage > {out}": "the header's width is 'garbage', not a number",
              "true": "wrote no image to {out}: true # ",
              # said what it wrote instead, or how to write it
              "touch {out}.ppm": "(it wrote seed_fplane.ppm.ppm beside it: write the path "

@@ -56,6 +56,13 @@ def test02_did_you_mean(args, said):
     assert said in err and f"(did you mean {want[typo]}?)" in err, err
 
 
+def test02b_no_did_you_mean_for_a_word_alike_only_in_its_dashes():
+    """'--bogus' was 'close' to --verbose by its two dashes (a student's review)."""
+    r = rtval("check", SPHERE, "--bogus")
+    assert r.returncode == 64 and "unrecognized option --bogus" in r.stderr and \
+        "did you mean" not in r.stderr, r.stderr
+
+
 @pytest.mark.parametrize("args, said", [
     (("check", SPHERE, "--run", "x {scene} {out}", "--columns", 8, "--timeout", 0),
      "--timeout: must be > 0"),

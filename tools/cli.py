@@ -127,8 +127,11 @@ def _suggestion(parser, message: str) -> str:
         m = re.search(r"unrecognized (?:option|arguments:) (--?[\w-]+)", message)
         if not m:
             return ""
-        known = [o for a in parser._actions for o in a.option_strings if o.startswith("--")]
-        close = difflib.get_close_matches(m.group(1), known, n=1)
+        # (compared without the dashes, which made --bogus 'close' to --verbose)
+        known = {o.lstrip("-"): o for a in parser._actions for o in a.option_strings
+                 if o.startswith("--")}
+        close = [known[k] for k in difflib.get_close_matches(m.group(1).lstrip("-"), known,
+                                                              n=1)]
     return f" (did you mean {close[0]}?)" if close else ""
 
 

@@ -34,7 +34,8 @@ def add_parser(sub) -> None:
     p.add_argument("--rows", type=positive_int, default=None,
                    help="image height (default: the image's, or int(h/w*columns) with --run)")
     add_rules(p, "fix the rules instead of inferring them (edges, screen_clip, ties, t_min, "
-                 "clip_spheres, reflect, rows, tile_add_first, tile_project)")
+                 "clip_spheres, reflect, rows, tile_add_first, tile_project); 'notes': "
+                 "every rule as the notes say, so that a course variant fails")
     add_max_dist(p, "fix the reflection cut-off instead of inferring it")
     add_texture_dir(p)
     add_code27(p)

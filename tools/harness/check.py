@@ -211,6 +211,18 @@ class Renderer:
             self.unclamped[key] = rgb
         return self.cache[key]
 
+    def centres(self, rules, max_dist: float) -> np.ndarray:
+        """The 8-bit image sampled at the pixels' centres instead of the window's corners
+        (a common deviation: ``hints``), under ``rules``."""
+        from rt_core.camera import make_camera
+        from rt_core.render import render_image
+        cam = make_camera(self.scene, self.cam.columns, self.cam.rows, "centers",
+                          _rows(rules.rows))
+        imgs, _ = render_image(self.scene, cam, self.T, rules, geometry=False, shade=True,
+                               max_dist=max_dist)
+        rgb = np.stack([imgs[c] for c in ("R", "G", "B")], -1)
+        return np.floor(255.0 * np.clip(rgb, 0.0, 1.0)).astype(np.uint8)
+
     def ids(self, rules):
         """(object ids, depth) of the primary hits under ``rules`` (cached)."""
         if rules not in self.geometry:
@@ -774,8 +786,12 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
         objs = [(int(k), int(n)) for k, n in zip(*np.unique(on, return_counts=True))]
         objs.sort(key=lambda kn: -kn[1])
         res.worst["objects"] = [_describe(scene, k, n) for k, n in objs[:3]]
+        res.worst.update(_example(ours, img, wrong, res.worst["middle"]))
         res.hints = hints(ids, wrong, ours, img, r.unclamped[(final_rules, md)],
                           bool(scene.lights)) + res.hints
+        res.hints = _centres(ours, r.centres(final_rules, md), img) + res.hints
+        if rules is not None:
+            res.hints += _variant_given_away(r, img, ours, final_rules, md, max_dist)
         # an image upside down or with channels exchanged may still have a rule variant
         # inferred that explains some of its pixels (a near-symmetric scene): asked against
         # the notes' image too
@@ -910,7 +926,8 @@ def hints(ids: np.ndarray, wrong: np.ndarray, ours=None, theirs=None, intensity=
     intensities above 1 wrapped around (``intensity``: rt_core's, not clamped)."""
     out = []
     if ours is not None:
-        out += _orientation(ours, theirs) + _level_offset(ours, theirs, wrong, intensity) + \
+        out += _grey(ours, theirs) + _orientation(ours, theirs) + \
+            _level_offset(ours, theirs, wrong, intensity) + \
             (_speckles(wrong, ours, theirs) if lit else []) + _channels(ours, theirs)
         if intensity is not None:
             out += _wrapped(intensity, theirs, wrong)
@@ -925,6 +942,53 @@ def hints(ids: np.ndarray, wrong: np.ndarray, ours=None, theirs=None, intensity=
                    "or jittered samples? (a pixel-exact comparison needs one sample per "
                    "pixel at the course's grid corners)")
     return out
+
+
+def _example(ours: np.ndarray, theirs: np.ndarray, wrong: np.ndarray, middle) -> dict:
+    """A wrong pixel to look at (the largest group's middle: row, column), its colour in
+    the image and in rt_core's, and how many wrong pixels are darker or brighter (the sum
+    of the three samples) than rt_core's."""
+    y, x = middle
+    a = theirs.astype(np.int32).sum(-1)[wrong]
+    b = ours.astype(np.int32).sum(-1)[wrong]
+    return {"example": {"column": int(x), "row": int(y), "yours": theirs[y, x].tolist(),
+                        "rt_core": ours[y, x].tolist()},
+            "darker": int((a < b).sum()), "brighter": int((a > b).sum())}
+
+
+def _centres(ours: np.ndarray, centred: np.ndarray, theirs: np.ndarray) -> list:
+    """The image matches rt_core's sampled at the pixels' centres far better than at the
+    window's corners (as _orientation: a student's review found it the most common
+    deviation, with no hint)."""
+    straight = int(_differs(ours, theirs).sum())
+    n = int(_differs(centred, theirs).sum())
+    if straight and n <= 0.05 * ours[..., 0].size and n <= 0.2 * straight:
+        return [f"your image is rt_core's sampled at the pixels' centres ({n} pixels differ "
+                f"that way, {straight} as it is): x = (c + 0.5)/W across the window? the "
+                "course samples its corners, x = c/(W - 1) of its width, and likewise the "
+                "rows"]
+    return []
+
+
+def _variant_given_away(r, theirs, ours, rules, max_dist, given_max_dist) -> list:
+    """With --rules given, the rules inferred as without them, where the image follows
+    them far better: a course variant the given rules fail (a student's review: with
+    rows=course the row bug failed with no word that rows=shifted explains it)."""
+    from rt_core.rules import Rules
+    md0 = DEFAULT_MAX_DIST if given_max_dist is None else given_max_dist
+    alt, md, found, _ = infer(r, theirs, Rules(), md0,
+                              ("max_dist",) if given_max_dist is not None else ())
+    if (alt, md) == (rules, max_dist):
+        return []
+    straight = int(_differs(ours, theirs).sum())
+    n = int(_differs(r.image(alt, md), theirs).sum())
+    if n > 0.2 * straight:
+        return []
+    words = [WORDS[(f.rule, f.value)] for f in found if (f.rule, f.value) in WORDS and
+             f.determined]
+    said = "; ".join(words) if words else f"rules {alt.describe()}, max_dist={md:g}"
+    return [f"the image follows a course variant the rules given do not ({n} pixels differ "
+            f"under it, {straight} under --rules): {said}"]
 
 
 def _orientation(ours: np.ndarray, theirs: np.ndarray) -> list:
@@ -944,6 +1008,19 @@ def _orientation(ours: np.ndarray, theirs: np.ndarray) -> list:
             return [f"your image is rt_core's {what} ({n} pixels differ that way, "
                     f"{straight} as it is)"]
     return []
+
+
+def _grey(ours: np.ndarray, theirs: np.ndarray) -> list:
+    """The image is grey (R = G = B at every pixel) where rt_core's has colour: a P5 or P2
+    file (one sample a pixel, read as grey), or one sample written for three (a student's
+    review: a P5 image failed with no word of it)."""
+    coloured = int(((ours[..., 0] != ours[..., 1]) | (ours[..., 1] != ours[..., 2])).sum())
+    if coloured < max(20, 0.01 * ours[..., 0].size) or \
+            (theirs[..., 0] != theirs[..., 1]).any() or (theirs[..., 1] != theirs[..., 2]).any():
+        return []
+    return [f"your image is grey (R = G = B at every pixel) where rt_core's has colour at "
+            f"{coloured} pixels: written as a P5 or P2 (grey) file, one sample a pixel? the "
+            "course writes P6 (or P3), three samples a pixel"]
 
 
 def _channels(ours: np.ndarray, theirs: np.ndarray) -> list:
@@ -1689,11 +1766,20 @@ def details(r: SceneCheck, kinds=("rules", "deviation", "hint", "wrong", "bounda
         out += [f"hint: {h}" for h in r.hints]
     if r.worst and "wrong" in kinds:
         w = r.worst
-        out.append(f"wrong: {w['pixels']} pixels, the largest group {w['largest_group']} in "
+        ex = w.get("example")
+        seen = ""
+        if ex:
+            seen = (f"; at column {ex['column']}, row {ex['row']}: yours "
+                    f"{tuple(ex['yours'])}, rt_core's {tuple(ex['rt_core'])}")
+            for way in ("darker", "brighter"):
+                if w.get(way, 0) >= 0.9 * w["pixels"]:
+                    seen += f"; yours {way} at {100 * w[way] // w['pixels']}% of them"
+        out.append(f"wrong: {w['pixels']} pixels"
+                   + (f" ({r.unasked} of them counted wrong without a check of their own: "
+                      "a sample of pixels like them held wrong ones)" if r.unasked else "")
+                   + f", the largest group {w['largest_group']} in "
                    f"rows {w['rows'][0]}-{w['rows'][1]}, columns {w['columns'][0]}-"
-                   f"{w['columns'][1]}; " + "; ".join(w.get("objects", []))
-                   + (f" ({r.unasked} of them judged from a sample of their kind, in which "
-                      "some pixels were wrong)" if r.unasked else ""))
+                   f"{w['columns'][1]}; " + "; ".join(w.get("objects", [])) + seen)
     if r.boundary_note and "boundary" in kinds:
         out.append(f"boundary: {r.boundary_note}")
     if r.hits and "hit dump" in kinds:
