@@ -636,6 +636,9 @@ def _check_float32(scene: Scene, d: dict) -> None:
             if key.startswith("obj"):
                 o = scene.objects[course_id(key)]
                 where = f"{o.kind} (line {o.line}): "
+            elif key.startswith("light") and key[5:].isdigit():
+                li = scene.lights[int(key[5:])]
+                where = f"{li.kind} (line {li.line}): "
             raise InputError(f"{scene.path}: {where}{key} needs the number {big:.3g}, beyond "
                              "the float32 range of Mitsuba's llvm_ad_rgb variant; this scene "
                              "can be rendered by rt_core in f64 but not converted")
@@ -757,19 +760,28 @@ def scene_xml(scene: Scene, columns: int, rows: int | None = None, sampling: str
              # (machine-readable, for rtval render --mitsuba's outputs; '--' may not stand
              # in a comment, so its second '-' is a JSON escape)
              "<!-- " + PROVENANCE + " " +
-             json.dumps(prov, sort_keys=True).replace("--", "-\\u002d") + " -->",
-             f"<!-- infinite and tiled planes: rectangles of half-size {plane_extent(scene):.6g}"
-             " (64 x scene scale) around the viewpoint's foot point -->"]
+             json.dumps(prov, sort_keys=True).replace("--", "-\\u002d") + " -->"]
+    if any(not KINDS[o.kind].bounded for o in scene.objects):
+        lines.append(f"<!-- infinite and tiled planes: rectangles of half-size "
+                     f"{plane_extent(scene):.6g} (64 x scene scale) around the viewpoint's "
+                     "foot point -->")
+    # (how to load it: a review's own script rendered another image with Mitsuba's
+    # optimize on, and expected the film it edited to be used)
+    load = ("load it in Python with mi.set_variant('llvm_ad_rgb'), import mitsuba_ref, then "
+            "mi.load_file(path, optimize=False): Mitsuba's optimize, on by default, merges "
+            "and reorders the shapes, so an exact tie between two objects goes to another; "
+            f"it renders the course's camera, {columns}x{s.rows} {sampling}, whatever "
+            "sensor, film or spp is given")
     if aovs:
         lines.append(_comment("AOVs (rtval convert's aovs option): the 'course' integrator in "
                               "its AOV mode: rtval's geometry channels (hit.mask, depth.Z, "
                               "object.id, normal, position, uv); write them to an EXR with "
-                              "rtval render and its mitsuba option"))
+                              "rtval render and its mitsuba option, or " + load))
     elif shading:
         lines.append(_comment("the course image (rtval convert's shading option): the 'course' "
                               "integrator and each shape's 'course_material' (plugins of "
-                              "rtval's mitsuba_ref: render with rtval render and its mitsuba "
-                              "option, or register them with mitsuba_ref.convert.mitsuba())"))
+                              "rtval's mitsuba_ref): render with rtval render and its mitsuba "
+                              "option, or " + load))
     if s.note and mode == "sensor":     # (the course integrator samples the course's grid)
         lines.append(_comment(f"WARNING: {s.note}"))
     lines += [_comment(note) for note in oracle_only(scene) + scene.stand_ins()

@@ -116,7 +116,9 @@ def _classes(mi):
             self.m_components = [self.m_flags]
 
         def sample(self, ctx, si, s1, s2, active=True):
-            return mi.BSDFSample3f(), mi.Color3f(0.0)
+            # (no sample: zeros, not an uninitialised one, which Mitsuba's own integrators
+            # rejected: "callable 0 returned an empty/uninitialized Dr.Jit array", a review)
+            return dr.zeros(mi.BSDFSample3f), mi.Color3f(0.0)
 
         def eval(self, ctx, si, wo, active=True):
             return mi.Color3f(0.0)
@@ -190,11 +192,23 @@ def _classes(mi):
                 film = (scene.sensors()[sensor] if isinstance(sensor, int) else sensor).film()
                 W, H = film.crop_size()
             o, d = self.camera_rays(W, H)
-            chans = self.geometry(scene, o, d) if self.aovs else list(self.shade(scene, o, d))
+            if not scene.shapes():
+                # nothing to hit (every kind left out, or none): black, a miss everywhere
+                # (its material tables would be empty); rt_core draws the same
+                z = dr.zeros(mi.Float, W * H)
+                chans = [z] * 3 if not self.aovs else \
+                    [z, z, z - 1.0] + [z] * (len(GEOMETRY) - 3)
+            else:
+                chans = self.geometry(scene, o, d) if self.aovs else \
+                    list(self.shade(scene, o, d))
             out = dr.zeros(mi.TensorXf, (H, W, len(chans)))
             idx = dr.arange(mi.UInt32, W * H)
             for c, v in enumerate(chans):
                 dr.scatter(out.array, v, idx * len(chans) + c)
+            # evaluated here whatever ``evaluate`` says (mi.render passes False): the kernel
+            # reads the scene's shapes, and mi.render(mi.load_file(...)) frees the scene on
+            # return (a review: the image, evaluated afterwards, crashed the process)
+            dr.eval(out)
             return out
 
         def geometry(self, scene, o, d):

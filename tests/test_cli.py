@@ -56,7 +56,7 @@ def test02_did_you_mean(args, said):
     assert said in err and f"(did you mean {want[typo]}?)" in err, err
 
 
-def test02b_no_did_you_mean_for_a_word_alike_only_in_its_dashes():
+def test02a_no_did_you_mean_for_a_word_alike_only_in_its_dashes():
     """'--bogus' was 'close' to --verbose by its two dashes (a student's review)."""
     r = rtval("check", SPHERE, "--bogus")
     assert r.returncode == 64 and "unrecognized option --bogus" in r.stderr and \
@@ -94,9 +94,16 @@ def test02b_no_did_you_mean_for_a_word_alike_only_in_its_dashes():
     (("validate", SPHERE, "--columns", 1), "--columns: 1 column"),
     (("report", SPHERE, "--columns", 8, 1), "--columns: 1 column"),
     (("bench", "--command", "--command-columns", 1), "--command-columns: 1 column"),
+    # rules Mitsuba's course integrator cannot apply: refused, not recorded as applied (a
+    # review: the XML said ties=last and rendered the first object's colour)
+    (("convert", SPHERE, "--columns", 8, "--shading", "--rules", "ties=last,edges=open", "-o",
+      "x.xml"), "--rules ties=last, edges=open: the course integrator has no parameter"),
+    # an option beyond float32 is the option's fault, not the scene's (exit 2 before)
+    (("convert", SPHERE, "--columns", 8, "--shading", "--max-dist", "1e39", "-o", "x.xml"),
+     "--max-dist 1e+39: beyond float32"),
 ], ids=["timeout-0", "timeout-negative", "texture-dir", "timeout-huge", "threads", "objects", "lights",
         "workers", "seeds", "tls", "ucx", "empty", "render-1-column", "render-1-row", "compare", "check", "convert",
-        "validate", "report", "bench-command"])
+        "validate", "report", "bench-command", "convert-rules", "convert-max-dist"])
 def test02b_invalid_option_values(args, said):
     r = rtval(*args)
     err = r.stderr.strip()

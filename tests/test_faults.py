@@ -82,12 +82,18 @@ def full_dir(tmp_path_factory):
 
 # --- 1. the default row count overflows --------------------------------------------------
 
-@pytest.mark.parametrize("header,col", [("1e-320 6", 8), ("1e-300 1e300", 8), ("8 1e308", 3)])
+@pytest.mark.parametrize("header,col", [("1e-320 6", 8), ("1e-300 1e300", 8), ("8 1e308", 3),
+                                        ("1e-30 6", 7)])
 def test01_overflowing_default_rows_is_one_line_at_the_window(tmp_path, header, col):
     p = scene_with_header(tmp_path, header)
     one_line(rtval("render", p, "--columns", 32, "-o", tmp_path / "x.exr"), 2,
              f"h.txt:2:{col}: header: world window", "give --rows")
     assert not (tmp_path / "x.exr").exists()
+    # convert too (a review: a traceback at 1e-320, an XML of 1.9e32 rows that Mitsuba
+    # cannot read at 1e-30, where render refused)
+    one_line(rtval("convert", p, "--columns", 32, "-o", tmp_path / "x.xml"), 2,
+             f"h.txt:2:{col}: header: world window", "give --rows")
+    assert not (tmp_path / "x.xml").exists()
 
 
 # --- 2, 3. a full disk: tracebacks and lost writes --------------------------------------------

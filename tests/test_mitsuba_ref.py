@@ -591,6 +591,16 @@ def test41b_beyond_mitsubas_float32_is_refused(objs, why, tmp_path):
     assert not out.exists()
 
 
+def test41c_a_light_beyond_float32_is_named_by_its_line(tmp_path):
+    """A light's number beyond float32 named the scene dict's key only ('light0 needs ...',
+    a review); it is named by its line now, as an object is."""
+    scene = tmp_path / "big.txt"
+    scene.write_text("8 6\n0 0 5\npointlight\n1e39 5 5\n0 4 0\n" + PANEL)
+    r = _cli("convert", str(scene), "--columns", "8", "--shading", "-o", str(tmp_path / "o.xml"))
+    assert r.returncode == 2 and "big.txt: pointlight (line 3): light0 needs the number 1e+39" \
+        in r.stderr, r.stderr
+
+
 def test42_validate_writes_report(tmp_path):
     stale = tmp_path / "failures" / "old.ours.exr"          # evidence of an earlier run
     stale.parent.mkdir()

@@ -44,8 +44,9 @@ def run(args) -> int:
     from rt_core.exrio import atomic_write
     from rt_core.outputs import together
     from tools.harness.agree import parse_agreed
-    from mitsuba_ref.convert import (DEFAULT_MAX_DIST, inside_notes, oracle_only, scene_xml,
-                                      sensor_setup)
+    from mitsuba_ref.convert import (DEFAULT_MAX_DIST, inside_notes, oracle_only,
+                                      plane_extent, scene_xml, sensor_setup)
+    from rt_core.kinds import KINDS
 
     from rt_core.outputs import check_file_target
     if not args.output.lower().endswith(".xml"):
@@ -53,12 +54,30 @@ def run(args) -> int:
     check_file_target(args.output, make_dirs=False)
     parent = os.path.dirname(os.path.abspath(args.output))
     scene = parse_agreed(args.scene, code27=args.code27)
+    if args.rows is None:
+        # a window whose rows no image can have: the line render and compare give (a review:
+        # a traceback at 1e-320, an XML of 1.9e32 rows that Mitsuba cannot read at 1e-30)
+        scene.default_rows(args.columns)
     setup = sensor_setup(scene, args.columns, args.rows, args.sampling)
     course = args.shading or args.aovs
     # (said once the files are written: a failed write is then the one line on stderr)
     said = [f"rtval convert: warning: {setup.note}"] if setup.note and not course else []
     if not course and (args.rules or args.max_dist is not None):
         args.usage_error("--rules and --max-dist go with --shading or --aovs")
+    if args.max_dist is not None and not args.max_dist <= 3.4028234663852886e38:
+        args.usage_error(f"--max-dist {args.max_dist:g}: beyond float32, the course "
+                         "integrator's precision (Mitsuba's llvm_ad_rgb); at most 3.4e38")
+    # rules the course integrator has no parameter for: refused, not recorded as applied
+    # (a review: ties=last gave the same Mitsuba image as ties=first, and the XML's
+    # rtval.rules said ties=last)
+    fixed = {"ties": "first", "edges": "closed"}
+    given = [f"{k}={getattr(args.rules, k)}" for k, v in fixed.items()
+             if args.rules is not None and getattr(args.rules, k) != v]
+    if given:
+        args.usage_error(f"--rules {', '.join(given)}: the course integrator has no "
+                         "parameter for it (Mitsuba's own intersection decides exact ties "
+                         "and finite-plane edges); convert without it, and check such a "
+                         "tracer with rtval check")
     if args.shading:                        # the course image needs the textures
         from rt_core.textures import attach
         scene = attach(scene, args.texture_dir)
@@ -68,6 +87,11 @@ def run(args) -> int:
                     aovs=args.aovs, files=plys, stem=Path(args.output).name)
     left_out = oracle_only(scene)
     said += [f"rtval convert: note: {note}" for note in left_out + scene.stand_ins()]
+    if any(not KINDS[o.kind].bounded for o in scene.objects):
+        # (the README's "stand-ins are said on stderr": these were in the XML only)
+        said.append(f"rtval convert: note: infinite and tiled planes stand in as rectangles "
+                    f"of half-size {plane_extent(scene):.6g} around the viewpoint's foot point "
+                    "(Mitsuba has no infinite plane)")
     # a sphere that holds the viewpoint: out of the sensor's scene, kept in the course image's
     held = inside_notes(scene, course)
     said += [f"rtval convert: note: {note}" for note in held]

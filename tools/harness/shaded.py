@@ -88,6 +88,7 @@ class ShadedComparison:
     note: str = ""                    # objects left out of the comparison
     seconds: dict = field(default_factory=dict)     # per phase (tools/harness/timing.py)
     reference: str = "mitsuba"        # or "oracle": the float64 shading oracle (ORACLE_MODE)
+    boundary_reasons: dict = field(default_factory=dict)    # count by BOUNDARY_REASONS key
 
     @property
     def ok(self) -> bool:
@@ -105,7 +106,8 @@ class ShadedComparison:
                 "wrong": self.counts.get("wrong", 0), "worst": self.worst,
                 "flip_mean": self.flip_mean,
                 "rt_core_ms": round(self.ms_ours, 3), "mitsuba_ms": round(self.ms_ref, 3),
-                "timed": "first call", "seconds": self.seconds, "ok": self.ok, "note": self.note}
+                "timed": "first call", "seconds": self.seconds, "ok": self.ok, "note": self.note,
+                "boundary_reasons": self.boundary_reasons}
 
 
 def mitsuba_course_image(scene: Scene, columns: int, rows: int, sampling: str = "corners",
@@ -128,12 +130,25 @@ def quantize32(I: np.ndarray) -> np.ndarray:
     return np.floor(np.float32(255) * np.clip(a, 0, 1)).astype(np.uint8)
 
 
+# why a boundary pixel is one: the first of its near decisions in this order (the oracle's
+# margins, shade_oracle.flags), in words (compare --shaded, a porting user's review: the
+# boundary pixels' count said nothing of where Mitsuba differs)
+BOUNDARY_REASONS = (
+    ("beyond", "beyond the stand-in square of an infinite plane (Mitsuba's is finite)"),
+    ("geo", "a ray's hit (an edge, the clip, a tie, a grazing ray)"),
+    ("shadow", "a shadow ray (its blocker, or the light's side of the surface)"),
+    ("tile", "a tile border"),
+    ("maxdist", "the reflection cut-off (max_dist)"),
+    ("texel", "a texel border"))
+
+
 def classify_shaded(scene: Scene, ours: np.ndarray, theirs: np.ndarray, sampling: str,
                     rules: Rules, max_dist: float, precision: str = "f32",
-                    stand_in: bool = True) -> np.ndarray:
+                    stand_in: bool = True, reasons: dict | None = None) -> np.ndarray:
     """SHADED_CODE per pixel (module docstring); the oracle runs on the differing pixels.
     ``precision``: the reference's (Mitsuba's float32, or the shading oracle's float64);
-    ``stand_in``: the reference's infinite planes are Mitsuba's finite squares."""
+    ``stand_in``: the reference's infinite planes are Mitsuba's finite squares;
+    ``reasons``: a dict that gets the boundary pixels' count by BOUNDARY_REASONS key."""
     from mitsuba_ref.convert import plane_extent
     from mitsuba_ref.shade_oracle import (K_DECISION, U, flags, other_sides_of, reaches,
                                           shade_pixels)
@@ -190,6 +205,13 @@ def classify_shaded(scene: Scene, ours: np.ndarray, theirs: np.ndarray, sampling
     code = np.where(jump, SHADED_CODE["boundary"],
                     np.where(small & quant, SHADED_CODE["rounding"], SHADED_CODE["wrong"]))
     classes.ravel()[pix] = code
+    if reasons is not None:
+        left = jump.copy()
+        for key, _ in BOUNDARY_REASONS:
+            took = left & (beyond if key == "beyond" else f[key])
+            if took.any():
+                reasons[key] = reasons.get(key, 0) + int(took.sum())
+            left &= ~took
     return classes
 
 
@@ -240,8 +262,10 @@ def compare_shaded(scene: Scene, columns: int, rows: int | None = None,
             theirs = quantize64(I)
         else:
             theirs = quantize32(I)
+        reasons = {}
         classes = classify_shaded(scene, ours, theirs, sampling, rules, max_dist,
-                                  "f64" if oracle else "f32", stand_in=not oracle)
+                                  "f64" if oracle else "f32", stand_in=not oracle,
+                                  reasons=reasons)
         wrong = classes == SHADED_CODE["wrong"]
         if wrong.any() and not oracle:
             # the geometry classifier on the primary rays (Mitsuba tracing rt_core's rays, as
@@ -253,6 +277,8 @@ def compare_shaded(scene: Scene, columns: int, rows: int | None = None,
             geo = compare(scene, cam.columns, cam.rows, "f64", "rays", sampling, rules).classes
             explained = (geo != CLASS_CODE["agree"]) & (geo != CLASS_CODE["unexplained"])
             classes[wrong & explained] = SHADED_CODE["boundary"]
+            if (wrong & explained).any():
+                reasons["primary"] = int((wrong & explained).sum())
         counts = {c: int(np.count_nonzero(classes == i)) for i, c in enumerate(SHADED_CLASSES)}
         ys, xs = np.nonzero(classes == SHADED_CODE["wrong"])
         worst = [(int(x), int(y), ours[y, x].tolist(), theirs[y, x].tolist())
@@ -263,7 +289,7 @@ def compare_shaded(scene: Scene, columns: int, rows: int | None = None,
             flip, flip_mean, _ = flip_map(theirs / np.float32(255), ours / np.float32(255))
     return ShadedComparison(scene, cam.columns, cam.rows, ours, theirs, classes, counts,
                             ms_ours, ms_ref, sampling, rules, max_dist, worst, flip_mean, flip,
-                            note, sw.rounded(), reference)
+                            note, sw.rounded(), reference, reasons)
 
 
 # The shading oracle's image takes 0.3-1.6 ms a pixel on the course scenes with cones,
