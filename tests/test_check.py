@@ -236,6 +236,12 @@ def test03b_common_mistakes_are_named(tmp_path):
         h.startswith("the image follows a course variant the rules given do not (0 pixels")
         and "every row is sampled one row too high" in h for h in r.hints), r.hints
     assert checked("shifted2.ppm", shifted).status == "pass"
+    # the header's width and height the other way round: named (checked alone)
+    (tmp_path / "swap.ppm").write_bytes(b"P6 48 64 255\n" + right.tobytes())
+    r = check_image(scene, tmp_path / "swap.ppm")
+    assert r.status == "fail" and any("width and height written the other way round" in h
+                                      for h in r.hints), r.hints
+    assert not any("other way round" in h for h in checked("dark0.ppm", right // 2).hints)
     # darker everywhere (an ambient-only tracer, say): a wrong pixel shown, and the way
     dark = right // 2
     r = checked("dark.ppm", dark)

@@ -792,6 +792,8 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
         res.hints = _centres(ours, r.centres(final_rules, md), img) + res.hints
         if rules is not None:
             res.hints += _variant_given_away(r, img, ours, final_rules, md, max_dist)
+        if columns is None and rows is None:
+            res.hints += _swapped(scene, W, H)
         # an image upside down or with channels exchanged may still have a rule variant
         # inferred that explains some of its pixels (a near-symmetric scene): asked against
         # the notes' image too
@@ -954,6 +956,21 @@ def _example(ours: np.ndarray, theirs: np.ndarray, wrong: np.ndarray, middle) ->
     return {"example": {"column": int(x), "row": int(y), "yours": theirs[y, x].tolist(),
                         "rt_core": ours[y, x].tolist()},
             "darker": int((a < b).sum()), "brighter": int((a > b).sum())}
+
+
+def _swapped(scene, W: int, H: int) -> list:
+    """An image WxH whose rows are not the course's for W columns, where H columns would
+    give W rows: the header's width and height written the other way round (a student's
+    review: checked alone, such an image was only wrong; --run's size check names it)."""
+    from rt_core.scene import SceneError
+    try:
+        if H == scene.default_rows(W) or scene.default_rows(H) != W:
+            return []
+    except SceneError:
+        return []
+    return [f"the image is {W}x{H}, but {W} columns of this window make "
+            f"{scene.default_rows(W)} rows, and {H} columns make {W}: width and height "
+            "written the other way round in the header?"]
 
 
 def _centres(ours: np.ndarray, centred: np.ndarray, theirs: np.ndarray) -> list:
