@@ -246,11 +246,11 @@ def test03b_common_mistakes_are_named(tmp_path):
     dark = right // 2
     r = checked("dark.ppm", dark)
     ex = r.worst["example"]
-    assert ex["yours"] == dark[ex["row"], ex["column"]].tolist()
-    assert ex["rt_core"] == right[ex["row"], ex["column"]].tolist() != ex["yours"]
+    assert ex["theirs"] == dark[ex["row"], ex["column"]].tolist()
+    assert ex["rtval"] == right[ex["row"], ex["column"]].tolist() != ex["theirs"]
     line = next(d for d in details(r) if d.startswith("wrong: "))
-    assert f"at column {ex['column']}, row {ex['row']}: yours {tuple(ex['yours'])}, " \
-        f"rt_core's {tuple(ex['rt_core'])}" in line and "yours darker at 100% of them" in line
+    assert f"at column {ex['column']}, row {ex['row']}: yours {tuple(ex['theirs'])}, " \
+        f"rt_core's {tuple(ex['rtval'])}" in line and "yours darker at 100% of them" in line
 
 
 BUGS = [("course_alias_xform", REPO / "scenes" / "fplane_tilted.txt"),

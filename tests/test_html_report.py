@@ -277,6 +277,30 @@ def test03b_a_report_loses_nothing_and_says_what_the_run_says(tmp_path, capsys):
     assert all("#" not in h and "?" not in h for h in links)
 
 
+def test03c_names_that_are_not_utf8(tmp_path, capsys):
+    """A scene or student name in bytes that are not UTF-8 (Python's surrogate escapes)
+    with --report gave a traceback and exit 1, a student's pass read as a failure (an
+    instructor's review); validate's report.md said it could not be written.  The pages
+    and the PNGs write such a byte as \\xNN, as the JUnit file does."""
+    from rt_core.imageio import write_ppm
+    from tools.cli import main
+    scene = Path(os.fsdecode(bytes(tmp_path) + b"/sph\xe9re.txt"))
+    shutil.copy(SPHERE, scene)
+    img = tmp_path / "a.ppm"
+    assert main(["render", str(SPHERE), "--columns", "16", "--ppm", str(img)]) == 0
+    rep = tmp_path / "rep"
+    assert main(["check", str(scene), str(img), "--report", str(rep), "--name",
+                 os.fsdecode(b"Ren\xe9")]) == 0
+    html = (rep / "index.html").read_bytes().decode("utf-8")
+    assert "sph\\xe9re.txt" in html and "Ren\\xe9" in html
+    out = tmp_path / "v"
+    assert main(["validate", str(scene), "--columns", "8", "--shaded-columns", "0", "-o",
+                 str(out), "--report", str(tmp_path / "vrep")]) == 0
+    assert "sph\\xe9re" in (out / "report.md").read_text()
+    assert (tmp_path / "vrep" / "index.html").is_file()
+    capsys.readouterr()
+
+
 # --- the commands ------------------------------------------------------------------------------
 
 def _fail_one(monkeypatch):

@@ -284,7 +284,14 @@ class _Stdout:
 
     def write(self, text):
         try:
-            return self._stream.write(text)
+            try:
+                return self._stream.write(text)
+            except UnicodeEncodeError:
+                # a path's bytes that are not UTF-8 (surrogate escapes): written \xNN, as
+                # the error lines and the reports write them (an instructor's review:
+                # a traceback where a scene's name had such a byte)
+                from rt_core.outputs import attr_text
+                return self._stream.write(attr_text(text))
         except BrokenPipeError:
             raise
         except OSError as e:

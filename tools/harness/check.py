@@ -953,8 +953,9 @@ def _example(ours: np.ndarray, theirs: np.ndarray, wrong: np.ndarray, middle) ->
     y, x = middle
     a = theirs.astype(np.int32).sum(-1)[wrong]
     b = ours.astype(np.int32).sum(-1)[wrong]
-    return {"example": {"column": int(x), "row": int(y), "yours": theirs[y, x].tolist(),
-                        "rt_core": ours[y, x].tolist()},
+    # (keys as wrong_pixels' rows: the image's colour "theirs", rt_core's "rtval")
+    return {"example": {"column": int(x), "row": int(y), "theirs": theirs[y, x].tolist(),
+                        "rtval": ours[y, x].tolist()},
             "darker": int((a < b).sum()), "brighter": int((a > b).sum())}
 
 
@@ -1787,7 +1788,7 @@ def details(r: SceneCheck, kinds=("rules", "deviation", "hint", "wrong", "bounda
         seen = ""
         if ex:
             seen = (f"; at column {ex['column']}, row {ex['row']}: yours "
-                    f"{tuple(ex['yours'])}, rt_core's {tuple(ex['rt_core'])}")
+                    f"{tuple(ex['theirs'])}, rt_core's {tuple(ex['rtval'])}")
             for way in ("darker", "brighter"):
                 if w.get(way, 0) >= 0.9 * w["pixels"]:
                     seen += f"; yours {way} at {100 * w[way] // w['pixels']}% of them"

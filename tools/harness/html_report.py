@@ -101,8 +101,9 @@ def png_bytes(pixels: np.ndarray, text: dict) -> bytes:
     from PIL import Image
     from PIL.PngImagePlugin import PngInfo
     info = PngInfo()
+    from rt_core.outputs import attr_text
     for k, v in text.items():
-        info.add_text(k, str(v))
+        info.add_text(k, attr_text(v))       # (a path's bytes that are not UTF-8: \xNN)
     buf = io.BytesIO()
     Image.fromarray(np.ascontiguousarray(pixels, np.uint8), "RGB").save(buf, format="PNG",
                                                                         pnginfo=info)
@@ -654,7 +655,7 @@ def write_report(directory: str, title: str, rows: list, skipped: list = (),
                  skipped_fail: bool = False) -> str:
     """Write the report into ``directory`` (new, empty or an earlier report); returns the
     path of its index.html.  On any failure nothing is left: no directory, no temporary."""
-    from rt_core.outputs import _SPACE, TMP_PREFIX, WriteError, _reason, signals_held
+    from rt_core.outputs import _SPACE, TMP_PREFIX, WriteError, _reason, attr_text, signals_held
     check_target(directory)
     final = os.path.realpath(directory)
     parent = os.path.dirname(final)
@@ -671,7 +672,10 @@ def write_report(directory: str, title: str, rows: list, skipped: list = (),
         html, files = page(title, rows, skipped, final, command, meta, skipped_fail)
         for name, data in files.items():
             _write(os.path.join(stage, name), data)
-        _write(os.path.join(stage, "index.html"), html.encode("utf-8"))
+        # (a scene's or student's name in bytes that are not UTF-8, which Python holds as
+        # surrogate escapes: written \xNN, as the JUnit file and the provenance write them;
+        # an instructor's review: a traceback, exit 1, the student's pass read as a failure)
+        _write(os.path.join(stage, "index.html"), attr_text(html).encode("utf-8"))
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(stage, 0o777 & ~umask)

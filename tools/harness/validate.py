@@ -438,7 +438,7 @@ def report_data(results, skipped, meta: dict) -> dict:
 
 
 def write_report(results, skipped, outdir: str, meta: dict) -> tuple[str, str]:
-    from rt_core.outputs import atomic_write, json_text
+    from rt_core.outputs import atomic_write, attr_text, json_text
     text = json_text(report_data(results, skipped, meta))
     jpath = os.path.join(outdir, "report.json")
     mpath = os.path.join(outdir, "report.md")
@@ -488,7 +488,8 @@ def write_report(results, skipped, outdir: str, meta: dict) -> tuple[str, str]:
         lines += ["", f"## Skipped: {skip_counts(skipped)}", ""]
         lines += [f"- {s.category}: {s.reason}" for s in sorted(skipped,
                                                                 key=lambda s: s.category)]
-    atomic_write(mpath, lambda tmp: Path(tmp).write_text("\n".join(lines) + "\n"))
+    # (a scene path's bytes that are not UTF-8: \xNN, as the HTML report writes them)
+    atomic_write(mpath, lambda tmp: Path(tmp).write_text(attr_text("\n".join(lines) + "\n")))
     return mpath, jpath
 
 
