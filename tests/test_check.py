@@ -182,6 +182,9 @@ def test03_each_deviation_is_named(ctracer, build, scene, rule, value, tmp_path)
     assert f.value == value and f.determined and f.pixels > 0, f
     assert len(r.deviations) == 1, r.deviations
     assert r.counts["variant"] > 0
+    # the JUnit case of a pass names the variant too (its verdict line only, before)
+    out = ET.fromstring(junit_xml([r])).find(".//system-out").text
+    assert f"deviation: {r.deviations[0]}" in out, out
     # the same image checked under the notes' rules: those pixels are no longer explained
     # by a variant (wrong, or boundary where the decision itself is at 0: a plane lying in
     # z = 0, whose clip a float64 tracer may decide either way)
@@ -863,12 +866,10 @@ def test08k_a_directory_of_images_is_checked_scene_by_scene(ctracer, tmp_path, c
     assert main(["check", "--images", str(subs), str(good)]) == 0
     capsys.readouterr()
     for argv in (["--images", str(subs), "--run", "x {scene} {out}", str(good)],
-                 ["--images", str(subs), "--columns", "40", str(good)]):
+                 ["--images", str(subs), "--rows", "30", str(good)]):
         with pytest.raises(SystemExit) as e:
             main(["check", *argv])
         assert e.value.code == 64, argv
-    assert main(["check", "--images", str(tmp_path / "nope"), str(good)]) == 2
-    assert "not a directory" in capsys.readouterr().err
     # two scenes of one name would take the same image: refused, the others checked
     twin = tmp_path / "twin"
     twin.mkdir()
@@ -876,6 +877,36 @@ def test08k_a_directory_of_images_is_checked_scene_by_scene(ctracer, tmp_path, c
     assert main(["check", "--images", str(subs), str(good), str(twin / good.name)]) == 2
     out = capsys.readouterr().out
     assert out.count("2 scenes are named seed_fplane") == 2, out
+    # an instructor's review of a class's directories:
+    # a student who handed in nothing: each scene an error (exit 1) and the JUnit written,
+    # not a usage error with no file (a file given as the directory is still one)
+    junit = tmp_path / "nobody.xml"
+    assert main(["check", "--images", str(tmp_path / "nobody"), str(good), "--junit",
+                 str(junit)]) == 1
+    assert "no such directory, so no image for this scene" in capsys.readouterr().out
+    assert junit.is_file()
+    assert main(["check", "--images", str(broken), str(good)]) == 2
+    assert "not a directory" in capsys.readouterr().err
+    # the size every image must have (2x2 images passed): --columns, and the course's rows
+    assert main(["check", "--images", str(subs), "--columns", "40", str(good)]) == 0
+    assert main(["check", "--images", str(subs), "--columns", "64", str(good)]) == 1
+    assert "the image is 40x30, expected 64x48" in capsys.readouterr().out
+    # a suffix in upper case is found; the same scene listed twice is checked once; an
+    # image given where a scene goes does not take the scene's stem
+    os.rename(subs / "seed_fplane.ppm", subs / "seed_fplane.PPM")
+    assert main(["check", "--images", str(subs), "--json", str(good),
+                 os.path.join(REPO, "scenes", ".", good.name),
+                 str(subs / "seed_fplane.PPM")]) == 2
+    rows = json.loads(capsys.readouterr().out)
+    assert [r["status"] for r in rows] == ["pass", "refused"], rows
+    assert rows[0]["image"] == str(subs / "seed_fplane.PPM")
+    # a .png beside it: checked the first, and said; a directory of the image's name: said
+    shutil.copy(subs / "shade_shadows.ppm", subs / "seed_fplane.png")
+    assert main(["check", "--images", str(subs), str(good)]) == 0
+    assert "checked seed_fplane.PPM; also there: seed_fplane.png" in capsys.readouterr().err
+    (subs / "mixed.ppm").mkdir()
+    assert main(["check", "--images", str(subs), str(gone)]) == 1
+    assert f"{subs / 'mixed.ppm'}: a directory; give an image file" in capsys.readouterr().out
 
 
 def test08h_a_tracer_writing_its_own_file_name_is_told_so(ctracer, tmp_path, monkeypatch):

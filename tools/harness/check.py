@@ -37,6 +37,7 @@ import shlex
 import shutil
 import signal
 import subprocess
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -730,6 +731,14 @@ def check_image(scene_path: str, image_path: str, *, columns: int | None = None,
     if theirs is None:
         maxval = pnm_maxval(image_path)
     H, W = img.shape[:2]
+    if columns and rows is None:
+        # the rows a tracer given only the columns writes (a student's review: --columns 10
+        # on a 64x48 image said 'expected 10x48')
+        try:
+            rows = scene.default_rows(columns)
+        except SceneError as exc:
+            res.status, res.reason = "refused", str(exc)
+            return res
     W, H = columns or W, rows or H
     if (H, W) != img.shape[:2]:
         h, w = img.shape[:2]
@@ -1649,16 +1658,20 @@ def _check_runs(pool, work, template, scenes, columns, rows, timeout, kw):
 IMAGE_SUFFIXES = (".ppm", ".pnm", ".png")
 
 
-def check_images(directory: str, scenes, plan=None, progress=None, **kw) -> list:
+def check_images(directory: str, scenes, plan=None, progress=None, columns=None,
+                 rows=None, **kw) -> list:
     """Check the images a tracer left in ``directory``, one per scene named after it
-    (STEM.ppm, .pnm or .png): what ``check_run`` does with the tracer run already (an
-    instructor's directory of submitted images).  A scene without its image, or whose
-    image cannot be read, is an error; a scene rtval cannot read is refused."""
+    (STEM.ppm, .pnm or .png, the suffix in any case): what ``check_run`` does with the
+    tracer run already (an instructor's directory of submitted images).  A scene without
+    its image (or the directory missing: a student who handed in nothing), or whose image
+    cannot be read, is an error; a scene rtval cannot read is refused.  ``columns`` (and
+    ``rows``, default the course's for those columns): the size every image must have, else
+    each image's own."""
     from tools.harness.parallel import SERIAL, run_cases
     scenes = list(scenes)
-    return run_cases(_check_image_job, _image_jobs(directory, scenes, kw), plan or SERIAL,
-                     each=_progress(progress, len(scenes)), count=len(scenes),
-                     seconds_per_case=seconds_per_check(160))
+    return run_cases(_check_image_job, _image_jobs(directory, scenes, kw, columns, rows),
+                     plan or SERIAL, each=_progress(progress, len(scenes)),
+                     count=len(scenes), seconds_per_case=seconds_per_check(160))
 
 
 def _progress(stream, n: int):
@@ -1673,12 +1686,22 @@ def _progress(stream, n: int):
     return each
 
 
-def _image_jobs(directory, scenes, kw):
+def _image_jobs(directory, scenes, kw, columns=None, rows=None):
     """check_images' jobs: a finished SceneCheck where the scene or its image is missing or
     unreadable, else the scene and image as data (for ``_check_image_job``)."""
     from rt_core.imageio import ImageError, pnm_maxval, read_image
-    stems = [Path(s).stem for s in scenes]
-    for s in scenes:
+    try:
+        names = os.listdir(directory)
+    except OSError:
+        names = None                    # (no directory: every scene's image is missing)
+    # each scene read first: an image given where a scene goes is refused as that, and
+    # takes no stem from the real scene of its name (an instructor's review)
+    read = [(s, _read_scene(s, kw)) for s in scenes]
+    stems = [Path(s).stem for s, sc in read if not isinstance(sc, SceneCheck)]
+    for s, sc in read:
+        if isinstance(sc, SceneCheck):
+            yield sc
+            continue
         stem = Path(s).stem
         if stems.count(stem) > 1:       # (a/x.txt, b/x.txt: both would take DIR/x.ppm)
             yield SceneCheck(str(s), None, "refused",
@@ -1686,16 +1709,22 @@ def _image_jobs(directory, scenes, kw):
                              f"gives each the image named after it: check them in separate "
                              "runs")
             continue
-        sc = _read_scene(s, kw)
-        if isinstance(sc, SceneCheck):
-            yield sc
-            continue
-        found = [os.path.join(directory, stem + x) for x in IMAGE_SUFFIXES
-                 if os.path.isfile(os.path.join(directory, stem + x))]
-        if not found:
+        if names is None:
             yield SceneCheck(str(s), os.path.join(directory, stem + ".ppm"), "error",
+                             f"{directory}: no such directory, so no image for this scene")
+            continue
+        # STEM.ppm, .pnm, .png in that order, the suffix in any case (.PPM from Windows:
+        # reported missing, an instructor's review), the exact name first
+        lower = {x: sorted((n for n in names if n.lower() == (stem + x).lower()),
+                           key=lambda n: n != stem + x) for x in IMAGE_SUFFIXES}
+        named = [os.path.join(directory, n) for x in IMAGE_SUFFIXES for n in lower[x]]
+        found = [f for f in named if os.path.isfile(f)]
+        if not found:
+            odd = next((f for f in named), None)
+            yield SceneCheck(str(s), odd or os.path.join(directory, stem + ".ppm"), "error",
+                             f"{odd}: {_not_a_file(odd)}; give an image file" if odd else
                              f"{directory}: no image for this scene (looked for "
-                             f"{', '.join(stem + x for x in IMAGE_SUFFIXES)})")
+                             f"{', '.join(stem + x for x in IMAGE_SUFFIXES)}, any case)")
             continue
         try:
             theirs = read_image(found[0])
@@ -1707,8 +1736,23 @@ def _image_jobs(directory, scenes, kw):
                 f"{', '.join(IMAGE_SUFFIXES)}: remove the one that is not the tracer's)"
                 if others else ""))
             continue
-        yield (str(s), found[0], sc, theirs, None, None, None,
+        if len(found) > 1:              # (checked the first; said, not silently chosen)
+            print(f"rtval check: note: {s}: checked {os.path.basename(found[0])}; also there: "
+                  f"{', '.join(os.path.basename(f) for f in found[1:])} (--images checks the "
+                  f"first of {', '.join(IMAGE_SUFFIXES)}: remove the one that is not the "
+                  "tracer's)", file=sys.stderr)
+        h = rows if rows is not None or columns is None else sc.default_rows(columns)
+        yield (str(s), found[0], sc, theirs, columns, h, None,
                {**kw, "maxval": pnm_maxval(found[0])})
+
+
+def _not_a_file(path: str) -> str:
+    """What a path named like an image is, when it is not a regular file."""
+    if os.path.islink(path) and not os.path.exists(path):
+        return "a link to nothing"
+    if os.path.isdir(path):
+        return "a directory"
+    return "not a regular file" if os.path.exists(path) else "no such file"
 
 
 def _check_image_job(job) -> SceneCheck:
@@ -1753,7 +1797,9 @@ def junit_xml(results, name: str | None = None) -> str:
         elif r.status in ("error", "refused"):
             c.error = r.reason
         else:
-            c.body = _one_line(r)
+            # (the deviations a pass names, in words: the terminal and the page show them,
+            # the JUnit file had the verdict line only, an instructor's review)
+            c.body = "\n".join([_one_line(r)] + details(r, ("deviation", "boundary")))
         cases.append(c)
     return xml("rtval check" + (f": {name}" if name else ""), cases)
 
