@@ -222,6 +222,27 @@ def test06_unreachable_scheduler_is_one_line(tmp_path):
     assert "--scheduler tcp://127.0.0.1:9: cannot connect (connection refused)" in r.stderr
 
 
+def test06b_verbose_shows_the_verdicts_not_dasks_info(tmp_path):
+    """--verbose on a local cluster: each scene's verdict and each worker's counts, and
+    none of Dask's ~70 info lines of workers starting and stopping (an instructor's
+    review: they buried five verdicts)."""
+    from rt_core.imageio import write_ppm
+    from tools.harness.check import Renderer
+    from rt_core.parser import parse_scene
+    from rt_core.rules import Rules
+    scenes = [REPO / "scenes" / "sphere.txt", REPO / "scenes" / "mixed.txt"]
+    for s in scenes:
+        sc = parse_scene(s)
+        write_ppm(str(tmp_path / f"{s.stem}.ppm"),
+                  Renderer(sc, 16, sc.default_rows(16)).image(Rules(), 1000.0))
+    r = subprocess.run([sys.executable, "-m", "tools.cli", "check", "--images", str(tmp_path),
+                        *map(str, scenes), "--workers", "2", "--verbose"], cwd=REPO,
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "rtval check: [2/2] PASS" in r.stderr and "rtval: worker tcp://" in r.stderr
+    assert " - distributed." not in r.stderr and " INFO " not in r.stderr, r.stderr
+
+
 def _rtval_sweep(tmp_path):
     """A long sweep on a local cluster of 2 workers, in its own process group, with Ctrl-C's
     default action: a test run started in the background inherits SIGINT ignored, and a

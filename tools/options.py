@@ -210,7 +210,7 @@ def add_parallel(p: argparse.ArgumentParser, what: str) -> None:
                         "tcp://HOST:8786, started with `dask scheduler` and `dask worker "
                         "ADDRESS`; its workers need the same rtval, Dr.Jit and Mitsuba)")
     g.add_argument("--verbose", action="store_true",
-                   help="show Dask's log, and each worker's cases, set-ups and kernels "
+                   help="show Dask's warnings, and each worker's cases, set-ups and kernels "
                         "(check --run and --images: also each scene's verdict as it is "
                         "known, as on a terminal)")
 

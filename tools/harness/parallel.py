@@ -364,8 +364,9 @@ def session(plan: Plan, count_kernels: bool = False):
 
 def _quiet(verbose: bool) -> None:
     """distributed logs to stderr (worker start-up, shutdown, closed connections): only its
-    errors, and only with --verbose its warnings and info."""
-    level = logging.INFO if verbose else logging.CRITICAL
+    errors, and with --verbose its warnings too (its info, ~70 lines of workers starting and
+    stopping around five scenes' verdicts, buried them: an instructor's review)."""
+    level = logging.WARNING if verbose else logging.CRITICAL
     for name in ("distributed", "tornado", "asyncio"):
         logging.getLogger(name).setLevel(level)
 
@@ -399,7 +400,7 @@ def _local_cluster(plan: Plan, scratch: str):
                         processes=True, dashboard_address=None, memory_limit=0,
                         scheduler_kwargs={"dashboard": False,       # no port 8787
                                           "dashboard_address": "127.0.0.1:0"},
-                        silence_logs=logging.INFO if plan.verbose else logging.CRITICAL,
+                        silence_logs=logging.WARNING if plan.verbose else logging.CRITICAL,
                         local_directory=scratch, scheduler_port=0, host="127.0.0.1",
                         death_timeout=30)
 
