@@ -885,6 +885,13 @@ def test08k_a_directory_of_images_is_checked_scene_by_scene(ctracer, tmp_path, c
                  str(junit)]) == 1
     assert "no such directory, so no image for this scene" in capsys.readouterr().out
     assert junit.is_file()
+    # a grading tool tells the student's missing image from the instructor's bad scene
+    assert main(["check", "--images", str(subs), str(gone), str(broken), "--junit",
+                 str(junit)]) == 1
+    capsys.readouterr()
+    kinds = {Path(e.get("message").split(":")[0]).name: e.get("type")
+             for e in ET.parse(junit).iter("error")}
+    assert kinds == {"alice": "error", "broken.txt": "refused"}, kinds
     assert main(["check", "--images", str(broken), str(good)]) == 2
     assert "not a directory" in capsys.readouterr().err
     # the size every image must have (2x2 images passed): --columns, and the course's rows

@@ -1795,7 +1795,9 @@ def junit_xml(results, name: str | None = None) -> str:
             c.body = "\n".join([f"rules: {r.rules}, max_dist={r.max_dist:g}"] +
                                details(r, ("deviation", "hint", "wrong", "hit dump")))
         elif r.status in ("error", "refused"):
-            c.error = r.reason
+            # (type: a scene rtval refused is the checker's input, an error the tracer's
+            # image or run; a grading tool can tell them apart, an instructor's review)
+            c.error, c.error_type = r.reason, r.status
         else:
             # (the deviations a pass names, in words: the terminal and the page show them,
             # the JUnit file had the verdict line only, an instructor's review)

@@ -32,6 +32,7 @@ class Case:
     seconds: float = 0.0
     failure: str | None = None     # message of a failed case
     error: str | None = None       # message of a case that could not run (bad input, crash)
+    error_type: str | None = None  # its kind (rtval check: 'refused' scene, or 'error')
     body: str = ""                 # failure details, or what a passing case printed
     skipped: str | None = None     # why a case was not run (the run passes without it)
 
@@ -60,7 +61,8 @@ def junit_xml(suite: str, cases: list[Case]) -> str:
         if c.failure is not None:
             out.append(f'    <failure message={quoteattr(c.failure)}>{escape(c.body)}</failure>')
         elif c.error is not None:
-            out.append(f'    <error message={quoteattr(c.error)}/>')
+            kind = f" type={quoteattr(c.error_type)}" if c.error_type else ""
+            out.append(f'    <error message={quoteattr(c.error)}{kind}/>')
         elif c.skipped is not None:
             out.append(f'    <skipped message={quoteattr(c.skipped)}/>')
         elif c.body:
