@@ -12,7 +12,10 @@ def add_parser(sub) -> None:
     p = sub.add_parser("convert", help="write the equivalent Mitsuba 3 XML scene",
                        description="Write the Mitsuba 3 scene equivalent to a course scene: "
                                    "finite planes as rectangles, planes as large rectangles, "
-                                   "spheres, and a perspective sensor with the course's rays.")
+                                   "spheres, and a perspective sensor (its pixels are square, "
+                                   "so it makes the course's rays only where the course's "
+                                   "sample grid is square: said when it is not); --shading "
+                                   "and --aovs make the course's own rays in any case.")
     p.add_argument("scene", help="course scene file (keyword or numeric dialect)")
     p.add_argument("--columns", type=positive_int, required=True,
                    help="image width in pixels (the sensor's film)")
@@ -31,7 +34,7 @@ def add_parser(sub) -> None:
                         "object.id, normal, position, uv), so rtval exr diff compares them "
                         "with rtval render's EXR")
     add_rules(p, "--shading/--aovs: the hit-rule variants the integrator uses (as in rtval "
-                 "render)")
+                 "render; not ties or edges, which Mitsuba's intersection decides)")
     add_max_dist(p, "--shading: reflections stop at this path length (default 1000)")
     add_code27(p)
     add_texture_dir(p)
