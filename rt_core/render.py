@@ -126,12 +126,21 @@ def render_geometry(scene: Scene, columns: int, rows: int | None = None, precisi
     return to_images(trace_geometry(scene, cam, T, rules), cam)
 
 
-def nonfinite_count(images: dict) -> int:
-    """Non-finite values as written: every output holds float32 (a float64 value beyond
-    float32's range becomes inf there)."""
+def nonfinite_count(images: dict, as_float32: bool = True) -> int:
+    """Non-finite values as written: an EXR holds float32 (a float64 value beyond
+    float32's range becomes inf there); ``as_float32=False``: as computed, for the 8-bit
+    images, which hold a finite intensity beyond 1 as 255 (a review: an f64 --ppm render
+    of a 3e38 light said '125 NON-FINITE values', exit 1, of a correct image)."""
     with np.errstate(over="ignore", invalid="ignore"):
-        return int(sum(np.count_nonzero(~np.isfinite(np.asarray(a, np.float32)))
+        return int(sum(np.count_nonzero(~np.isfinite(np.asarray(a, np.float32) if as_float32
+                                                      else np.asarray(a)))
                        for a in images.values()))
+
+
+def nonfinite_channels(images: dict) -> list:
+    """The channels with a value that is not finite in float32 (an EXR's), by name."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        return [k for k, a in images.items() if not np.isfinite(np.asarray(a, np.float32)).all()]
 
 
 @functools.lru_cache(maxsize=None)
@@ -238,7 +247,10 @@ def render_tiled(scene: Scene, cam: Camera, T: backends.Types, rules: Rules = Ru
             if name not in images:
                 dtype = a.dtype if name in "RGB" else np.float32
                 images[name] = np.empty((cam.rows, cam.columns), dtype)
-            images[name][tile.row0:tile.row0 + tile.tile_rows] = a
+            # (a float64 value beyond float32 becomes inf: counted and said by the caller,
+            # not numpy's warning with its source line on stderr, a review)
+            with np.errstate(over="ignore"):
+                images[name][tile.row0:tile.row0 + tile.tile_rows] = a
         if res is not None:
             summary = summary or shading.ShadeResult(rgb=None)
             summary.bounces = max(summary.bounces, res.bounces)

@@ -234,6 +234,19 @@ def test12_values_beyond_float32_in_an_f64_render_are_counted(tmp_path):
     n = sum(int(np.count_nonzero(~np.isfinite(v))) for v in ch.values())
     assert n > 0 and hdr["rtval.nonfinite"] == str(n)                 # the file's own count
     assert r.returncode == 1 and "NON-FINITE" in r.stderr
+    # named by channel and cause, and no numpy warning with its source line (a review)
+    assert "Warning" not in r.stderr and "values not finite in the EXR's float32 (in " \
+        "depth.Z, position.X, position.Y, position.Z)" in r.stderr, r.stderr
+    # an 8-bit image of a finite float64 intensity beyond float32 holds 255, correctly:
+    # no NON-FINITE, exit 0 (it said '125 NON-FINITE values', exit 1, a review)
+    hot = tmp_path / "hot.txt"
+    hot.write_text("8 6\n0 0 5\npointlight\n3e38 3e38 3e38\n-4 4 2\nsphere\n1 0.5 0.5\n"
+                   "800 300 300\n0 0 0\n0 0 -4\n2\n")
+    r = rtval("render", hot, "--columns", 16, "--precision", "f64", "--ppm", tmp_path / "h.ppm",
+              "--png", tmp_path / "h.png")
+    assert r.returncode == 0 and "NON-FINITE" not in r.stderr, r.stderr
+    from rt_core.imageio import read_channels
+    assert read_channels(str(tmp_path / "h.png")).header["rtval.nonfinite"] == "0"
 
 
 def test13_nan_in_shading_reaches_the_image_and_is_counted(tmp_path):
@@ -251,6 +264,9 @@ def test13_nan_in_shading_reaches_the_image_and_is_counted(tmp_path):
     from rt_core.imageio import read_channels
     assert read_channels(str(tmp_path / "n.png")).header["rtval.nonfinite"] == \
         hdr["rtval.nonfinite"]
+    # a NaN is one in the 8-bit image's own count too, without the EXR
+    r = rtval("render", scene, "--columns", 16, "--png", tmp_path / "m.png")
+    assert r.returncode == 1 and "NON-FINITE" in r.stderr
 
 
 def test14_output_paths(tmp_path):

@@ -159,7 +159,8 @@ def run(args) -> int:
         pixels = np.empty((cam.rows, cam.columns, 3), np.uint8)
         for k, c in enumerate("RGB"):
             pixels[..., k] = quantize(images[c])
-    bad = nonfinite_count(images)
+    exr = any(opt == "-o" for opt, _ in outs)
+    bad = nonfinite_count(images, as_float32=exr)
     report = None
     if args.json:
         from rt_core.outputs import json_text
@@ -204,6 +205,11 @@ def run(args) -> int:
             msg = (f"{path}: {size} shaded, {_n(res.bounces, 'reflection bounce')} "
                    f"(max-dist {max_dist:g})")
         print(msg + (f", {bad} NON-FINITE values" if bad else ""), file=sys.stderr)
+    if bad and exr:
+        from rt_core.render import nonfinite_channels
+        print(f"rtval render: warning: {bad} values not finite in the EXR's float32 (in "
+              f"{', '.join(nonfinite_channels(images))}): beyond float32's range (3.4e38), "
+              "or NaN; scale the scene down, or write only --ppm or --png", file=sys.stderr)
     if shade and res.capped:
         print(f"rtval render: warning: reflections stopped at the safety cap of "
               f"{shading.MAX_BOUNCES} bounces with {res.left_active} rays still short of "
