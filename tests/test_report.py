@@ -118,3 +118,28 @@ def test07_report_end_to_end(tmp_path):
     data = json.loads(open(js).read())
     assert data["meta"]["sample"] == 200 and data["pareto"]
     assert "oracle" in open(md).read() and os.path.getsize(png) > 1000
+
+
+def test08_the_three_files_together_or_none(tmp_path, monkeypatch):
+    """A full disk left the PNG and a new directory when the JSON could not be written (a
+    review): the three files are renamed into place together, and a directory the write
+    made is removed when it fails."""
+    from rt_core.outputs import WriteError
+    from rt_core.parser import parse_scene
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    res = report.run_report([parse_scene(os.path.join(root, "scenes", "sphere.txt"))],
+                            report.Settings(columns=(16,), sample=20, reps=1))
+
+    def full(path, data, indent=1):
+        raise WriteError(path, "no space left on device")
+    monkeypatch.setattr("rt_core.outputs.write_json", full)
+    out = tmp_path / "new" / "rep"
+    with pytest.raises(WriteError):
+        report.write_report(res, str(out))
+    assert list(tmp_path.iterdir()) == []
+    out.mkdir(parents=True)                         # an earlier report's directory stays
+    (out / "report.md").write_text("old")
+    with pytest.raises(WriteError):
+        report.write_report(res, str(out))
+    assert sorted(p.name for p in out.iterdir()) == ["report.md"]
+    assert (out / "report.md").read_text() == "old"

@@ -47,12 +47,18 @@ def run(args) -> int:
     s = replace(s, **{k: v for k, v in (("columns", tuple(args.columns or ()) or None),
                                         ("sample", args.sample), ("reps", args.reps))
                       if v is not None})
+    # too large a request: one line (exit 2) before any ray is traced, as render's (a
+    # review: 20000 columns took 23.7 GB and the out-of-memory killer, no word)
+    from rt_core.memory import guard, report_bytes
+    for sc in scenes:
+        for c in s.columns:
+            guard(report_bytes, "report", c, sc.default_rows(c))
 
     def progress(rows):
         r = rows[0]
         print(f"report: {Path(r['scene']).name} {r['columns']}x{r['rows']}: "
-              + ", ".join(f"{x['config']} {x['steady_ms']:.2f} ms" for x in rows),
-              file=sys.stderr)
+              + ", ".join(f"{x['config']} {x['steady_ms']:.2f} ms" for x in rows)
+              + (f" (note: {r['note']})" if r.get("note") else ""), file=sys.stderr)
     result = run_report(scenes, s, progress)
     md, js, png = write_report(result, args.output)
     print(f"{md}\n{js}\n{png}")
