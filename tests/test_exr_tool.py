@@ -340,6 +340,15 @@ def test09_diff_nan_and_inf(tmp_path, capsys):
 
 def test10_diff_writes_difference_exr_atomically(pair, tmp_path, capsys):
     out = tmp_path / "sub" / "d.exr"
+    # a directory that does not exist is refused, exit 4 (a file error), not made: only
+    # the commands that take -o DIR make directories (a review: diff and preview made the
+    # tree, and the general exit 2 read as diff's FAILURE)
+    for argv in (("diff", *pair, "-o", out),
+                 ("preview", pair[0], "-o", out.with_suffix(".png"))):
+        code, _, err = run(capsys, *argv)
+        assert code == 4 and "no directory" in err and "create it first" in err, err
+        assert not out.parent.exists()
+    out.parent.mkdir()
     code, r = run_json(capsys, "diff", *pair, "-o", out)
     assert code == 2 and r["diff_image"] == str(out)
     ch, hdr = read_exr(out)

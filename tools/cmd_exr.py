@@ -280,6 +280,26 @@ def run_stats(args) -> int:
     return 0
 
 
+def _file_error_is_4(run):
+    """exr's exit 4 for an output it refuses or cannot write: the command line's general 2
+    is exr diff's FAILURE (a missing directory, /dev/full/x.exr read as 'too many pixels
+    fail')."""
+    import functools
+
+    @functools.wraps(run)
+    def wrapped(args) -> int:
+        from rt_core.usererror import InputError
+        try:
+            return run(args)
+        except BrokenPipeError:
+            raise
+        except (InputError, OSError) as e:
+            _error(e)
+            return 4
+    return wrapped
+
+
+@_file_error_is_4
 def run_diff(args) -> int:
     from tools import exrtool
     if args.metric == "idiff" and args.output and not _named(args.output, ".exr"):
@@ -298,6 +318,10 @@ def run_diff(args) -> int:
         hard_fail=args.hard_fail, warn=args.warn, warn_relative=args.warn_relative,
         warn_percent=args.warn_percent, hard_warn=args.hard_warn,
         allow_failures=args.allow_failures)
+    if args.output:
+        # (a missing directory is refused, as render's: it made the tree, a review)
+        from rt_core.outputs import check_file_target
+        check_file_target(args.output, make_dirs=False)
     r = exrtool.diff(args.a, args.b, _channels(args), th, args.output, args.metric)
     if r["exit_code"] == exrtool.MISMATCH:
         _error(r["reason"])
@@ -359,10 +383,13 @@ def _triple(v) -> str:
     return "(" + ", ".join(_g(x) for x in v) + ")"
 
 
+@_file_error_is_4
 def run_preview(args) -> int:
     from tools import exrtool
     if not _named(args.output, ".png"):
         args.usage_error(f"-o {args.output}: the preview is a PNG; name it .png")
+    from rt_core.outputs import check_file_target
+    check_file_target(args.output, make_dirs=False)
     r = exrtool.preview(args.file, args.output, args.channel)
     if args.json:
         _print_json(r)
