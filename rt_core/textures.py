@@ -73,17 +73,23 @@ def find(scene, obj, dirs=()) -> str:
         places.append(os.path.dirname(os.path.abspath(scene.path)))
     if os.path.isabs(name):
         places = [""]
+    # each place's NAME; a --texture-dir also holding the file by its bare name, where the
+    # scene names a folder (textures/tiles.ppm: a review's --texture-dir of that folder
+    # was 'not found', its message naming the folder that held it)
+    tried = [os.path.join(d, name) for d in places]
+    base = os.path.basename(name)
+    if base != name and not os.path.isabs(name):
+        tried[len(dirs):len(dirs)] = [os.path.join(os.fspath(d), base) for d in dirs]
     folder = None
-    for d in places:
-        p = os.path.join(d, name)
+    for p in dict.fromkeys(tried):
         if os.path.isfile(p):
             return os.path.abspath(p)
         folder = folder or (p if os.path.isdir(p) else None)
     if folder:
         raise _error(scene, obj, name, f"texture '{name}' is a directory ({folder}), not a PPM "
                                        "file; give the image file's name")
-    looked = ", ".join(places) if places != [""] else name
-    raise _error(scene, obj, name, f"texture '{name}' not found (looked in: {looked}); put it "
+    looked = ", ".join(dict.fromkeys(tried))
+    raise _error(scene, obj, name, f"texture '{name}' not found (looked for: {looked}); put it "
                                    "next to the scene or pass --texture-dir DIR")
 
 

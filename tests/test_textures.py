@@ -171,9 +171,20 @@ def test05_missing_texture_one_line_exit_2(tmp_path):
     r = cli("render", scene, "--columns", 16, "--ppm", out)
     assert r.returncode == 2
     assert r.stderr.strip() == (
-        f"rtval render: {scene}:16:1: texture 'textures/tiles4x3.ppm' not found (looked in: "
-        f"{scene.parent}); put it next to the scene or pass --texture-dir DIR")
+        f"rtval render: {scene}:16:1: texture 'textures/tiles4x3.ppm' not found (looked for: "
+        f"{scene.parent / 'textures' / 'tiles4x3.ppm'}); put it next to the scene or pass "
+        "--texture-dir DIR")
     assert not out.exists() and sorted(p.name for p in scene.parent.iterdir()) == [scene.name]
+    # a --texture-dir holding the file by its bare name finds it (a review: 'not found',
+    # naming that folder); one that does not is named with the paths tried
+    textures = BUNDLED[0].parent / "textures"
+    r = cli("render", scene, "--columns", 16, "--ppm", out, "--texture-dir", textures)
+    assert r.returncode == 0 and out.exists(), r.stderr
+    os.remove(out)
+    r = cli("render", scene, "--columns", 16, "--ppm", out, "--texture-dir", tmp_path)
+    assert r.returncode == 2 and f"(looked for: {tmp_path / 'textures' / 'tiles4x3.ppm'}, " \
+        f"{tmp_path / 'tiles4x3.ppm'}, {scene.parent / 'textures' / 'tiles4x3.ppm'})" \
+        in r.stderr, r.stderr
     # geometry needs no texture
     r = cli("render", scene, "--columns", 16, "-o", tmp_path / "g.exr")
     assert r.returncode == 0, r.stderr
