@@ -60,13 +60,18 @@ def make_camera(scene: Scene, columns: int, rows: int | None = None,
     if rows is None:
         rows = scene.default_rows(columns)
     if columns * rows >= 2 ** 31:
+        said = f"image {columns}x{rows} has {columns * rows} pixels; Dr.Jit indexes at most " \
+            "2^31 rays in one kernel: "
+        if given_rows:
+            # (the rows given are the ones to cut: 'use --columns <= 0 (and --rows in
+            # proportion)' for 3x10^12, a review)
+            raise InputError(said + f"use --rows <= {(2 ** 31 - 1) // columns} at "
+                                    f"{columns} columns, or fewer of both")
         # the most columns, rows in proportion, below 2^31 pixels
         fit = math.isqrt(int((2 ** 31 - 1) * columns / rows))
         while fit * max(1, fit * rows // columns) >= 2 ** 31:
             fit -= 1
-        raise InputError(f"image {columns}x{rows} has {columns * rows} pixels; Dr.Jit indexes "
-                         f"at most 2^31 rays in one kernel: use --columns <= {fit}"
-                         + (" (and --rows in proportion)" if given_rows else ""))
+        raise InputError(said + f"use --columns <= {fit}")
     least = 2 if sampling == "corners" else 1
     if columns < least or rows < least:
         raise InputError(f"image {columns}x{rows} is too small: {sampling} sampling needs at "

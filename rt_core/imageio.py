@@ -195,7 +195,7 @@ def _pnm_header_problem(path: str) -> str | None:
     header = f"a {magic.decode()} header is '{magic.decode()} width height maxval' and one " \
         "whitespace byte (a newline) before the samples"
     i, n = 2, len(data)
-    for field in _FIELDS:
+    for name in _FIELDS:
         while i < n and (data[i:i + 1].isspace() or data[i:i + 1] == b"#"):
             if data[i:i + 1] == b"#":            # a comment, to the line's end
                 while i < n and data[i:i + 1] not in (b"\n", b"\r"):
@@ -203,18 +203,18 @@ def _pnm_header_problem(path: str) -> str | None:
             else:
                 i += 1
         if i >= n:
-            return f"the header ends before its {field}; {header}"
+            return f"the header ends before its {name}; {header}"
         j = i
         while j < n and data[j:j + 1].isdigit():
             j += 1
         if j == i:                       # not a number where the field goes
             tok = re.match(rb"[^\s#]{1,12}", data[i:])
-            if field == "maxval" and not _text_token(tok):
+            if name == "maxval" and not _text_token(tok):
                 return (f"no maxval after the height (byte {i} is 0x{data[i]:02x}, not a "
                         f"digit: the samples start there?); {header}")
-            return (f"the header's {field} is {tok.group().decode('latin-1')!r}, not a "
+            return (f"the header's {name} is {tok.group().decode('latin-1')!r}, not a "
                     f"number; {header}")
-        if field == "maxval" and j < n and not data[j:j + 1].isspace():
+        if name == "maxval" and j < n and not data[j:j + 1].isspace():
             return (f"no whitespace byte after the maxval {data[i:j].decode()} (byte {j} is "
                     f"0x{data[j]:02x}): the samples were written right after it; {header}")
         i = j

@@ -270,7 +270,8 @@ class Scene:
             line, col = self.header_at[1] if self.header_at else (None, None)
             raise SceneError(f"header: world window {fmt(self.window)} gives int(h/w·columns) = "
                              f"{rows:.3g} rows at {columns} columns, more than an image can "
-                             "have; fix the window or give --rows", self.path, line, col)
+                             "have; use fewer --columns, fix the window or give --rows",
+                             self.path, line, col)
         return int(rows)
 
     def at_viewpoint(self, axis: int):

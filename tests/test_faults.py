@@ -135,6 +135,35 @@ def test03_full_file_system_small_write_is_not_lost(full_dir, opt, name):
     assert sorted(p.name for p in full_dir.iterdir()) == ["fill"]
 
 
+def test03c_report_on_a_full_disk_leaves_nothing(full_dir, tmp_path):
+    """rtval report wrote its PNG, then failed on its JSON: the PNG and the new directory
+    stayed (a review).  Its three files are written together or not at all, and a directory
+    it made for them is removed."""
+    out = full_dir / "rep"
+    r = rtval("report", SEED, "--columns", 16, "--sample", 10, "--reps", 1, "-o", out)
+    last = r.stderr.strip().splitlines()[-1]          # (after its progress line)
+    assert r.returncode == 2 and "Traceback" not in r.stderr and \
+        "cannot write: no space left on device" in last, r.stderr
+    assert not out.exists() and sorted(p.name for p in full_dir.iterdir()) == ["fill"]
+
+
+def test03d_report_too_large_and_a_scene_with_objects_left_out(tmp_path):
+    """rtval report had no memory guard (20000 columns: 23.7 GB, then the out-of-memory
+    killer); and on a torus scene it measured the scene without the torus, said in its
+    JSON rows only (a review)."""
+    out = tmp_path / "big"
+    one_line(rtval("report", SEED, "--columns", 200000, "-o", out), 2,
+             "report 200000x150000 needs ~", "use --columns <= ")
+    assert not out.exists()
+    out = tmp_path / "torus"
+    r = rtval("report", REPO / "scenes" / "torus.txt", "--columns", 16, "--sample", 20,
+              "--reps", 1, "-o", out)
+    assert r.returncode == 0, r.stderr
+    assert "(note: left out of this Mitsuba comparison" in r.stderr
+    assert "Measured without the objects Mitsuba has no shape for, in every configuration " \
+        "(rt_core's and the oracle's too): line 11 torus." in (out / "report.md").read_text()
+
+
 def test03b_full_temporary_folder_bench(full_dir, tmp_path, monkeypatch):
     """rtval bench runs each case in its own process, its files in a temporary folder (where
     Python's tempfile finds TMPDIR unwritable it takes another): a full one is one line,
@@ -534,6 +563,11 @@ def test09c_more_rays_than_a_kernel_indexes_names_a_size_that_fits():
     fit = int(err.rsplit("<= ", 1)[1].split()[0])
     sc = parse_scene(SEED)
     assert fit * sc.default_rows(fit) < 2 ** 31 <= (fit + 2) * sc.default_rows(fit + 2)
+    # rows given: the rows are named, with a count that fits ('use --columns <= 0 (and
+    # --rows in proportion)' for 3 columns and 10^12 rows, a review)
+    r = rtval("render", SEED, "--columns", 3, "--rows", 10 ** 12, "-o", "never.exr")
+    one_line(r, 2, "use --rows <= 715827882 at 3 columns, or fewer of both")
+    assert 3 * 715827882 < 2 ** 31 <= 3 * 715827883
 
 
 def test10_guard_suggests_a_size_that_fits(monkeypatch):

@@ -282,7 +282,6 @@ def test03c_names_that_are_not_utf8(tmp_path, capsys):
     with --report gave a traceback and exit 1, a student's pass read as a failure (an
     instructor's review); validate's report.md said it could not be written.  The pages
     and the PNGs write such a byte as \\xNN, as the JUnit file does."""
-    from rt_core.imageio import write_ppm
     from tools.cli import main
     scene = Path(os.fsdecode(bytes(tmp_path) + b"/sph\xe9re.txt"))
     shutil.copy(SPHERE, scene)

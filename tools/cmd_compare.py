@@ -127,8 +127,8 @@ def run(args) -> int:
 
 
 def _left_out(scene, shaded: bool = False) -> str:
-    """'; N of its M objects not compared ...' where objects were left out of the comparison (no Mitsuba
-    shape, or a sphere holding the viewpoint in a shaded one), said in the verdict: on
+    """'; N of its M objects not compared ...' where objects were left out of the comparison
+    (no Mitsuba shape, or a sphere holding the viewpoint in a shaded one), said in the verdict: on
     stderr only, a scene of an ellipsoid alone read 'PASS' (a review)."""
     from mitsuba_ref.convert import mitsuba_subset
     from tools.harness.shaded import SHADED_KINDS
