@@ -914,6 +914,12 @@ def test08k_a_directory_of_images_is_checked_scene_by_scene(ctracer, tmp_path, c
     (subs / "mixed.ppm").mkdir()
     assert main(["check", "--images", str(subs), str(gone)]) == 1
     assert f"{subs / 'mixed.ppm'}: a directory; give an image file" in capsys.readouterr().out
+    # --columns on a window with no rows for them: refused in one line, not a traceback
+    tiny = tmp_path / "tiny.txt"
+    tiny.write_text("1e-300 6\n0 0 5\nsphere\n1 1 1\n0 0 0\n0 0 0\n0 0 -5\n1\n")
+    shutil.copy(subs / "shade_shadows.ppm", subs / "tiny.ppm")
+    assert main(["check", "--images", str(subs), "--columns", "40", str(tiny)]) == 2
+    assert "more than an image can have" in capsys.readouterr().out
 
 
 def test08h_a_tracer_writing_its_own_file_name_is_told_so(ctracer, tmp_path, monkeypatch):

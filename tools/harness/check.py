@@ -1690,6 +1690,7 @@ def _image_jobs(directory, scenes, kw, columns=None, rows=None):
     """check_images' jobs: a finished SceneCheck where the scene or its image is missing or
     unreadable, else the scene and image as data (for ``_check_image_job``)."""
     from rt_core.imageio import ImageError, pnm_maxval, read_image
+    from rt_core.scene import SceneError
     try:
         names = os.listdir(directory)
     except OSError:
@@ -1741,7 +1742,11 @@ def _image_jobs(directory, scenes, kw, columns=None, rows=None):
                   f"{', '.join(os.path.basename(f) for f in found[1:])} (--images checks the "
                   f"first of {', '.join(IMAGE_SUFFIXES)}: remove the one that is not the "
                   "tracer's)", file=sys.stderr)
-        h = rows if rows is not None or columns is None else sc.default_rows(columns)
+        try:
+            h = rows if rows is not None or columns is None else sc.default_rows(columns)
+        except SceneError as exc:       # (a window with no rows for those columns)
+            yield SceneCheck(str(s), found[0], "refused", str(exc))
+            continue
         yield (str(s), found[0], sc, theirs, columns, h, None,
                {**kw, "maxval": pnm_maxval(found[0])})
 
