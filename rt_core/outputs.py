@@ -108,6 +108,38 @@ def scratch_dir(kind: str) -> str:
     return tempfile.mkdtemp(prefix=f"{mine}{os.getpid()}-")
 
 
+KERNELS = "rtval-kernels-"
+SPACE_MARK = ".rtval-space"
+
+
+def claim_kernel_cache() -> None:
+    """The empty kernel cache ``rtval bench`` and ``report`` point Dr.Jit at
+    (tools/cmd_bench.py ``fresh_kernel_cache``: ``rtval-kernels-PID-*`` in the temporary
+    directory, made before Dr.Jit's import, where this module cannot be imported yet) gets
+    this host's and PID namespace's tag; those killed runs left (their PID gone, the same
+    tag) are removed.  A SIGKILL or the out-of-memory killer left them for good (a review),
+    as ``atexit`` removes them."""
+    import shutil
+    mine = os.environ.get("DRJIT_CACHE_DIR", "")
+    if os.path.basename(mine).startswith(f"{KERNELS}{os.getpid()}-"):
+        with contextlib.suppress(OSError):
+            with open(os.path.join(mine, SPACE_MARK), "w") as f:
+                f.write(_SPACE)
+    base = tempfile.gettempdir()
+    with contextlib.suppress(OSError):
+        for name in os.listdir(base):
+            pid = name[len(KERNELS):].split("-", 1)[0] if name.startswith(KERNELS) else ""
+            if not pid.isdigit() or int(pid) == os.getpid() or _pid_alive(int(pid)):
+                continue
+            try:
+                with open(os.path.join(base, name, SPACE_MARK)) as f:
+                    tag = f.read()
+            except OSError:
+                continue                # (not marked: another run's, or not ours to say)
+            if tag == _SPACE:
+                shutil.rmtree(os.path.join(base, name), ignore_errors=True)
+
+
 def remove_stale(directory: str) -> list[str]:
     """Remove the temporaries that killed rtval runs left in ``directory`` (their process is
     gone); say so on stderr.  Returns the names removed."""

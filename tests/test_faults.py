@@ -800,6 +800,43 @@ def _second_signal(first, cli, cmd_exr, outputs, monkeypatch, capsys):
     assert signal.getsignal(signal.SIGINT) is before
 
 
+def test15h_a_killed_runs_kernel_cache_is_removed_by_the_next(tmp_path, monkeypatch):
+    """rtval report and bench point Dr.Jit at an empty kernel cache of their own, removed
+    at exit: a SIGKILL or the out-of-memory killer left it in the temporary directory for
+    good (a review found three).  Its name holds the PID and, once rt_core is imported, it
+    holds this host's and PID namespace's tag: the next run removes it; a live run's, one
+    without the tag and one of another namespace stay."""
+    import tempfile
+    from rt_core.outputs import SPACE_MARK, _SPACE, claim_kernel_cache
+    env = dict(os.environ, TMPDIR=str(tmp_path))
+    env.pop("DRJIT_CACHE_DIR", None)
+    p = subprocess.Popen([sys.executable, "-m", "tools.cli", "report", str(SEED), "--columns",
+                          "32", "--sample", "10", "--reps", "1", "-o", str(tmp_path / "rep")],
+                         cwd=REPO, env=env, start_new_session=True,
+                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    marked, deadline = [], time.time() + 120
+    while not marked and time.time() < deadline and p.poll() is None:
+        marked = list(tmp_path.glob(f"rtval-kernels-{p.pid}-*/{SPACE_MARK}"))
+        time.sleep(0.02)
+    os.killpg(p.pid, signal.SIGKILL)
+    p.wait()
+    assert marked, sorted(x.name for x in tmp_path.iterdir())
+    left = marked[0].parent
+    assert left.is_dir()
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    kept = [tmp_path / f"rtval-kernels-{os.getppid()}-live",     # a live run's
+            tmp_path / f"rtval-kernels-{dead.pid}-unmarked",
+            tmp_path / f"rtval-kernels-{dead.pid}-elsewhere"]    # another namespace's
+    for d in kept:
+        d.mkdir()
+    (kept[0] / SPACE_MARK).write_text(_SPACE)
+    (kept[2] / SPACE_MARK).write_text("0" * len(_SPACE))
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    claim_kernel_cache()
+    assert not left.exists() and all(d.is_dir() for d in kept)
+
+
 @pytest.mark.parametrize("at", ["remove_stale", "held"])
 def test15g_a_stop_before_the_write_removes_the_directories_it_made(at, tmp_path,
                                                                      monkeypatch):

@@ -92,7 +92,9 @@ def fresh_kernel_cache(keep: bool) -> None:
     if not keep and "drjit" not in sys.modules:
         import atexit
         import shutil
-        path = tempfile.mkdtemp(prefix="rtval-kernels-")
+        # (its PID in the name: a killed run's is found and removed by the next one,
+        # rt_core.outputs.claim_kernel_cache, which marks it once rt_core can be imported)
+        path = tempfile.mkdtemp(prefix=f"rtval-kernels-{os.getpid()}-")
         atexit.register(shutil.rmtree, path, True)      # runs after Dr.Jit's own exit hooks
         os.environ["DRJIT_CACHE_DIR"] = path
 
@@ -126,6 +128,8 @@ def run(args) -> int:
     if said:
         args.usage_error(said + " (each option's help names the mode it belongs to)")
     from rt_core.backend import require
+    from rt_core.outputs import claim_kernel_cache
+    claim_kernel_cache()        # (this run's empty kernel cache marked, killed runs' gone)
     require(args.backend)       # no CUDA device: one line, exit 2, before any work
     if args.output:             # refused before the run, not after it
         from rt_core.outputs import check_file_target

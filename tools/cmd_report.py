@@ -39,7 +39,8 @@ def run(args) -> int:
     from tools.harness.agree import parse_agreed
     from tools.harness.report import QUICK, Settings, run_report, write_report
     from tools.harness.validate import REPO
-    from rt_core.outputs import check_dir_target
+    from rt_core.outputs import check_dir_target, claim_kernel_cache
+    claim_kernel_cache()        # (this run's empty kernel cache marked, killed runs' gone)
     check_dir_target(args.output)            # refused before the run, not after it
     paths = args.scenes or sorted((REPO / "scenes").glob("*.txt"))
     scenes = [parse_agreed(p, args.code27) for p in paths]
