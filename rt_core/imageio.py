@@ -264,7 +264,9 @@ def _read_part(inp, path: str, error, index: int, deep_ok: bool):
     with native_output_captured(fds=(2,)):
         px = inp.read_image(index, 0, 0, len(names), "float")
     if px is None:
-        raise error(f"{path}: cannot read the pixels, truncated or corrupt "
+        said = _pnm_diagnosis(path, spec) if inp.format_name() == "pnm" else None
+        raise error(f"{path}: {said}" if said else
+                    f"{path}: cannot read the pixels, truncated or corrupt "
                     f"({_reason(_error_of(inp), path)})")
     px = np.asarray(px, np.float32).reshape(spec.height, spec.width, len(names))
     chans = {n: px[..., i] for i, n in enumerate(names)}
@@ -299,6 +301,8 @@ def read_channels(path, deep_ok: bool = False, what: str = "image",
     finally:
         inp.close()
     spec0 = parts[0][0]
+    if fmt == "pnm":
+        _pnm_checks(path, spec0, error)
     header = {a.name: a.value for a in spec0.extra_attribs if a.name != "oiio:subimages"}
     data = ImageData(path, spec0.width, spec0.height, {}, {}, header, fmt,
                      deep=any(s.deep for s, _, _ in parts), tiled=spec0.tile_width > 0,
@@ -532,6 +536,25 @@ def _pnm_surplus(path: str) -> str | None:
                 f"{body}, {(body - need) / row:.3g} row{'s' if body - need != row else ''} more: "
                 "write as many rows as the header says")
     return None
+
+
+def _pnm_checks(path: str, spec, error) -> None:
+    """What read_image refuses in a PNM that OpenImageIO reads without a word (a maxval of
+    0, samples above the maxval or below 0, more samples than the header says), for
+    read_channels too: ``rtval exr`` read such files as check refuses them (a review: a
+    PPM with a row too many passed exr diff)."""
+    if spec.get_int_attribute("oiio:BitsPerSample", 8) == 0:
+        raise error(f"{path}: a PPM whose maxval is 0; expected 1 to 65535 (255 for the "
+                    "course's 8-bit image)")
+    if not spec.get_int_attribute("pnm:binary", 1):
+        try:
+            _ascii_samples_in_range(path)
+        except ImageError as exc:
+            raise error(str(exc)) from None
+        return
+    said = _pnm_surplus(path) or _binary_samples_over(path)
+    if said:
+        raise error(f"{path}: {said}")
 
 
 def _binary_samples_over(path: str) -> str | None:

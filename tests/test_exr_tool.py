@@ -110,6 +110,24 @@ def test02_info_reports_each_bad_file_and_exits_4(tmp_path, capsys, pair):
     assert code == 4 and [d["file"] for d in data] == [pair[0]]
 
 
+@pytest.mark.parametrize("data, why", [
+    (b"P6\n4 3\n256\n" + bytes(36), "maxval 256 means two bytes a sample"),
+    (b"P3\n4 3\n255\n" + bytes(range(200, 236)), "a P3 (ASCII) header over binary samples"),
+    (b"P6\n4 3\n255\n" + bytes(30), "truncated: the header says 4x3 pixels"),
+    (b"P6\n4 3\n255\n" + bytes(48), "the file holds 48, 1 row more"),
+    (b"P3\n2 1\n255\n1 2 3\n300 0 0\n", "sample 300 above the maxval 255")],
+    ids=["maxval256", "p3-binary", "truncated", "row-more", "over-maxval"])
+def test02b_a_course_ppms_mistakes_as_check_says_them(tmp_path, capsys, data, why):
+    """exr read PPMs through OpenImageIO alone: 'Premature end of file', '(no reason
+    given)', and a PPM with a row too many passed exr diff (a review); they are the
+    course's terms now, as rtval check gives them, exit 4."""
+    p = tmp_path / "x.ppm"
+    p.write_bytes(data)
+    for cmd in ("info", "diff"):
+        code, _, err = run(capsys, cmd, p, *((p,) if cmd == "diff" else ()))
+        assert code == 4 and why in err and len(err.splitlines()) == 1, (cmd, err)
+
+
 # ----------------------------------------------------------------------------- stats
 
 def test03_stats_known_nan_inf_counts_mean_std(tmp_path, capsys):
