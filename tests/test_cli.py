@@ -98,12 +98,18 @@ def test02a_no_did_you_mean_for_a_word_alike_only_in_its_dashes():
     # review: the XML said ties=last and rendered the first object's colour)
     (("convert", SPHERE, "--columns", 8, "--shading", "--rules", "ties=last,edges=open", "-o",
       "x.xml"), "--rules ties=last, edges=open: the course integrator has no parameter"),
+    # render's options that would do nothing (accepted, no effect: a review; bench says so)
+    (("render", SPHERE, "--columns", 8, "-o", "x.exr", "--max-dist", 30),
+     "--max-dist not used: --max-dist and --texture-dir go with the shaded image"),
+    (("render", SPHERE, "--columns", 8, "--ppm", "x.ppm", "--compression", "zip"),
+     "--compression not used"),
     # an option beyond float32 is the option's fault, not the scene's (exit 2 before)
     (("convert", SPHERE, "--columns", 8, "--shading", "--max-dist", "1e39", "-o", "x.xml"),
      "--max-dist 1e+39: beyond float32"),
 ], ids=["timeout-0", "timeout-negative", "texture-dir", "timeout-huge", "threads", "objects", "lights",
         "workers", "seeds", "tls", "ucx", "empty", "render-1-column", "render-1-row", "compare", "check", "convert",
-        "validate", "report", "bench-command", "convert-rules", "convert-max-dist"])
+        "validate", "report", "bench-command", "convert-rules", "render-max-dist",
+        "render-compression", "convert-max-dist"])
 def test02b_invalid_option_values(args, said):
     r = rtval(*args)
     err = r.stderr.strip()

@@ -10,7 +10,7 @@ from __future__ import annotations
 import os
 import sys
 
-from .options import (add_code27, add_image_options, add_max_dist, add_texture_dir,
+from .options import (Defaulted, add_code27, add_image_options, add_max_dist, add_texture_dir,
                       positive_int)
 
 
@@ -44,7 +44,7 @@ def add_parser(sub) -> None:
                     "default 1000)")
     add_texture_dir(p)
     p.add_argument("--compression", choices=("piz", "zip", "zstd", "htj2k", "none"),
-                   default="piz", help="EXR compression, all lossless (default piz: read by "
+                   default=Defaulted("piz"), help="EXR compression, all lossless (default piz: read by "
                                        "every OpenEXR; zstd and htj2k are faster and smaller "
                                        "but need OpenEXR 3.4 or later to read)")
     p.add_argument("--tile", type=positive_int, default=None, metavar="ROWS",
@@ -122,6 +122,17 @@ def run(args) -> int:
         return code
     if args.columns is None:
         args.usage_error("the following arguments are required: --columns")
+    # options that would do nothing: said, as bench says them (a review: accepted, no effect)
+    from .options import given
+    shading_asked = bool(args.ppm or args.png or args.shade)
+    unused = [o for o, v in (("--max-dist", args.max_dist is not None),
+                             ("--texture-dir", bool(args.texture_dir))) if v and not shading_asked]
+    if given(args.compression) and not args.output:
+        unused.append("--compression")
+    if unused:
+        args.usage_error(f"{', '.join(unused)} not used: --max-dist and --texture-dir go with "
+                         "the shaded image (--ppm, --png or --shade), --compression with the "
+                         "EXR (-o)")
     rules = args.rules or Rules()
     max_dist = DEFAULT_MAX_DIST if args.max_dist is None else args.max_dist
     shade = bool(args.ppm or args.png or args.shade)
