@@ -208,6 +208,16 @@ def mitsuba_subset(scene: Scene, keep=lambda kind: True, inside: bool = False):
 PROVENANCE = "rtval.provenance"
 
 
+def planes_note(scene: Scene) -> str:
+    """What the scene's infinite and tiled planes stand in as (the XML's comment and
+    convert's note on stderr), or "" where it has none."""
+    if not any(not KINDS[o.kind].bounded for o in scene.objects):
+        return ""
+    return (f"infinite and tiled planes: rectangles of half-size {plane_extent(scene):.6g} "
+            "(64 x scene scale) around the viewpoint's foot point (Mitsuba has no infinite "
+            "plane)")
+
+
 def xml_provenance(scene: Scene, setup, sampling: str, mode: str, rules, max_dist) -> dict:
     """What a converted scene came from, as rtval render records it (rt_core/render.py's
     ``scene_provenance``, the course scene named ``rtval.source_scene``), with the camera,
@@ -761,10 +771,8 @@ def scene_xml(scene: Scene, columns: int, rows: int | None = None, sampling: str
              # in a comment, so its second '-' is a JSON escape)
              "<!-- " + PROVENANCE + " " +
              json.dumps(prov, sort_keys=True).replace("--", "-\\u002d") + " -->"]
-    if any(not KINDS[o.kind].bounded for o in scene.objects):
-        lines.append(f"<!-- infinite and tiled planes: rectangles of half-size "
-                     f"{plane_extent(scene):.6g} (64 x scene scale) around the viewpoint's "
-                     "foot point -->")
+    if (planes := planes_note(scene)):
+        lines.append(_comment(planes))
     # (how to load it: a review's own script rendered another image with Mitsuba's
     # optimize on, and expected the film it edited to be used)
     load = ("load it in Python with mi.set_variant('llvm_ad_rgb'), import mitsuba_ref, then "

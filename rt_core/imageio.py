@@ -338,12 +338,6 @@ def read_image(path: str) -> np.ndarray:
         spec = inp.spec()
         if spec.deep:
             raise ImageError(f"{path}: a deep image; expected the 8-bit image a tracer writes")
-        if inp.format_name() == "pnm" and spec.get_int_attribute("oiio:BitsPerSample", 8) == 0:
-            # (OpenImageIO reads every sample of such a file as full white)
-            raise ImageError(f"{path}: a PPM whose maxval is 0; expected 1 to 65535 (255 for "
-                             "the course's 8-bit image)")
-        if inp.format_name() == "pnm" and not spec.get_int_attribute("pnm:binary", 1):
-            _ascii_samples_in_range(path)
         _needs_bytes(path, ImageError, spec, 1)
         if str(spec.format) in ("float", "half", "double"):
             _finite_samples(path, inp, spec)
@@ -354,10 +348,8 @@ def read_image(path: str) -> np.ndarray:
             raise ImageError(f"{path}: {said}" if said else
                              f"{path}: cannot read the pixels, truncated or corrupt "
                              f"({_reason(_error_of(inp), path)})")
-        if inp.format_name() == "pnm" and spec.get_int_attribute("pnm:binary", 1):
-            said = _pnm_surplus(path) or _binary_samples_over(path)
-            if said:
-                raise ImageError(f"{path}: {said}")
+        if inp.format_name() == "pnm":
+            _pnm_checks(path, spec, ImageError)
     finally:
         inp.close()
     px = np.asarray(px, np.uint8).reshape(spec.height, spec.width, spec.nchannels)
@@ -507,8 +499,9 @@ def _pnm_surplus(path: str) -> str | None:
     ch = _CHANNELS[magic]
     row = w * ch * (2 if maxval > 255 else 1)
     need, body = row * h, size - start
-    if body != need and _ascii_under_binary(magic, data, start):
-        return _ascii_under_binary(magic, data, start)
+    said = _ascii_under_binary(magic, data, start) if body != need else None
+    if said:
+        return said
     if body > need and data[start - 1:start + 1] == b"\r\n":
         return ("the header's lines end in CR LF (a file written in text mode?): after "
                 "maxval a PPM takes one byte, so its samples would start a byte late; write "
@@ -539,10 +532,10 @@ def _pnm_surplus(path: str) -> str | None:
 
 
 def _pnm_checks(path: str, spec, error) -> None:
-    """What read_image refuses in a PNM that OpenImageIO reads without a word (a maxval of
-    0, samples above the maxval or below 0, more samples than the header says), for
-    read_channels too: ``rtval exr`` read such files as check refuses them (a review: a
-    PPM with a row too many passed exr diff)."""
+    """What read_image and read_channels refuse in a PNM that OpenImageIO reads without a
+    word: a maxval of 0 (read as full white), samples above the maxval (scaled and clamped)
+    or below 0 (read as 0), more samples than the header says (``rtval exr`` read them as
+    check refuses them, a review: a PPM with a row too many passed exr diff)."""
     if spec.get_int_attribute("oiio:BitsPerSample", 8) == 0:
         raise error(f"{path}: a PPM whose maxval is 0; expected 1 to 65535 (255 for the "
                     "course's 8-bit image)")

@@ -93,6 +93,21 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
+def left_by_killed_runs(directory: str, prefix: str) -> list[str]:
+    """The names in ``directory`` that start PREFIX + PID + '-' where process PID (not this
+    one) is gone: what a killed run left."""
+    try:
+        names = os.listdir(directory)
+    except OSError:
+        return []
+    out = []
+    for name in names:
+        pid = name[len(prefix):].split("-", 1)[0] if name.startswith(prefix) else ""
+        if pid.isdigit() and int(pid) != os.getpid() and not _pid_alive(int(pid)):
+            out.append(name)
+    return out
+
+
 def scratch_dir(kind: str) -> str:
     """A new directory ``rtval-KIND-TAG-PID-*`` in the temporary directory, for a run's
     scratch files (a local Dask cluster's, ``check --run``'s images); the ones killed runs
@@ -100,11 +115,8 @@ def scratch_dir(kind: str) -> str:
     import shutil
     base = tempfile.gettempdir()
     mine = f"rtval-{kind}-{_SPACE}-"
-    with contextlib.suppress(OSError):
-        for name in os.listdir(base):
-            pid = name[len(mine):].split("-", 1)[0] if name.startswith(mine) else ""
-            if pid.isdigit() and int(pid) != os.getpid() and not _pid_alive(int(pid)):
-                shutil.rmtree(os.path.join(base, name), ignore_errors=True)
+    for name in left_by_killed_runs(base, mine):
+        shutil.rmtree(os.path.join(base, name), ignore_errors=True)
     return tempfile.mkdtemp(prefix=f"{mine}{os.getpid()}-")
 
 
@@ -126,35 +138,21 @@ def claim_kernel_cache() -> None:
             with open(os.path.join(mine, SPACE_MARK), "w") as f:
                 f.write(_SPACE)
     base = tempfile.gettempdir()
-    with contextlib.suppress(OSError):
-        for name in os.listdir(base):
-            pid = name[len(KERNELS):].split("-", 1)[0] if name.startswith(KERNELS) else ""
-            if not pid.isdigit() or int(pid) == os.getpid() or _pid_alive(int(pid)):
-                continue
-            try:
-                with open(os.path.join(base, name, SPACE_MARK)) as f:
-                    tag = f.read()
-            except OSError:
-                continue                # (not marked: another run's, or not ours to say)
-            if tag == _SPACE:
-                shutil.rmtree(os.path.join(base, name), ignore_errors=True)
+    for name in left_by_killed_runs(base, KERNELS):
+        try:
+            with open(os.path.join(base, name, SPACE_MARK)) as f:
+                tag = f.read()
+        except OSError:
+            continue                    # (not marked: another run's, or not ours to say)
+        if tag == _SPACE:
+            shutil.rmtree(os.path.join(base, name), ignore_errors=True)
 
 
 def remove_stale(directory: str) -> list[str]:
     """Remove the temporaries that killed rtval runs left in ``directory`` (their process is
     gone); say so on stderr.  Returns the names removed."""
     removed = []
-    try:
-        names = os.listdir(directory)
-    except OSError:
-        return removed
-    mine = f"{TMP_PREFIX}{_SPACE}-"
-    for name in names:
-        if not name.startswith(mine):
-            continue
-        pid = name[len(mine):].split("-", 1)[0]
-        if not pid.isdigit() or int(pid) == os.getpid() or _pid_alive(int(pid)):
-            continue
+    for name in left_by_killed_runs(directory, f"{TMP_PREFIX}{_SPACE}-"):
         try:
             os.unlink(os.path.join(directory, name))
             removed.append(name)

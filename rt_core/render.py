@@ -126,21 +126,21 @@ def render_geometry(scene: Scene, columns: int, rows: int | None = None, precisi
     return to_images(trace_geometry(scene, cam, T, rules), cam)
 
 
+def nonfinite_by_channel(images: dict, as_float32: bool = True) -> dict:
+    """Each channel's count of values that are not finite as written: an EXR holds float32
+    (a float64 value beyond float32's range becomes inf there); ``as_float32=False``: as
+    computed, for the 8-bit images, which hold a finite intensity beyond 1 as 255 (a
+    review: an f64 --ppm render of a 3e38 light said '125 NON-FINITE values', exit 1, of a
+    correct image)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        return {k: int(np.count_nonzero(~np.isfinite(np.asarray(a, np.float32) if as_float32
+                                                      else np.asarray(a))))
+                for k, a in images.items()}
+
+
 def nonfinite_count(images: dict, as_float32: bool = True) -> int:
-    """Non-finite values as written: an EXR holds float32 (a float64 value beyond
-    float32's range becomes inf there); ``as_float32=False``: as computed, for the 8-bit
-    images, which hold a finite intensity beyond 1 as 255 (a review: an f64 --ppm render
-    of a 3e38 light said '125 NON-FINITE values', exit 1, of a correct image)."""
-    with np.errstate(over="ignore", invalid="ignore"):
-        return int(sum(np.count_nonzero(~np.isfinite(np.asarray(a, np.float32) if as_float32
-                                                      else np.asarray(a)))
-                       for a in images.values()))
-
-
-def nonfinite_channels(images: dict) -> list:
-    """The channels with a value that is not finite in float32 (an EXR's), by name."""
-    with np.errstate(over="ignore", invalid="ignore"):
-        return [k for k, a in images.items() if not np.isfinite(np.asarray(a, np.float32)).all()]
+    """The total of ``nonfinite_by_channel``."""
+    return sum(nonfinite_by_channel(images, as_float32).values())
 
 
 @functools.lru_cache(maxsize=None)

@@ -80,15 +80,16 @@ def find(scene, obj, dirs=()) -> str:
     base = os.path.basename(name)
     if base != name and not os.path.isabs(name):
         tried[len(dirs):len(dirs)] = [os.path.join(os.fspath(d), base) for d in dirs]
+    tried = list(dict.fromkeys(tried))
     folder = None
-    for p in dict.fromkeys(tried):
+    for p in tried:
         if os.path.isfile(p):
             return os.path.abspath(p)
         folder = folder or (p if os.path.isdir(p) else None)
     if folder:
         raise _error(scene, obj, name, f"texture '{name}' is a directory ({folder}), not a PPM "
                                        "file; give the image file's name")
-    looked = ", ".join(dict.fromkeys(tried))
+    looked = ", ".join(tried)
     raise _error(scene, obj, name, f"texture '{name}' not found (looked for: {looked}); put it "
                                    "next to the scene or pass --texture-dir DIR")
 

@@ -404,7 +404,7 @@ def test12b_a_users_own_script_renders_the_xml_as_compare_does(tmp_path):
     r = _rtval("convert", scene, "--columns", 16, "--shading", "-o", xml)
     assert r.returncode == 0 and "mi.load_file(path, optimize=False)" in xml.read_text()
     # the planes' stand-ins said on stderr too, as the README says (in the XML only before)
-    assert "note: infinite and tiled planes stand in as rectangles of half-size" in r.stderr
+    assert "note: infinite and tiled planes: rectangles of half-size" in r.stderr
     r = _rtval("render", "--mitsuba", xml, "--ppm", ppm)
     assert r.returncode == 0, r.stderr
     from rt_core.imageio import read_image

@@ -2,6 +2,7 @@
 explained (tools/harness/check.py)."""
 from __future__ import annotations
 
+import os
 import sys
 
 from .options import (add_code27, add_max_dist, add_parallel, add_rules, add_texture_dir,
@@ -76,7 +77,6 @@ def run(args) -> int:
         # a scene listed twice (overlapping globs, scenes/x.txt and ./scenes/x.txt) is
         # checked once: --images refused both as two scenes of one name, --run checked it
         # twice (an instructor's review)
-        import os
         seen: dict = {}
         for s in args.inputs:
             seen.setdefault(os.path.realpath(s), s)
@@ -110,7 +110,6 @@ def run(args) -> int:
         results = check_run(args.run, args.inputs, args.columns, args.rows, args.timeout,
                             plan_of(args), progress=watch, **kw)
     elif args.images is not None:
-        import os
         if args.hits:
             args.usage_error("--hits is for one given image, not --images")
         if args.rows is not None and args.columns is None:

@@ -48,8 +48,7 @@ def run(args) -> int:
     from rt_core.outputs import together
     from tools.harness.agree import parse_agreed
     from mitsuba_ref.convert import (DEFAULT_MAX_DIST, inside_notes, oracle_only,
-                                      plane_extent, scene_xml, sensor_setup)
-    from rt_core.kinds import KINDS
+                                      planes_note, scene_xml, sensor_setup)
 
     from rt_core.outputs import check_file_target
     if not args.output.lower().endswith(".xml"):
@@ -90,11 +89,9 @@ def run(args) -> int:
                     aovs=args.aovs, files=plys, stem=Path(args.output).name)
     left_out = oracle_only(scene)
     said += [f"rtval convert: note: {note}" for note in left_out + scene.stand_ins()]
-    if any(not KINDS[o.kind].bounded for o in scene.objects):
+    if (planes := planes_note(scene)):
         # (the README's "stand-ins are said on stderr": these were in the XML only)
-        said.append(f"rtval convert: note: infinite and tiled planes stand in as rectangles "
-                    f"of half-size {plane_extent(scene):.6g} around the viewpoint's foot point "
-                    "(Mitsuba has no infinite plane)")
+        said.append(f"rtval convert: note: {planes}")
     # a sphere that holds the viewpoint: out of the sensor's scene, kept in the course image's
     held = inside_notes(scene, course)
     said += [f"rtval convert: note: {note}" for note in held]

@@ -104,7 +104,7 @@ def run(args) -> int:
     from rt_core.outputs import WriteError, check_file_target, together
     from rt_core.parser import parse_scene
     from rt_core.memory import band_that_fits, guard, render_bytes
-    from rt_core.render import (TILE_PIXELS, nonfinite_count, provenance, render_tiled,
+    from rt_core.render import (TILE_PIXELS, nonfinite_by_channel, provenance, render_tiled,
                                 write_images)
     from rt_core.rules import Rules
     from rt_core import shading
@@ -171,7 +171,8 @@ def run(args) -> int:
         for k, c in enumerate("RGB"):
             pixels[..., k] = quantize(images[c])
     exr = any(opt == "-o" for opt, _ in outs)
-    bad = nonfinite_count(images, as_float32=exr)
+    by_channel = nonfinite_by_channel(images, as_float32=exr)
+    bad = sum(by_channel.values())
     report = None
     if args.json:
         from rt_core.outputs import json_text
@@ -217,9 +218,9 @@ def run(args) -> int:
                    f"(max-dist {max_dist:g})")
         print(msg + (f", {bad} NON-FINITE values" if bad else ""), file=sys.stderr)
     if bad and exr:
-        from rt_core.render import nonfinite_channels
         print(f"rtval render: warning: {bad} values not finite in the EXR's float32 (in "
-              f"{', '.join(nonfinite_channels(images))}): beyond float32's range (3.4e38), "
+              f"{', '.join(k for k, n in by_channel.items() if n)}): beyond float32's range "
+              "(3.4e38), "
               "or NaN; scale the scene down, or write only --ppm or --png", file=sys.stderr)
     if shade and res.capped:
         print(f"rtval render: warning: reflections stopped at the safety cap of "

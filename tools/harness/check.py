@@ -204,10 +204,7 @@ class Renderer:
     def image(self, rules, max_dist: float) -> np.ndarray:
         key = (rules, max_dist)
         if key not in self.cache:
-            from rt_core.render import render_image
-            imgs, _ = render_image(self.scene, self.cameras[rules.rows], self.T, rules,
-                                   geometry=False, shade=True, max_dist=max_dist)
-            rgb = np.stack([imgs[c] for c in ("R", "G", "B")], -1)
+            rgb = self._intensity(self.cameras[rules.rows], rules, max_dist)
             self.cache[key] = np.floor(255.0 * np.clip(rgb, 0.0, 1.0)).astype(np.uint8)
             self.unclamped[key] = rgb
         return self.cache[key]
@@ -216,13 +213,17 @@ class Renderer:
         """The 8-bit image sampled at the pixels' centres instead of the window's corners
         (a common deviation: ``hints``), under ``rules``."""
         from rt_core.camera import make_camera
-        from rt_core.render import render_image
         cam = make_camera(self.scene, self.cam.columns, self.cam.rows, "centers",
                           _rows(rules.rows))
+        rgb = self._intensity(cam, rules, max_dist)
+        return np.floor(255.0 * np.clip(rgb, 0.0, 1.0)).astype(np.uint8)
+
+    def _intensity(self, cam, rules, max_dist: float) -> np.ndarray:
+        """rt_core's float64 intensities (rows, columns, 3) of the camera's rays."""
+        from rt_core.render import render_image
         imgs, _ = render_image(self.scene, cam, self.T, rules, geometry=False, shade=True,
                                max_dist=max_dist)
-        rgb = np.stack([imgs[c] for c in ("R", "G", "B")], -1)
-        return np.floor(255.0 * np.clip(rgb, 0.0, 1.0)).astype(np.uint8)
+        return np.stack([imgs[c] for c in ("R", "G", "B")], -1)
 
     def ids(self, rules):
         """(object ids, depth) of the primary hits under ``rules`` (cached)."""
@@ -983,17 +984,26 @@ def _swapped(scene, W: int, H: int) -> list:
             "written the other way round in the header?"]
 
 
+def _far_better(other: np.ndarray, theirs: np.ndarray, straight: int):
+    """(pixels ``theirs`` differs from ``other`` by, ``straight``) where it matches
+    ``other`` far better than rt_core's own image, from which it differs at ``straight``
+    pixels: at 5% of the image at most and a fifth of ``straight``; else None."""
+    n = int(_differs(other, theirs).sum())
+    if straight and n <= 0.05 * other[..., 0].size and n <= 0.2 * straight:
+        return n, straight
+    return None
+
+
 def _centres(ours: np.ndarray, centred: np.ndarray, theirs: np.ndarray) -> list:
     """The image matches rt_core's sampled at the pixels' centres far better than at the
     window's corners (as _orientation: a student's review found it the most common
     deviation, with no hint)."""
-    straight = int(_differs(ours, theirs).sum())
-    n = int(_differs(centred, theirs).sum())
-    if straight and n <= 0.05 * ours[..., 0].size and n <= 0.2 * straight:
-        return [f"your image is rt_core's sampled at the pixels' centres ({n} pixels differ "
-                f"that way, {straight} as it is): x = (c + 0.5)/W across the window? the "
-                "course samples its corners, x = c/(W - 1) of its width, and likewise the "
-                "rows"]
+    got = _far_better(centred, theirs, int(_differs(ours, theirs).sum()))
+    if got:
+        return [f"your image is rt_core's sampled at the pixels' centres ({got[0]} pixels "
+                f"differ that way, {got[1]} as it is): x = (c + 0.5)/W across the window? "
+                "the course samples its corners, x = c/(W - 1) of its width, and likewise "
+                "the rows"]
     return []
 
 
@@ -1030,10 +1040,10 @@ def _orientation(ours: np.ndarray, theirs: np.ndarray) -> list:
              ((rev, rev), "turned by 180 degrees: rows and columns both written in "
               "reverse?")]
     for flip, what in words:
-        n = int(_differs(ours[flip], theirs).sum())
-        if straight and n <= 0.05 * ours[..., 0].size and n <= 0.2 * straight:
-            return [f"your image is rt_core's {what} ({n} pixels differ that way, "
-                    f"{straight} as it is)"]
+        got = _far_better(ours[flip], theirs, straight)
+        if got:
+            return [f"your image is rt_core's {what} ({got[0]} pixels differ that way, "
+                    f"{got[1]} as it is)"]
     return []
 
 
@@ -1058,11 +1068,11 @@ def _channels(ours: np.ndarray, theirs: np.ndarray) -> list:
     for a, b in ((0, 2), (0, 1), (1, 2)):
         perm = [0, 1, 2]
         perm[a], perm[b] = b, a
-        n = int(_differs(ours[..., perm], theirs).sum())
-        if straight and n <= 0.05 * ours[..., 0].size and n <= 0.2 * straight:
-            return [f"your image is rt_core's with {names[a]} and {names[b]} exchanged ({n} "
-                    f"pixels differ that way, {straight} as it is): a colour read or written "
-                    "in the wrong order (the scene's triples are r g b)?"]
+        got = _far_better(ours[..., perm], theirs, straight)
+        if got:
+            return [f"your image is rt_core's with {names[a]} and {names[b]} exchanged "
+                    f"({got[0]} pixels differ that way, {got[1]} as it is): a colour read or "
+                    "written in the wrong order (the scene's triples are r g b)?"]
     return []
 
 
@@ -1721,7 +1731,7 @@ def _image_jobs(directory, scenes, kw, columns=None, rows=None):
         named = [os.path.join(directory, n) for x in IMAGE_SUFFIXES for n in lower[x]]
         found = [f for f in named if os.path.isfile(f)]
         if not found:
-            odd = next((f for f in named), None)
+            odd = named[0] if named else None
             yield SceneCheck(str(s), odd or os.path.join(directory, stem + ".ppm"), "error",
                              f"{odd}: {_not_a_file(odd)}; give an image file" if odd else
                              f"{directory}: no image for this scene (looked for "

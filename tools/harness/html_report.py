@@ -628,17 +628,10 @@ def check_target(directory: str, keep: dict | None = None) -> None:
 
 def _remove_stale_dirs(parent: str) -> None:
     """Remove temporary report directories that killed rtval runs left in ``parent``."""
-    from rt_core.outputs import _SPACE, TMP_PREFIX, _pid_alive
-    mine = f"{TMP_PREFIX}{_SPACE}-"
-    try:
-        names = os.listdir(parent)
-    except OSError:
-        return
-    for name in names:
-        pid = name[len(mine):].split("-", 1)[0] if name.startswith(mine) else ""
+    from rt_core.outputs import _SPACE, TMP_PREFIX, left_by_killed_runs
+    for name in left_by_killed_runs(parent, f"{TMP_PREFIX}{_SPACE}-"):
         path = os.path.join(parent, name)
-        if pid.isdigit() and int(pid) != os.getpid() and not _pid_alive(int(pid)) \
-                and os.path.isdir(path) and not os.path.islink(path):
+        if os.path.isdir(path) and not os.path.islink(path):
             shutil.rmtree(path, ignore_errors=True)
             print(f"rtval: removed {path}, left by a killed run", file=sys.stderr)
 

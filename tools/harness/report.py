@@ -420,22 +420,11 @@ def write_report(result: dict, outdir: str) -> tuple[str, str, str]:
     js = os.path.join(outdir, "report.json")
     md = os.path.join(outdir, "report.md")
     png = os.path.join(outdir, "error_vs_time.png")
-    made, d = [], os.path.abspath(outdir)      # the directories this write makes
-    while not os.path.exists(d) and d != os.path.dirname(d):
-        made.append(d)
-        d = os.path.dirname(d)
-    try:
-        # the three files or none of them (a full disk left the PNG and a new directory,
-        # a review; over an earlier report, a new PNG beside the old JSON)
-        with together():
-            plot(result, png)
-            write_json(js, result)
-            atomic_write(md, lambda tmp: Path(tmp).write_text(markdown(result, png)))
-    except BaseException:
-        for d in made:                          # deepest first, only while empty
-            try:
-                os.rmdir(d)
-            except OSError:
-                break
-        raise
+    # the three files or none of them, and no directory made for them (together: a full
+    # disk left the PNG and a new directory, a review; over an earlier report, a new PNG
+    # beside the old JSON)
+    with together():
+        plot(result, png)
+        write_json(js, result)
+        atomic_write(md, lambda tmp: Path(tmp).write_text(markdown(result, png)))
     return md, js, png
