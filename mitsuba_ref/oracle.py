@@ -35,15 +35,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rt_core.kinds import dispatch
+from rt_core.kinds import PLANE_KINDS, dispatch
 from rt_core.rules import Rules
 
 from . import quadric
 from . import oracle_planar
 from .geometry import frame, normal, unit
 from .torus_oracle import torus_hits, torus_obj, torus_surface, torus_tests
-
-PLANE_KINDS = ("plane", "fplane", "tplane")
 
 INF = math.inf
 OFF = 10000.0           # the notes' tile-parity offset

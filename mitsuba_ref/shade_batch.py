@@ -263,7 +263,7 @@ class Groups(list):
 
     def __init__(self, obs):
         super().__init__()
-        for name, kinds in (("sphere", ("sphere",)), ("plane", oracle.PLANE_KINDS)):
+        for name, kinds in (("sphere", ("sphere",)), ("plane", KINDS[1:])):
             mine = [ob for ob in obs if ob.kind in kinds]
             if mine:
                 self.append(_Group(name, mine))
