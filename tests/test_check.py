@@ -1508,3 +1508,19 @@ def test19_an_unreadable_image_names_the_others_there(tmp_path):
     r, = check_images(str(tmp_path), [str(scene)])
     assert r.status == "error" and "the file is empty" in r.reason
     assert "also there: sphere.png" in r.reason, r.reason
+
+
+@pytest.mark.parametrize("obj,matters", [
+    ("triangle 1 1 1 0 0 0 0 0 0  -1 -1 5  1 -1 5  0 1 5", True),
+    ("disk 1 1 1 0 0 0 0 0 0  0 0 5.00005  1  0 0 1", True),
+    ("disk 1 1 1 0 0 0 0 0 0  0 0 5.001  1  0 0 1", False),
+    ("plane 1 1 1 0 0 0 0 0 0  1 0 0  0 0 0", True),
+    ("sphere 1 1 1 0 0 0 0 0 0  0 0 -3  1", False)])
+def test20_t_min_can_matter_for_every_planar_kind(obj, matters):
+    """t_min's variants are tried where a planar object (a triangle or a disk as well as the
+    planes) passes within 1e-4 of the viewpoint in a scene without secondary rays."""
+    from types import SimpleNamespace
+    from rt_core.parser import parse_text
+    from tools.harness.check import _can_matter
+    sc = parse_text("8 6\n0 0 5\n" + obj + "\n", "s.txt")
+    assert _can_matter(SimpleNamespace(scene=sc), "t_min") is matters

@@ -44,6 +44,8 @@ from pathlib import Path
 
 import numpy as np
 
+from rt_core.kinds import PLANE_KINDS
+
 from .pipes import Tail as _Tail
 
 CLASSES = ("match", "rounding", "boundary", "variant", "wrong")
@@ -663,7 +665,7 @@ def _can_matter(r: Renderer, name: str) -> bool:
         if sc.lights or any(any(o.material.specular) for o in sc.objects):
             return True
         for o in sc.objects:
-            if o.kind in ("plane", "fplane", "tplane"):
+            if o.kind in PLANE_KINDS:
                 n = o.normal
                 q = tuple(p - v for p, v in zip(o.point, V))
                 if abs(sum(a * b for a, b in zip(n, q))) < 1e-4 * (1 + 1e-9):
