@@ -218,12 +218,12 @@ def planes_note(scene: Scene) -> str:
             "plane)")
 
 
-def xml_provenance(scene: Scene, setup, sampling: str, mode: str, rules, max_dist) -> dict:
-    """What a converted scene came from, as rtval render records it (rt_core/render.py's
-    ``scene_provenance``, the course scene named ``rtval.source_scene``), with the camera,
-    the rules and the mode."""
-    from rt_core.render import scene_provenance
-    out = scene_provenance(scene)
+def xml_provenance(source: dict, setup, sampling: str, mode: str, rules, max_dist) -> dict:
+    """What a converted scene came from: ``source``, the scene's own provenance as rtval
+    render records it (rt_core/render.py's ``scene_provenance``, handed in by the caller: the
+    converter reads no part of the tracer), its ``rtval.scene`` named ``rtval.source_scene``,
+    with the camera, the rules and the mode."""
+    out = dict(source)
     out["rtval.source_scene"] = out.pop("rtval.scene")
     out.update({"rtval.sampling": sampling, "rtval.resolution": f"{setup.columns}x{setup.rows}",
                 "rtval.converted": mode})
@@ -747,12 +747,15 @@ def _texture_files(d: dict, stem: str) -> dict:
 def scene_xml(scene: Scene, columns: int, rows: int | None = None, sampling: str = "corners",
               shading: bool = False, rules: Rules | None = None,
               max_dist: float = DEFAULT_MAX_DIST, aovs: bool = False,
-              files: dict | None = None, stem: str = "scene") -> str:
+              files: dict | None = None, stem: str = "scene",
+              source: dict | None = None) -> str:
     """The same scene as ``scene_dict``, as Mitsuba 3 XML (``mi.load_file`` accepts it once
     mitsuba_ref has registered its plugins: ``rtval render --mitsuba``).  Triangles refer
     to PLY files ``<stem>.obj<id>_triangle.ply`` beside the XML, and textures to EXR files
     ``<stem>.obj<id>_texture.exr`` (their texels, float32: a PPM's maxval need not be 255),
-    added to ``files`` (name -> text, or the texture's mi.Bitmap) for the caller to write."""
+    added to ``files`` (name -> text, or the texture's mi.Bitmap) for the caller to write.
+    ``source`` is the scene's provenance (``xml_provenance``); without it the XML records the
+    scene's path only."""
     d = scene_dict(scene, columns, rows, sampling, shading, rules=rules, max_dist=max_dist,
                    aovs=aovs, meshes=False, from_viewpoint=True)
     plys = {**convert_planar.ply_files(d, stem), **_texture_files(d, stem)}
@@ -763,7 +766,8 @@ def scene_xml(scene: Scene, columns: int, rows: int | None = None, sampling: str
         files.update(plys)
     s = sensor_setup(scene, columns, rows, sampling)
     mode = "aovs" if aovs else "shading" if shading else "sensor"
-    prov = xml_provenance(scene, s, sampling, mode, rules, max_dist)
+    prov = xml_provenance(source or {"rtval.scene": scene.path}, s, sampling, mode, rules,
+                          max_dist)
     lines = ['<?xml version="1.0" encoding="utf-8"?>',
              _comment(f"rtval convert: {scene.path} ({columns}x{s.rows}, {sampling} "
                       "sampling)"),

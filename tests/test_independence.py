@@ -40,6 +40,24 @@ def test01_references_do_not_import_the_tracer(module):
     assert out == "", f"{module} imports {out}"
 
 
+def test01b_converting_reads_no_more_of_the_tracer():
+    """scene_xml and scene_dict, called on a parsed scene (rt_core's parser and scene model
+    loaded by then), load no further module of the tracer: the converter took the scene's
+    provenance from rt_core.render, which loads the tracer and its kernels."""
+    code = ("import sys\n"
+            "from rt_core.parser import parse_scene\n"
+            "from mitsuba_ref.convert import scene_dict, scene_xml\n"
+            f"sc = parse_scene({str(REPO / 'scenes' / 'mixed.txt')!r})\n"
+            f"before = {{m for m in {FORBIDDEN!r} if m in sys.modules}}\n"
+            "xml = scene_xml(sc, 16, shading=True, aovs=False)\n"
+            "scene_dict(sc, 16, shading=True)\n"
+            "assert 'rtval.converted' in xml\n"
+            f"print(','.join(m for m in {FORBIDDEN!r} if m in sys.modules and m not in before))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True,
+                         text=True, check=True).stdout.strip()
+    assert out == "", f"converting imports {out}"
+
+
 TILTED = """8 6
 0 0 5
 fplane 1 1 1 0 0 0 0 0 0

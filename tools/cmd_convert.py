@@ -46,6 +46,7 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     from rt_core.exrio import atomic_write
     from rt_core.outputs import together
+    from rt_core.render import scene_provenance
     from tools.harness.agree import parse_agreed
     from mitsuba_ref.convert import (DEFAULT_MAX_DIST, inside_notes, oracle_only,
                                       planes_note, scene_xml, sensor_setup)
@@ -86,7 +87,8 @@ def run(args) -> int:
     plys: dict = {}                         # triangles, textures: a file each, beside the XML
     xml = scene_xml(scene, args.columns, args.rows, args.sampling, args.shading,
                     rules=args.rules, max_dist=DEFAULT_MAX_DIST if args.max_dist is None else args.max_dist,
-                    aovs=args.aovs, files=plys, stem=Path(args.output).name)
+                    aovs=args.aovs, files=plys, stem=Path(args.output).name,
+                    source=scene_provenance(scene))
     left_out = oracle_only(scene)
     said += [f"rtval convert: note: {note}" for note in left_out + scene.stand_ins()]
     if (planes := planes_note(scene)):
