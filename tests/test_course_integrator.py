@@ -192,6 +192,10 @@ def test07_render_mitsuba_refuses_what_it_cannot_do(tmp_path):
     assert r.returncode != 0 and "--columns does not apply" in r.stderr
     r = _rtval("render", ROOT / "scenes" / "sphere.txt", "--ppm", tmp_path / "x.ppm")
     assert r.returncode != 0 and "--columns" in r.stderr
+    # refused before the XML is read or Mitsuba started (it was after loading the scene)
+    r = _rtval("render", "--mitsuba", tmp_path / "none.xml", "--explain", "--ppm",
+               tmp_path / "x.ppm")
+    assert r.returncode == 64 and "--explain and --shade do not apply" in r.stderr, r.stderr
     # an XML whose materials lack their course ids (hand-made, or an older convert)
     shaded = tmp_path / "s.xml"
     assert _rtval("convert", ROOT / "scenes" / "mixed.txt", "--columns", 16, "--shading",

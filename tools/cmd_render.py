@@ -250,6 +250,8 @@ def _run_mitsuba(args, outs) -> tuple[int, list]:
     if given(args.precision) or args.backend != "llvm":
         args.usage_error("--precision and --backend do not apply with --mitsuba: Mitsuba "
                          "renders in float32 on its llvm_ad_rgb variant")
+    if args.explain or args.shade:
+        args.usage_error("--explain and --shade do not apply with --mitsuba")
     for _, path in outs:
         check_file_target(path, make_dirs=False)
     check_input(args.scene, "scene")
@@ -271,8 +273,6 @@ def _run_mitsuba(args, outs) -> tuple[int, list]:
     if name != "CourseIntegrator":
         raise InputError(f"{args.scene}: its integrator is not 'course' ({name}); convert the "
                          "course scene with rtval convert --shading")
-    if args.explain or args.shade:
-        args.usage_error("--explain and --shade do not apply with --mitsuba")
     # the XML's image: too small for the course's samples, or too large for memory, refused
     # before Mitsuba traces (a hand-edited 99999 x 99999 took numpy to 74.5 GiB)
     W, H = integ.columns, integ.rows
