@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from decimal import Decimal
 from fractions import Fraction
 
 import numpy as np
@@ -97,11 +96,6 @@ _LAYOUT = {
     "cone": ((None, 9), ("center", 3), ("centerline", 3), ("radius_height", 2)),
     "ellipsoid": ((None, 9), ("center", 3), ("axes", 3)),
 }
-
-
-def exact_number(text: str) -> Fraction:
-    """A decimal literal of the scene format, exactly."""
-    return Fraction(Decimal(text))
 
 
 def parse_exact(text: str, code27: str = "auto") -> XScene:

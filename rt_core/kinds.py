@@ -1,7 +1,7 @@
-"""The one table of shape kinds, and the forms the course files write them in.  Every per-kind dispatch (rt_core's kernels, the references'
-oracles, the Mitsuba converter, the readers) is keyed by these names, and a kind missing from a
-dispatch raises instead of falling through to another kind (tests/test_kinds.py checks that
-every table covers every kind).
+"""The one table of shape kinds, and the forms the course files write them in.  Every per-kind
+dispatch (rt_core's kernels, the references' oracles, the Mitsuba converter, the readers) is
+keyed by these names, and a kind missing from a dispatch raises instead of falling through to
+another kind (tests/test_independence.py test04 checks that every table covers every kind).
 
 A pure table: no geometry, nothing the references could share with the tracer's arithmetic.
 """
@@ -158,25 +158,3 @@ def dispatch(table: dict, name: str):
     except KeyError:
         raise ValueError(f"object kind {name!r} has no entry here (known: "
                          f"{', '.join(sorted(table))})") from None
-
-
-def form_of_keyword(word: str) -> Form:
-    w = word.lower()
-    if w not in KEYWORDS:
-        raise ValueError(f"unknown object keyword {word!r}")
-    return next(f for f in FORMS.values() if f.keyword == w)
-
-
-def form_of_code(code: int) -> Form:
-    if code not in CODES:
-        raise ValueError(f"unknown object code {code}")
-    return FORMS[CODES[code]]
-
-
-def kind_of_keyword(word: str) -> str:
-    """The geometric kind (or light) a keyword writes."""
-    return form_of_keyword(word).kind
-
-
-def kind_of_code(code: int) -> str:
-    return form_of_code(code).kind

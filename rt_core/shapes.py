@@ -516,11 +516,6 @@ def clip_ok(z, rules: Rules):
     return (z <= 0) if rules.screen_clip == ">" else (z < 0)
 
 
-def _abs_cross(a, b):
-    """|a_y b_z| + |a_z b_y|, ...: the absolute terms of a × b (a, b given as |a|, |b|)."""
-    return type(a)(a.y * b.z + a.z * b.y, a.z * b.x + a.x * b.z, a.x * b.y + a.y * b.x)
-
-
 def frame_coords(d, obj):
     """The fast path's frame coordinates of the hit times n·d (sign-folded):
     su = s·ŷ·(q × d), sv = −s·x̂·(q × d) (the finite plane's, the triangle's, the disk's)."""
