@@ -37,7 +37,7 @@ from tools.harness.validate import COURSE_SCENES
 
 REPO = Path(__file__).resolve().parents[1]
 BUNDLED = sorted((REPO / "scenes").glob("*.txt"))
-PRECISIONS = ["f32", "f64"]
+from tests.tolerances import PRECISIONS  # noqa: E402
 MIRROR = Material((0.2, 0.2, 0.2), (1.0, 1.0, 1.0), (0.5, 0.5, 0.5))
 GREY = Material((1, 1, 1), (2, 2, 2), (0, 0, 0))
 

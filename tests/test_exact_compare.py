@@ -31,7 +31,7 @@ from tools.harness.exact_compare import compare_exact, needs_exact
 
 REPO = Path(__file__).resolve().parents[1]
 COURSE = REPO.parent / "shared" / "course-scenes"
-PRECISIONS = ["f32", "f64"]
+from tests.tolerances import PRECISIONS  # noqa: E402
 SCENES = [("scenes/torus.txt", "torus"), ("tests/scenes/cones.txt", "cone"),
           ("numeric/nw__conetest.txt", "cone"),
           ("numeric/nw__cone-sphere.txt", "cone"), ("keyword/rm768__bowling.txt", "ellipsoid")]

@@ -31,7 +31,7 @@ from rt_core.usererror import InputError
 
 REPO = Path(__file__).resolve().parents[1]
 SEED = REPO / "scenes" / "seed_fplane.txt"
-PRECISIONS = ("f32", "f64")
+from tests.tolerances import PRECISIONS  # noqa: E402
 
 
 def rtval(*args, limit_as=None, timeout=120):

@@ -7,11 +7,13 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from PIL import Image
 
 from tools.cmd_gallery import scene_files
 
 REPO = Path(__file__).resolve().parents[1]
+COURSE = REPO.parent / "shared" / "course-scenes"
 
 
 def rtval(*args):
@@ -19,37 +21,72 @@ def rtval(*args):
                           capture_output=True, text=True, cwd=REPO)
 
 
-def test01_every_scene(tmp_path):
-    out = tmp_path / "g"
-    r = rtval("gallery", "-o", out, "--columns", 24)
-    assert r.returncode == 0, r.stderr
-    assert r.stdout.split() == [str(out / "index.html"), str(out / "contact.png")]
-    skipped = [ln for ln in r.stderr.splitlines() if ln.startswith("rtval gallery: skipped")]
+def _check_listing(out, rc, stdout, stderr, files):
+    """A gallery of ``files`` (scene_files' (name, path)): every file rendered or listed as
+    skipped with its category and the parser's line, the page, the textures' notes, the sheet."""
+    assert rc == 0, stderr
+    assert stdout.split() == [str(out / "index.html"), str(out / "contact.png")]
+    skipped = [ln for ln in stderr.splitlines() if ln.startswith("rtval gallery: skipped")]
     # each with its category and the parser's one line: file:line:col: message
     assert skipped and all(":" in ln.split(") ", 1)[1] for ln in skipped)
     unsupported = [ln for ln in skipped if ln.startswith("rtval gallery: skipped (unsupported)")]
     malformed = [ln for ln in skipped if ln.startswith("rtval gallery: skipped (malformed)")]
-    assert len(unsupported) + len(malformed) == len(skipped)
+    assert unsupported and malformed and len(unsupported) + len(malformed) == len(skipped)
     assert all("is not supported" in ln for ln in unsupported)
     assert not any("is not supported" in ln for ln in malformed)
     pngs = sorted(p.name for p in out.glob("*.png") if p.name != "contact.png")
-    files = scene_files([])
     assert len(pngs) + len(skipped) == len(files)
     bundled = sorted(p.stem for p in (REPO / "scenes").glob("*.txt"))
     assert {f"scenes__{b}.png" for b in bundled} <= set(pngs)
     assert any(p.startswith("course__numeric__") for p in pngs)
     page = (out / "index.html").read_text()
     assert all(f'src="{p}"' in page for p in pngs) and page.count("<li>") == len(skipped)
-    assert f"{len(pngs)} scenes rendered, {len(skipped)} skipped" in r.stderr
+    assert f"{len(pngs)} scenes rendered, {len(skipped)} skipped" in stderr
     # the course files' textures are not in the corpus: those scenes still render, with their
     # MAT, and say so on stderr and in their caption; the bundled ones find theirs
-    missing = [ln for ln in r.stderr.splitlines() if ln.endswith(": shaded with its MAT")]
+    missing = [ln for ln in stderr.splitlines() if ln.endswith(": shaded with its MAT")]
     assert any("nw__earth.txt" in ln and "earth2.ppm' not found" in ln for ln in missing)
     assert "course__numeric__nw__earth.png" in pngs
     assert page.count(": shaded with its MAT</i>") == len(missing)
     assert not any("scenes/textured" in ln for ln in missing)
     sheet = np.asarray(Image.open(out / "contact.png"))
     assert sheet.shape[1] == 6 * 24 and sheet.shape[0] >= (len(pngs) // 6) * 18
+
+
+@pytest.mark.slow
+def test01_every_scene(tmp_path):
+    """Every bundled and course scene (about 150 renders: the default run renders a sample,
+    test01b)."""
+    out = tmp_path / "g"
+    r = rtval("gallery", "-o", out, "--columns", 24)
+    _check_listing(out, r.returncode, r.stdout, r.stderr, scene_files([]))
+
+
+# course files of each kind of outcome: textured without its texture, numeric and keyword,
+# quadrics; and one unsupported and one malformed file written here
+SAMPLE = ["numeric/nw__earth.txt", "numeric/cbl__specTile.txt", "numeric/m4__v1_a04.txt",
+          "keyword/rm768__bowling.txt"]
+
+
+def test01b_a_sample_of_scenes(tmp_path, monkeypatch, capsys):
+    """The gallery's default sources (the bundled scenes and a sample of course files) in
+    this process, as test01 renders every one."""
+    import tools.cmd_gallery as gallery
+    from tools.cli import main
+    course = tmp_path / "course"
+    for name in SAMPLE:
+        src = COURSE / name
+        if not src.is_file():
+            pytest.skip(f"{src} is not there")
+        (course / name).parent.mkdir(parents=True, exist_ok=True)
+        (course / name).write_bytes(src.read_bytes())
+    (course / "numeric" / "spot.txt").write_text("8 6\n0 0 5\n21\n1 1 1\n")
+    (course / "keyword" / "bad.txt").write_text("8 6\n0 0 5\nsphere 1 1\n")
+    monkeypatch.setattr(gallery, "SOURCES", (("scenes", REPO / "scenes"), ("course", course)))
+    out = tmp_path / "g"
+    rc = main(["gallery", "-o", str(out), "--columns", "24"])
+    said = capsys.readouterr()
+    _check_listing(out, rc, said.out, said.err, gallery.scene_files([]))
 
 
 def test02_given_files(tmp_path):

@@ -27,7 +27,7 @@ from rt_core.scene import Material, Scene, make_fplane, make_plane, make_sphere,
 from rt_core.tracer import closest_hit, occluded, prepare
 from tests.scenegen import random_scene
 
-PRECISIONS = [pytest.param(p, id=p) for p in ("f32", "f64")]
+from tests.tolerances import PRECISIONS  # noqa: E402
 GREY = Material((1, 1, 1), (2, 2, 2), (0, 0, 0))
 UNROLLED = 10 ** 6          # accel.UNROLL_MAX that unrolls every object
 BRANCH_MIN = dict(tracer.BRANCH_MIN)    # (as imported: tests monkeypatch the module's)

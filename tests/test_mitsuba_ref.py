@@ -32,7 +32,7 @@ from tools.harness.validate import (COURSE_SCENES, default_scene_paths, is_cours
 
 REPO = Path(__file__).resolve().parents[1]
 BUNDLED = sorted((REPO / "scenes").glob("*.txt"))
-PRECISIONS = ["f32", "f64"]
+from tests.tolerances import PRECISIONS  # noqa: E402
 COLUMNS = 96            # comparison resolution: every scene × mode × precision in ~30 s
 
 

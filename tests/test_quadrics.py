@@ -23,7 +23,7 @@ REPO = Path(__file__).resolve().parents[1]
 COURSE = Path(__file__).resolve().parents[2] / "shared" / "course-scenes"
 FILES = ["numeric/nw__a3t4.txt", "numeric/nw__cyltest.txt", "numeric/nw__conetest.txt",
          "keyword/rm768__bowling.txt", "keyword/rm768__ellipsoid_bullets.txt"]
-U = {"f32": 2.0 ** -24, "f64": 2.0 ** -53}
+from tests.tolerances import U  # noqa: E402
 M = "1 1 1\n2 2 2\n0 0 0\n"
 # a cylinder of radius 5 around (0, ·, −4), y in [−1, 1]: the ray to the window's (3, ±1)
 # meets it exactly on its rim (s = 1, w·a = 0 or h); a cone below, a sphere above

@@ -31,7 +31,7 @@ from rt_core.shapes_planar import planar_corners
 from rt_core.tracer import closest_hit, prepare
 from tests.test_bvh import GREY, bits
 
-PRECISIONS = ["f32", "f64"]
+from tests.tolerances import PRECISIONS  # noqa: E402
 
 
 @pytest.fixture(autouse=True)

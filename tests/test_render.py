@@ -15,7 +15,7 @@ from rt_core.parser import parse_scene
 from rt_core.render import GEOMETRY_CHANNELS, render_geometry
 
 REPO = Path(__file__).resolve().parents[1]
-PRECISIONS = ["f32", "f64"]
+from tests.tolerances import PRECISIONS, U  # noqa: E402
 
 
 def rtval(*args, env=None):
@@ -161,7 +161,7 @@ def test09_uv_stays_in_the_rectangle_at_exact_edges(k, precision):
     assert np.count_nonzero(oid >= 0) > 50
     from mitsuba_ref.exact import parse_exact, trace_exact
     ex = trace_exact(parse_exact(case.text), a)
-    eps = 64 * (2.0 ** -24 if precision == "f32" else 2.0 ** -53)
+    eps = 64 * U[precision]
     for i, o in enumerate(scene.objects):
         m = oid == i
         w, h = (a.dtype.type(x) for x in o.size)

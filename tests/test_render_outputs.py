@@ -19,7 +19,7 @@ from rt_core.render import GEOMETRY_CHANNELS, render_image
 from rt_core.shading import DEFAULT_MAX_DIST, quantize
 
 REPO = Path(__file__).resolve().parents[1]
-PRECISIONS = ["f32", "f64"]
+from tests.tolerances import PRECISIONS  # noqa: E402
 
 
 def rtval(*args):

@@ -18,7 +18,7 @@ from tools.harness.validate import default_scene_paths, load_supported
 
 REPO = Path(__file__).resolve().parents[1]
 BUNDLED = sorted((REPO / "scenes").glob("*.txt"))
-PRECISIONS = ["f32", "f64"]
+from tests.tolerances import PRECISIONS  # noqa: E402
 COLUMNS = 80
 
 

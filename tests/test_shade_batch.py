@@ -26,6 +26,7 @@ from mitsuba_ref import shade_batch, shade_oracle
 from rt_core.parser import parse_text
 from rt_core.rules import Rules
 from tools.harness.validate import default_scene_paths, load_supported
+from tests.tolerances import U
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = ("I", "err", "bounces", "reach", *shade_oracle.MARGINS)
@@ -219,7 +220,7 @@ def test10_random_scenes(seed, monkeypatch):
     _same(scene, 12, rules, 1000.0 if seed % 2 else 40.0, monkeypatch)
 
 
-F32_LIMIT = shade_oracle.K_DECISION * 4 * 2.0 ** -24     # check.py's float hint asks this
+F32_LIMIT = shade_oracle.K_DECISION * 4 * U["f32"]     # check.py's float hint asks this
 
 
 def _near_pixels(scene, W, H, rules, limit):

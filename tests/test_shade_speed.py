@@ -26,7 +26,7 @@ from rt_core.shading import shade
 from rt_core.tracer import closest_hit, prepare
 
 REPO = Path(__file__).resolve().parents[1]
-PRECISIONS = ["f32", "f64"]
+from tests.tolerances import PRECISIONS  # noqa: E402
 MIRROR = Material((0.2, 0.2, 0.2), (1.0, 1.0, 1.0), (0.5, 0.5, 0.5))
 
 

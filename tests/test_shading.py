@@ -14,7 +14,6 @@ import functools
 import math
 import os
 import tempfile
-from dataclasses import dataclass
 from pathlib import Path
 
 import drjit as dr
@@ -33,22 +32,13 @@ from rt_core.scene import (Material, PointLight, Scene, make_plane, make_sphere,
 from rt_core.shading import DEFAULT_MAX_DIST, MAX_BOUNCES, quantize, shade
 from rt_core.tracer import prepare
 from tests import shade_oracle
+from tests.tolerances import PRECISIONS, SHADED, U
 
 REPO = Path(__file__).resolve().parents[1]
 SCENES = sorted((REPO / "scenes").glob("*.txt"))
-PRECISIONS = ["f32", "f64"]
 COLUMNS = 40
 
 
-@dataclass(frozen=True)
-class Tol:
-    excused: float      # at most this fraction of the pixels may be flagged
-
-
-# Flagged fractions measured at 40 columns over scenes/*.txt: at most 3.9% (mixed.txt) in f32,
-# none in f64.  (The oracle's bounds are worst-case sums over every operation, so an f32 flag
-# covers far more than the pixels that actually flip: 1 of 12000 did.)
-TOL = {"f32": Tol(excused=0.05), "f64": Tol(excused=0.005)}
 # The oracle's first-order bounds compound with every bounce: in shade_mirrors.txt at the
 # default MAX_DIST (~90 bounces) they flag most of the corridor.  Its oracle run stops paths
 # at 60 units (about 5 bounces), where the bound is still tight; the default MAX_DIST is
@@ -107,7 +97,7 @@ def test02_shadow_and_back_side(precision):
     lit = Scene((2.0, 2.0), (0.0, 0.0, 1.0), (light,), (wall,))
     I, _ = centre(lit, precision)
     c, d = 1 / math.sqrt(2), 2 * math.sqrt(2)
-    tol = 4 * (2.0 ** -24 if precision == "f32" else 2.0 ** -53)
+    tol = 4 * U[precision]
     np.testing.assert_allclose(I, (0.5 + 4 * c / d) / 2, rtol=tol)
     shadowed = Scene(lit.window, lit.viewpoint, (light,), (wall, ball))
     I, _ = centre(shadowed, precision)
@@ -146,7 +136,7 @@ def test04_reflection(precision):
     s = Scene((2.0, 2.0), (0.0, 0.0, 1.0), (), (mirror, ball))
     I, res = centre(s, precision)
     # the ball: the reflected ray from H = (0, 0, -1) meets it at z = 2.5, 3.5 from H
-    u = 2.0 ** -24 if precision == "f32" else 2.0 ** -53
+    u = U[precision]
     np.testing.assert_allclose(I, [0.125 + 0.25 / 5.5, 0.125 + 0.5 / 5.5, 0.125 + 0.125 / 5.5],
                                rtol=8 * u)
     assert res.bounces == 1
@@ -197,13 +187,13 @@ def test05_scene_against_oracle(path, precision):
            "quantization only, but more than one level": (step > 1) & ~fl["jump"],
            "intensity beyond its bound, no decision flagged": over & ~fl["jump"]}
     n = differs.size
-    if any(m.any() for m in bad.values()) or fl["any"].sum() > TOL[precision].excused * n:
+    if any(m.any() for m in bad.values()) or fl["any"].sum() > SHADED[precision] * n:
         paths = write_evidence(f"{path.stem}-{precision}", rgb, orc, fl)
         lines = [f"{k}: {int(m.sum())} px, first at (row, col) {np.argwhere(m)[:3].tolist()}"
                  for k, m in bad.items() if m.any()]
         pytest.fail(f"{path.name} {precision}: " + "; ".join(lines)
                     + f"; flagged {int(fl['any'].sum())}/{n} (at most "
-                    f"{TOL[precision].excused:.1%}); evidence: {paths}")
+                    f"{SHADED[precision]:.1%}); evidence: {paths}")
     # the comparison compared something: lit, shadowed and (where the scene has it) reflected
     assert (want8 > 0).any()
     if any(o.material.specular != (0, 0, 0) for o in scene.objects):

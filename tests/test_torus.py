@@ -60,7 +60,7 @@ from rt_core.camera import make_camera, primary_directions
 from rt_core.render import trace_geometry
 from rt_core.scene import SceneError
 
-PRECISIONS = ("f32", "f64")
+from tests.tolerances import PRECISIONS  # noqa: E402
 # A ring in the plane x = -0.15 and the viewpoint straight above the samples x = 0.85 (64
 # columns): every ray of column 40 lies in the plane x = 0.85 = -0.15 + r, tangent to the
 # tube's top circle (a double root: a miss) or missing it; torus B is seen through its hole.

@@ -12,8 +12,6 @@ import functools
 import glob
 import os
 import tempfile
-from dataclasses import dataclass
-
 import numpy as np
 import pytest
 
@@ -21,41 +19,12 @@ from rt_core.rules import Rules
 from rt_core.scene import Material, Scene, make_fplane, make_plane, make_sphere
 from tests.oracle import DIAG_KEYS, GEOMETRY_KEYS, render_oracle
 from tests.scenegen import random_scene
+from tests.tolerances import GEOMETRY, PRECISIONS, Tol
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-@dataclass(frozen=True)
-class Tol:
-    u: float            # unit roundoff of the precision
-    flag: float         # a decision whose oracle margin is below this may flip: pixel excused
-    value: float        # |ours - oracle| <= value * (err + |oracle|) for every output value
-    excused: float      # at most this fraction of the pixels may be excused
-
-
-# The oracle carries, for every value, a first-order worst-case bound `err` on its rounding
-# error in units of the unit roundoff u (Wilkinson's running error bound of the notes' own
-# formulas, every operation rounded once; tests/oracle.py), and for every hit/miss decision a
-# margin = |distance from the threshold| / (that quantity's bound).  Measured on the 12 random
-# scenes and scenes/*.txt, the tracer's error never exceeded 1.3 * u * err in either precision
-# (its formulas differ: viewpoint-relative, division-free u/v, stable sphere discriminant).
-#
-# value = 4:    4x the bound, 3x above the worst seen; "+ |oracle|" is the one rounding every
-#               implementation spends on the result, so a value the notes' formula gets exactly
-#               is still allowed the tracer's last rounding.  f64 depth is therefore held to
-#               ~4e-15..4e-13 relative (the brief's 1e-9 is implied); f32 depth to
-#               4 * 2^-24 * (err_t/t + 1), typically (10..100) * 2.4e-7 = 2.4e-6..2.4e-5
-#               relative, larger only where t is ill-conditioned (grazing planes).
-# flag = 64 u:  a decision flips only if the tracer's error in the decided quantity exceeds
-#               its distance from the threshold; 64x the bound leaves 50x headroom over the
-#               worst ratio seen.  64 * 2^-24 = 3.8e-6 (f32), 64 * 2^-53 = 7.1e-15 (f64).
-#               Since margins are relative to the quantity's own error bound, a flagged f32
-#               edge pixel lies within ~1e-5 of a pixel width of the edge: almost none do.
-# excused = 1%: measured at most 13 of 3072 pixels (0.4%) in f32 and none in f64.
-TOL = {
-    "f32": Tol(u=2.0 ** -24, flag=64 * 2.0 ** -24, value=4.0, excused=0.01),
-    "f64": Tol(u=2.0 ** -53, flag=64 * 2.0 ** -53, value=4.0, excused=0.01),
-}
+TOL = GEOMETRY
 COLUMNS = 64
 VALUE_KEYS = tuple(k for k in GEOMETRY_KEYS if k not in ("hit.mask", "object.id"))
 
@@ -149,7 +118,6 @@ def compare(name: str, ours: dict, orc: dict, tol: Tol) -> np.ndarray:
 # --- scenes ---------------------------------------------------------------------------------
 
 SCENE_FILES = sorted(glob.glob(os.path.join(ROOT, "scenes", "*.txt")))
-PRECISIONS = [pytest.param(p, id=p) for p in ("f32", "f64")]
 
 
 @pytest.mark.parametrize("precision", PRECISIONS)
