@@ -132,6 +132,30 @@ def test04_compare_says_pass_and_survives_a_closed_pipe():
     assert r.returncode == 0 and "Broken pipe" not in r.stderr and r.stdout.strip() == "["
 
 
+def test04b_a_reader_that_stops_early_keeps_the_verdict_and_the_reports(tmp_path):
+    """rtval check behind a reader that stops at once (``| true``): the failing verdict's exit
+    1 and the --junit file, as without the pipe (a helper's review: exit 0, no JUnit file;
+    exr diff's FAILURE 2 became 0 too)."""
+    wrong = tmp_path / "sphere.ppm"
+    assert rtval("render", REPO / "scenes" / "plane.txt", "--columns", 24, "--ppm",
+                 wrong).returncode == 0
+    junit = tmp_path / "j.xml"
+    # (the reader exits before rtval's first write: every run's write meets a closed pipe)
+    r = subprocess.run(f"{sys.executable} -m tools.cli check --images {tmp_path} {SPHERE} "
+                       f"--junit {junit} | true; exit ${{PIPESTATUS[0]}}", shell=True,
+                       executable="/bin/bash", capture_output=True, text=True, cwd=REPO,
+                       timeout=300)
+    assert r.returncode == 1 and "Broken pipe" not in r.stderr, r.stderr
+    assert junit.is_file() and 'failures="1"' in junit.read_text()
+    a, b = tmp_path / "a.exr", tmp_path / "b.exr"
+    write_exr(str(a), {"depth.Z": np.zeros((4, 4), np.float32)})
+    write_exr(str(b), {"depth.Z": np.ones((4, 4), np.float32)})
+    r = subprocess.run(f"{sys.executable} -m tools.cli exr diff {a} {b} | true; "
+                       "exit ${PIPESTATUS[0]}", shell=True, executable="/bin/bash",
+                       capture_output=True, text=True, cwd=REPO, timeout=300)
+    assert r.returncode == 2 and "Broken pipe" not in r.stderr, r.stderr
+
+
 def test05_worst_pixel_values_are_told_apart(tmp_path):
     a, b = tmp_path / "a.exr", tmp_path / "b.exr"
     base = np.full((4, 4), 10.2259, np.float32)

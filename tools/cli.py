@@ -233,7 +233,8 @@ def _run(args) -> int:
         print(f"rtval: terminated by {signal.Signals(e.signum).name}", file=sys.stderr)
         return 128 + e.signum
     except BrokenPipeError:       # (an OSError: caught before USER_ERRORS)
-        # stdout closed early (rtval ... | head): not an error of ours
+        # stdout closed early (rtval ... | head) on a write that bypassed _Stdout (binary
+        # output): not an error of ours, but the run's verdict is not known
         import os
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
@@ -264,19 +265,25 @@ class _Stdout:
     """``sys.stdout`` whose write errors (a full disk, /dev/full) are WriteError naming it,
     with what to do: they read ``[Errno 28] No space left on device``, no file, no fix.  The
     stream then writes to /dev/null, so that the interpreter's last flush does not raise the
-    same error again."""
+    same error again.  A reader that stops early (``rtval check ... | head``) ends the output
+    only: the run goes on to its verdict's exit code and its other outputs (--junit,
+    --report), which a grading script reads (a helper's review: a failing class exited 0
+    and wrote no JUnit file behind ``| true``)."""
 
     def __init__(self, stream):
         self._stream = stream
         self._error = None              # (raised again by flush: argparse swallows it)
 
-    def _failed(self, e: OSError):
+    def _devnull(self):
         import os
-        from rt_core.outputs import WriteError, _HINTS
         try:
             os.dup2(os.open(os.devnull, os.O_WRONLY), self._stream.fileno())
         except (OSError, ValueError, AttributeError):
             pass
+
+    def _failed(self, e: OSError):
+        from rt_core.outputs import WriteError, _HINTS
+        self._devnull()
         self._error = WriteError("standard output", (e.strerror or str(e)).lower(),
                                  _HINTS.get(e.errno, "write it elsewhere (redirect it to a "
                                                      "file)"))
@@ -293,7 +300,8 @@ class _Stdout:
                 from rt_core.outputs import attr_text
                 return self._stream.write(attr_text(text))
         except BrokenPipeError:
-            raise
+            self._devnull()
+            return len(text)
         except OSError as e:
             raise self._failed(e) from None
 
@@ -303,7 +311,7 @@ class _Stdout:
         try:
             return self._stream.flush()
         except BrokenPipeError:
-            raise
+            self._devnull()
         except OSError as e:
             raise self._failed(e) from None
 
