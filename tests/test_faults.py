@@ -107,23 +107,26 @@ def test02_dev_full_is_an_error_not_a_success(opt, columns):
 
 
 @pytest.mark.skipif(not os.path.exists("/dev/full"), reason="no /dev/full on this system")
-@pytest.mark.parametrize("cmd", [("exr", "info", SEED.with_name("sphere.txt")),
-                                 ("check", SEED, "@"), ("validate", "--help"),
-                                 ("render", SEED, "--columns", 8, "--json", "-o", "@j")],
-                         ids=["exr-info", "check", "help", "render-json"])
-def test02b_standard_output_on_a_full_disk(cmd, tmp_path):
+@pytest.mark.parametrize("cmd,code", [(("exr", "info", "@"), 4), (("exr", "stats", "@"), 4),
+                                      (("exr", "diff", "@", "@"), 4),
+                                      (("check", SEED, "@"), 2), (("validate", "--help"), 2),
+                                      (("render", SEED, "--columns", 8, "--json", "-o", "@j"),
+                                       2)],
+                         ids=["exr-info", "exr-stats", "exr-diff", "check", "help",
+                              "render-json"])
+def test02b_standard_output_on_a_full_disk(cmd, code, tmp_path):
     """Standard output on /dev/full: one line naming it and what to do (it read
-    '[Errno 28] No space left on device', no file, no fix: a helper's review); render's
-    --json report goes with its files, all or none (the EXR was left, announced)."""
+    '[Errno 28] No space left on device', no file, no fix: a helper's review), exit 2, or
+    exr's 4 for a file it cannot write (its 2 is diff's FAILURE: a diff of two identical
+    images said so); render's --json report goes with its files, all or none (the EXR was
+    left, announced)."""
     img = tmp_path / "i.ppm"
     rtval("render", SEED, "--columns", 8, "--ppm", img)
     args = [img if a == "@" else tmp_path / "j.exr" if a == "@j" else a for a in cmd]
-    if cmd[0] == "exr":
-        args[2] = img
     with open("/dev/full", "w") as full:
         r = subprocess.run([sys.executable, "-m", "tools.cli", *map(str, args)], cwd=REPO,
                            stdout=full, stderr=subprocess.PIPE, text=True, timeout=120)
-    one_line(r, 2, "standard output: cannot write: no space left on device",
+    one_line(r, code, "standard output: cannot write: no space left on device",
              "free some space or write elsewhere")
     assert not (tmp_path / "j.exr").exists()
 
@@ -1026,6 +1029,58 @@ def test04f_report_outputs_all_or_none(full_dir, tmp_path):
         assert "cannot write: no space left on device" in err[-1], (args, err)
     assert sorted(os.listdir(tmp_path)) == ["ours.ppm"]
     assert sorted(os.listdir(full_dir)) == ["fill"]
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="no /dev/full on this system")
+def test04g_a_failing_check_stays_1_when_an_output_cannot_be_written(tmp_path):
+    """check's exit 2 is bad input with no failure besides (README): a failing image whose
+    --junit, or standard output, cannot be written exited 2, which a class's loop reads as
+    'could not check' (a helper's review).  Now 1, with the write error's one line."""
+    import numpy as np
+    from rt_core.imageio import write_ppm
+    black = tmp_path / "black.ppm"
+    write_ppm(str(black), np.zeros((12, 16, 3), np.uint8))
+    r = rtval("check", SEED, black, "--columns", 16, "--junit", "/dev/full", timeout=300)
+    one_line(r, 1, "/dev/full: cannot write: no space left on device")
+    assert r.stdout.startswith("FAIL"), r.stdout
+    with open("/dev/full", "w") as full:
+        r = subprocess.run([sys.executable, "-m", "tools.cli", "check", str(SEED), str(black),
+                            "--columns", "16"], cwd=REPO, stdout=full, stderr=subprocess.PIPE,
+                           text=True, timeout=300)
+    one_line(r, 1, "standard output: cannot write: no space left on device")
+
+
+def test04h_check_runs_share_a_small_temporary_folder(tmp_path):
+    """check --run's tracer writes each image into rtval's temporary folder: each run's files
+    go once read (three 147 KB images in a 400 KB TMPDIR: all pass; the third was 'the
+    file is empty' while every image stayed to the end), and a run that fails there for want
+    of space is rtval's error, naming the folder, not the tracer's (a helper's review)."""
+    tmp = tmp_path / "t"
+    tmp.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=400k", "tmpfs", str(tmp)],
+                      capture_output=True).returncode:
+        pytest.skip("cannot mount a small tmpfs here (not root, or no mount permission)")
+    try:
+        tracer = (f"{sys.executable} -m tools.cli render {{scene}} --columns {{columns}} "
+                  "--rows {rows} --precision f64 --ppm {out}")
+        scenes = [SEED.with_name(n) for n in ("sphere.txt", "plane.txt", "tplane.txt")]
+        env = {**os.environ, "TMPDIR": str(tmp)}
+
+        def check():
+            return subprocess.run([sys.executable, "-m", "tools.cli", "check", "--serial",
+                                   "--columns", "256", "--run", tracer, *map(str, scenes)],
+                                  cwd=REPO, capture_output=True, text=True, timeout=600,
+                                  env=env)
+        r = check()
+        assert r.returncode == 0 and r.stdout.count("PASS") == 3, (r.stdout, r.stderr)
+        assert os.listdir(tmp) == []
+        with open(tmp / "fill", "wb") as f:         # room for a file, not for an image
+            f.write(b"\0" * (340 << 10))           # (none: Python's tempfile takes /tmp)
+        r = check()
+        one_line(r, 2, f"{tmp}: the temporary folder is full", "set TMPDIR")
+        assert os.listdir(tmp) == ["fill"]
+    finally:
+        subprocess.run(["umount", str(tmp)], capture_output=True)
 
 
 def test04e_mitsuba_render_outputs_all_or_none(full_dir, tmp_path):

@@ -22,7 +22,8 @@ exit codes:
   2   FAILURE: too many pixels fail, or one exceeds --hard-fail
   3   the images differ in size or in their channels and were not compared
   4   file error: a file is missing, truncated or not an image OpenImageIO reads, a
-      requested channel is missing, or the difference image or FLIP map cannot be written
+      requested channel is missing, or the difference image, FLIP map or standard
+      output cannot be written
   64  usage error: unknown option, bad or negative option value
 """
 
@@ -73,7 +74,8 @@ def add_parser(subparsers) -> None:
                                          "header attribute as OpenImageIO names it, rtval.* "
                                          "provenance included (like iinfo -v).  The pixels "
                                          "are read too, so a truncated file is an error."),
-                       epilog="exit codes: 0 ok, 4 a file cannot be read, 64 usage error",
+                       epilog="exit codes: 0 ok, 4 a file cannot be read or standard output "
+                              "cannot be written, 64 usage error",
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     q.add_argument("files", nargs="+", metavar="FILE")
     q.add_argument("--json", action="store_true", help="print a JSON list, one object per file")
@@ -86,8 +88,8 @@ def add_parser(subparsers) -> None:
                                          "and finite counts.  depth.* channels are also "
                                          "summarised over hit pixels only "
                                          "(hit.mask > 0.5)."),
-                       epilog="exit codes: 0 ok, 4 the file or a channel cannot be read, "
-                              "64 usage error",
+                       epilog="exit codes: 0 ok, 4 the file or a channel cannot be read or "
+                              "standard output cannot be written, 64 usage error",
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     q.add_argument("file", metavar="FILE")
     _channels_option(q)
@@ -214,6 +216,32 @@ def _named(path: str, ext: str) -> bool:
                                           and not os.path.isdir(path))
 
 
+def _file_error_is_4(run):
+    """exr's exit 4 for an output it refuses or cannot write, standard output included: the
+    command line's general 2 is exr diff's FAILURE (a missing directory, /dev/full/x.exr,
+    ``> /dev/full`` read as 'too many pixels fail')."""
+    import functools
+
+    @functools.wraps(run)
+    def wrapped(args) -> int:
+        from rt_core.usererror import InputError
+        try:
+            code = run(args)
+            if sys.stdout is not None:
+                sys.stdout.flush()          # (a full disk shows here)
+            return code
+        except BrokenPipeError:
+            raise
+        except (InputError, OSError) as e:
+            if e is getattr(sys.stdout, "_error", None):    # standard output's (cli._Stdout),
+                e.exit_code = 4                             # which the command line reports
+                raise
+            _error(e)
+            return 4
+    return wrapped
+
+
+@_file_error_is_4
 def run_info(args) -> int:
     from rt_core.exrio import ExrError
     from tools import exrtool
@@ -256,6 +284,7 @@ def run_info(args) -> int:
 _STAT_COLS = ("min", "max", "mean", "std")
 
 
+@_file_error_is_4
 def run_stats(args) -> int:
     from tools import exrtool
     r = exrtool.stats(args.file, _channels(args))
@@ -278,25 +307,6 @@ def run_stats(args) -> int:
             print(f"{label:<{w}}" + "".join(_g(t[c], 14) for c in _STAT_COLS)
                   + f"{t['nan']:>9}{t['inf']:>9}{t['finite']:>10}")
     return 0
-
-
-def _file_error_is_4(run):
-    """exr's exit 4 for an output it refuses or cannot write: the command line's general 2
-    is exr diff's FAILURE (a missing directory, /dev/full/x.exr read as 'too many pixels
-    fail')."""
-    import functools
-
-    @functools.wraps(run)
-    def wrapped(args) -> int:
-        from rt_core.usererror import InputError
-        try:
-            return run(args)
-        except BrokenPipeError:
-            raise
-        except (InputError, OSError) as e:
-            _error(e)
-            return 4
-    return wrapped
 
 
 @_file_error_is_4
