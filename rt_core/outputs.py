@@ -221,14 +221,16 @@ def _checked(write, tmp: str, path: str, verify) -> None:
         reason, hint = _reason(exc, tmp, path)
         raise WriteError(path, reason, hint) from None
     if problem:
-        free = _free_bytes(os.path.dirname(tmp))
+        free = free_bytes(os.path.dirname(tmp))
         if free is not None and free < (1 << 20):
             raise WriteError(path, f"no space left on device ({problem})",
                              _HINTS[errno.ENOSPC])
         raise WriteError(path, problem)
 
 
-def _free_bytes(directory: str) -> int | None:
+def free_bytes(directory: str) -> int | None:
+    """The bytes an unprivileged process may still write in ``directory``'s file system, or
+    None where it cannot be asked."""
     try:
         st = os.statvfs(directory)
     except OSError:

@@ -59,8 +59,8 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    from rt_core.outputs import atomic_write, check_file_target
-    from tools.harness.check import check_image, check_run, junit_xml, text_report
+    from rt_core.outputs import check_file_target
+    from tools.harness.check import check_image, check_run
     kw = {"rules": args.rules, "max_dist": args.max_dist, "texture_dirs": args.texture_dir,
           "code27": args.code27}
     if args.report:                     # refused before the runs, not after them
@@ -136,12 +136,49 @@ def run(args) -> int:
                                rows=args.rows, hits_path=args.hits, **kw)]
     many = args.run is not None or args.images is not None
     single = len(results) == 1 and not many
+    code = _exit_code(results, single, many)
+    try:
+        page = _write_outputs(args, results, single, kw)
+        if sys.stdout is not None:
+            sys.stdout.flush()          # (a full disk shows here)
+    except OSError as e:
+        # an output it cannot write: 2, bad input, unless a scene fails besides (README)
+        if code == 1:
+            e.exit_code = 1
+        raise
+    if page:
+        print(f"report: {page}", file=sys.stderr)
+    if single and results[0].status in ("error", "refused"):
+        print(f"rtval check: {results[0].reason}", file=sys.stderr)
+    return code
+
+
+def _exit_code(results, single: bool, many: bool) -> int:
+    """The README's exit codes of a check's results: 1 some scene fails (or, of several, has
+    no image or run), 2 bad input with no failure besides, 0 every scene passes."""
+    if single and results[0].status in ("error", "refused"):
+        return 2
+    if any(r.status == "fail" for r in results):
+        return 1
+    if any(r.status == "error" for r in results):
+        return 1 if many else 2
+    # (--run) a scene that could not be checked at all: malformed, or of a kind rtval
+    # does not implement; it is listed as REFUSED
+    if any(r.status == "refused" for r in results):
+        return 2
+    return 0
+
+
+def _write_outputs(args, results, single: bool, kw: dict):
+    """The verdicts on standard output (text or --json), the JUnit file and the HTML report;
+    the report's page, or None."""
+    from tools.harness.check import junit_xml, text_report
     if args.json:                       # (strict JSON: a t of NaN in a hit dump as "nan")
         from rt_core.outputs import json_text
         sys.stdout.write(json_text([r.summary() for r in results]))
     elif not (single and results[0].status in ("error", "refused")):
         print(text_report(results))     # (one image it could not check: its one line below)
-    from rt_core.outputs import together
+    from rt_core.outputs import atomic_write, together
     page = None
     with together():                    # the JUnit and the report: both or neither
         if args.junit:
@@ -156,17 +193,4 @@ def run(args) -> int:
             page = check_report(args.report, results, args.name, run=args.run, rows=args.rows,
                                 hits=args.hits, timeout=args.timeout, columns=args.columns,
                                 **kw)
-    if page:
-        print(f"report: {page}", file=sys.stderr)
-    if single and results[0].status in ("error", "refused"):
-        print(f"rtval check: {results[0].reason}", file=sys.stderr)
-        return 2
-    if any(r.status == "fail" for r in results):
-        return 1
-    if any(r.status == "error" for r in results):
-        return 1 if many else 2
-    # (--run) a scene that could not be checked at all: malformed, or of a kind rtval
-    # does not implement; it is listed as REFUSED
-    if any(r.status == "refused" for r in results):
-        return 2
-    return 0
+    return page

@@ -1609,7 +1609,7 @@ def _read_scene(s, kw):
 def _check_runs(pool, work, template, scenes, columns, rows, timeout, kw):
     """check_run's jobs: the runs submitted to ``pool``, then, as each finishes, a job for
     ``_check_job`` (a finished SceneCheck when the scene or the run failed)."""
-    from rt_core.imageio import ImageError, pnm_maxval, read_image
+    from rt_core.imageio import ImageError, read_image
     from rt_core.memory import check_bytes, guard
     from rt_core.usererror import InputError
     jobs = []
@@ -1634,36 +1634,63 @@ def _check_runs(pool, work, template, scenes, columns, rows, timeout, kw):
             continue
         sub = os.path.join(work, str(k))
         os.mkdir(sub)
-        jobs.append((s, (sc, h), pool.submit(run_tracer, template, s, columns, h, sub,
-                                             timeout)))
+        jobs.append((s, (sc, h, sub), pool.submit(run_tracer, template, s, columns, h, sub,
+                                                  timeout)))
     for s, parsed, job in jobs:
         if parsed is None:
             yield job
             continue
-        sc, h = parsed
+        sc, h, sub = parsed
         img, hits, why = job.result()
-        if why:
-            yield SceneCheck(str(s), None, "error", why, columns, h)
-            continue
-        # the image and the hit dump as data: a worker elsewhere cannot read them
         try:
-            theirs = read_image(img)
-        except ImageError as exc:
-            # (named as what it is: the file is a temporary, gone after the run)
-            yield SceneCheck(str(s), "(--run)", "error",
-                             str(exc).replace(img, "the tracer's image {out}", 1))
-            continue
-        if hits is None and "{hits}" in template:
-            hits = ValueError("the tracer wrote no hit dump to {hits} (the command asks "
-                              "for one)")
-        elif hits is not None:
+            if why:
+                _scratch_has_room(sub, why)
+                yield SceneCheck(str(s), None, "error", why, columns, h)
+                continue
+            # the image and the hit dump as data: a worker elsewhere cannot read them
             try:
-                hits = read_hits(hits, columns, h)
-            except (ValueError, InputError) as exc:
-                hits = ValueError(str(exc).replace(hits, "the tracer's hit dump {hits}", 1))
-            except OSError as exc:
-                hits = exc
-        yield (str(s), img, sc, theirs, columns, h, hits, {**kw, "maxval": pnm_maxval(img)})
+                theirs = read_image(img)
+            except ImageError as exc:
+                _scratch_has_room(sub, str(exc))
+                # (named as what it is: the file is a temporary, gone after the run)
+                yield SceneCheck(str(s), "(--run)", "error",
+                                 str(exc).replace(img, "the tracer's image {out}", 1))
+                continue
+            job = _check_job_of(s, img, sc, theirs, columns, h, hits, template, kw)
+        finally:
+            # each run's files go once read: they took the temporary folder's space from
+            # the runs after them (a helper's review: a full TMPDIR failed correct tracers)
+            shutil.rmtree(sub, ignore_errors=True)
+        yield job
+
+
+def _scratch_has_room(sub: str, why: str) -> None:
+    """A run's failure that a full temporary folder explains is rtval's (exit 2, naming the
+    folder), not the tracer's: its image came out empty or truncated there."""
+    from rt_core.outputs import free_bytes
+    from rt_core.usererror import InputError
+    free = free_bytes(sub)
+    if free is not None and free < (1 << 20):
+        raise InputError(f"{os.path.dirname(os.path.dirname(sub))}: the temporary folder is "
+                         f"full ({free} bytes free), where the tracer writes {{out}}: {why}; "
+                         "free some space there or set TMPDIR to a folder that has some")
+
+
+def _check_job_of(s, img, sc, theirs, columns, h, hits, template, kw):
+    """check_run's job for one scene whose image was read: with its hit dump, read too."""
+    from rt_core.imageio import pnm_maxval
+    from rt_core.usererror import InputError
+    if hits is None and "{hits}" in template:
+        hits = ValueError("the tracer wrote no hit dump to {hits} (the command asks "
+                          "for one)")
+    elif hits is not None:
+        try:
+            hits = read_hits(hits, columns, h)
+        except (ValueError, InputError) as exc:
+            hits = ValueError(str(exc).replace(hits, "the tracer's hit dump {hits}", 1))
+        except OSError as exc:
+            hits = exc
+    return (str(s), img, sc, theirs, columns, h, hits, {**kw, "maxval": pnm_maxval(img)})
 
 
 # the image files ``check_images`` looks for, per scene, in this order
