@@ -156,6 +156,37 @@ def test04b_a_reader_that_stops_early_keeps_the_verdict_and_the_reports(tmp_path
     assert r.returncode == 2 and "Broken pipe" not in r.stderr, r.stderr
 
 
+def test04c_ctrl_c_while_the_libraries_load_is_one_line(monkeypatch, capsys):
+    """Ctrl-C while Dr.Jit's import runs, before the command's own handling: the import
+    broken off raised NameError (exit 1, a failing scene to check's callers, 31 lines of
+    traceback; a helper's review); the interrupt is found behind it, exit 130, one line."""
+    from tools import cli
+
+    def interrupted_import(argv):
+        try:
+            try:
+                raise KeyboardInterrupt
+            except KeyboardInterrupt as e:
+                raise ImportError("Encountered an error while initializing the extension.") \
+                    from e
+        except ImportError:
+            raise NameError("name '_drjit_ext' is not defined")
+    monkeypatch.setattr(cli, "_main", interrupted_import)
+    assert cli.main(["check", "a", "b"]) == 130
+    assert capsys.readouterr().err == "rtval: interrupted\n"
+
+    def plain(argv):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(cli, "_main", plain)
+    assert cli.main([]) == 130
+
+    def bug(argv):
+        raise NameError("a bug of ours")
+    monkeypatch.setattr(cli, "_main", bug)
+    with pytest.raises(NameError):
+        cli.main([])
+
+
 def test05_worst_pixel_values_are_told_apart(tmp_path):
     a, b = tmp_path / "a.exr", tmp_path / "b.exr"
     base = np.full((4, 4), 10.2259, np.float32)

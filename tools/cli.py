@@ -193,6 +193,17 @@ def main(argv=None) -> int:
         sys.stdout = _Stdout(saved)
     try:
         return _main(argv)
+    except Exception as e:
+        # Ctrl-C while the libraries load (before _run handles it): an import broken off
+        # raises other errors on the way (NameError: name '_drjit_ext' ..., exit 1, which
+        # check's callers read as a failing scene: a helper's review)
+        if not isinstance(_interrupted(e), KeyboardInterrupt):
+            raise
+        print("rtval: interrupted", file=sys.stderr)
+        return 130
+    except KeyboardInterrupt:
+        print("rtval: interrupted", file=sys.stderr)
+        return 130
     finally:
         sys.stdout = saved
 
