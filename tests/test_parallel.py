@@ -318,6 +318,28 @@ def test08_a_signal_while_the_cluster_starts_waits_until_it_can_be_closed(monkey
     assert not alive, alive
 
 
+def test08b_a_signal_while_the_cluster_closes_still_removes_its_scratch(monkeypatch):
+    """SIGTERM arriving as the client closes (the run's work done): held back until the
+    cluster is closed and its scratch directory removed, then raised (it broke off the close,
+    and the directory stayed until the next run: a helper's review)."""
+    import distributed
+    close = distributed.Client.close
+
+    def late_close(self, *args, **kwargs):
+        signal.raise_signal(signal.SIGTERM)
+        return close(self, *args, **kwargs)
+    monkeypatch.setattr(distributed.Client, "close", late_close)
+    before = scratch_dirs()
+    old = signal.signal(signal.SIGTERM, lambda signum, frame: (_ for _ in ()).throw(
+        Interrupted()))
+    try:
+        with pytest.raises(Interrupted):
+            P.run_cases(S.run_spec, SPECS, P.Plan(workers=2))
+    finally:
+        signal.signal(signal.SIGTERM, old)
+    assert scratch_dirs() <= before
+
+
 def test09_check_run_on_a_cluster_equals_serial(cluster, tmp_path):
     """check --run's checks on a cluster: scene, image and hit dump sent as data; a pass, a
     fail (the tracer without shadows), a refused scene and a failed run, in order."""

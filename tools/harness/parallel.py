@@ -352,14 +352,17 @@ def session(plan: Plan, count_kernels: bool = False):
             hosts = Counter(w["host"] for w in client.scheduler_info()["workers"].values())
             yield client, {"workers_per_host": dict(hosts), "count_kernels": count_kernels}
     finally:
-        with contextlib.suppress(Exception):
-            if client is not None:
-                client.close(timeout=10)
-        with contextlib.suppress(Exception):
-            if cluster is not None:
-                cluster.close(timeout=10)
-        if scratch:
-            shutil.rmtree(scratch, ignore_errors=True)
+        # (a signal during the shutdown is delivered after it: one that broke off the
+        # close left the scratch directory behind; a helper's review)
+        with _signals_deferred():
+            with contextlib.suppress(Exception):
+                if client is not None:
+                    client.close(timeout=10)
+            with contextlib.suppress(Exception):
+                if cluster is not None:
+                    cluster.close(timeout=10)
+            if scratch:
+                shutil.rmtree(scratch, ignore_errors=True)
 
 
 def _quiet(verbose: bool) -> None:
