@@ -983,7 +983,8 @@ def test08d_a_run_ends_with_its_command(ctracer, tmp_path):
     cases = {"exit 255": "exited with status 255: ", "exit 3": "exited with status 3: ",
              "kill -SEGV $$": "crashed with SIGSEGV: ",
              "sh -c 'kill -SEGV $$'": "crashed with SIGSEGV (exit status 139): ",
-             "printf '\\033[31merror\\033[0m: bad\\n' >&2; exit 1": "(error: bad)"}
+             "printf '\\033[31merror\\033[0m: bad\\n' >&2; exit 1": "(error: bad)",
+             "printf '\\033]0;title\\007oops\\n' >&2; exit 1": "(oops)"}
     for cmd, why in cases.items():
         r, = check_run(cmd + " # {scene} {out}", [scene], 40, None)
         assert r.status == "error" and why in r.reason and "\x1b" not in r.reason, \

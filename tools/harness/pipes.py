@@ -30,7 +30,10 @@ class Tail:
     def last_line(self) -> str:
         """The last line said, without terminal escapes and control characters (they made
         the JUnit XML ill-formed), at most 200 characters."""
-        text = re.sub(r"\x1b\[[0-9;?]*[ -/]*[@-~]", "", self.buf.decode("utf-8", "replace"))
+        # (CSI sequences, colours and the like, and OSC ones, a window title: ESC ] ...
+        # ended by BEL or ESC \)
+        text = re.sub(r"\x1b\[[0-9;?]*[ -/]*[@-~]|\x1b\][^\x07\x1b]*(?:\x07|\x1b\\)?", "",
+                      self.buf.decode("utf-8", "replace"))
         text = "".join(c if c.isprintable() or c == "\n" else " " for c in text)
         lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
         return lines[-1][:200] if lines else ""
