@@ -132,11 +132,19 @@ def hits(ob, base, d, rules, Cand, EF, esqrt, ops):
     disc = B * B - 4.0 * A * C
     line = outline(ob, w0, d, EF, ops)
     if not disc.v > 0.0:
-        t = -B / (2.0 * A)
-        return Cand(False, t, sum3(base, scale3(t, d)), disc=disc, why="disc", outline=line)
-    s = esqrt(disc)
-    r1, r2 = (-B - s) / (2.0 * A), (-B + s) / (2.0 * A)
-    roots = sorted((r1, r2), key=lambda x: x.v)
+        # (A = 0: a ray along a cylinder's axis, which B = 0 then too: no t; a miss)
+        t = -B / (2.0 * A) if A.v != 0.0 else EF(math.inf, 0.0)
+        return Cand(False, t, base if A.v == 0.0 else sum3(base, scale3(t, d)), disc=disc,
+                    why="disc", outline=line)
+    if A.v == 0.0:
+        # a ray along a cone's side: one root, −C/B, as the exact references take it (it
+        # divided by A = 0: a ZeroDivisionError that check read as no colour to name, and
+        # excused any; a helper's review)
+        roots = [-C / B]
+    else:
+        s = esqrt(disc)
+        r1, r2 = (-B - s) / (2.0 * A), (-B + s) / (2.0 * A)
+        roots = sorted((r1, r2), key=lambda x: x.v)
     first = None
     for t in (roots if hh is not None else roots[:1]):
         hit = sum3(base, scale3(t, d))

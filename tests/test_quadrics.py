@@ -345,3 +345,27 @@ def test11_tiny_scenes_are_decided_exactly(code, scale):
     assert (ids == 0).sum() == (6 if code == 22 else 2)
     n = np.stack([np.array(g[f"normal.{a}"]).ravel() for a in "XYZ"], -1)[ids == 0]
     assert np.allclose(np.linalg.norm(n, axis=-1), 1, atol=1e-12)
+
+
+def test_a_ray_along_a_cylinders_axis_is_decided(tmp_path, capsys):
+    """The centre ray runs exactly along the cylinder's axis (tests/scenes/
+    cylinder_along_axis.txt: A = B = 0 in the course's quadratic).  The float64 oracle
+    divided by A: check excused any colour there (a PASS with the pixel painted red) and
+    report ended in a traceback (a helper's fuzzing).  Now the wrong colour fails."""
+    import numpy as np
+    from rt_core.imageio import read_image, write_ppm
+    from tools.cli import main
+    scene = REPO / "tests" / "scenes" / "cylinder_along_axis.txt"
+    ppm = tmp_path / "c.ppm"
+    assert main(["render", str(scene), "--columns", "13", "--precision", "f64", "--ppm",
+                 str(ppm)]) == 0
+    img = read_image(str(ppm))
+    assert img.shape[:2] == (9, 13)
+    assert main(["check", str(scene), str(ppm)]) == 0
+    img[4, 6] = (200, 10, 10)
+    write_ppm(str(ppm), img)
+    capsys.readouterr()
+    assert main(["check", str(scene), str(ppm)]) == 1
+    assert "wrong 1" in capsys.readouterr().out
+    assert main(["report", str(scene), "--columns", "13", "--reps", "1", "-o",
+                 str(tmp_path / "r")]) == 0
