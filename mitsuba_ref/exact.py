@@ -642,6 +642,13 @@ def trace_exact(xs: XScene, d: np.ndarray, rules: Rules = Rules(), rays=None) ->
         passed = {k: np.zeros(n, bool) for k in names}
         margin = {k: np.zeros(n) for k in names}
         for i, (D, Dd) in enumerate(rays):
+            if not any(D):
+                # a sample at the viewpoint: a ray of no direction, which a course program
+                # normalises to NaN and so misses everything; decided, a miss (it divided by
+                # zero: a traceback from compare --mode exact; a helper's fuzzing)
+                for k in names:
+                    passed[k][i], margin[k][i] = False, math.inf
+                continue
             q, tests = dispatch(_EVAL, p.kind)(p, D, Dd, rules)
             for k in names:
                 passed[k][i], margin[k][i] = tests[k]

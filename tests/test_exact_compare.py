@@ -368,3 +368,16 @@ def test09_too_large_an_exact_image_is_refused_in_one_line(tmp_path, args):
     assert r.returncode == 2, r.stderr
     assert r.stderr.strip().count("\n") == 0 and "600 x 450 pixels" in r.stderr, r.stderr
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test_a_sample_at_the_viewpoint_is_a_decided_miss(precision):
+    """The viewpoint in z = 0 on the window's centre sample (13 columns): a ray of no
+    direction, which the exact oracle divided by (a traceback from compare --mode exact:
+    a helper's fuzzing).  It is a miss, decided, and rt_core agrees."""
+    r = subprocess.run([sys.executable, "-m", "tools.cli", "compare",
+                        str(REPO / "tests" / "scenes" / "viewpoint_on_a_sample.txt"),
+                        "--columns", "13", "--mode", "exact", "--precision", precision],
+                       cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
+    assert "agree=117" in r.stdout, r.stdout
