@@ -352,7 +352,6 @@ def test_a_ray_along_a_cylinders_axis_is_decided(tmp_path, capsys):
     cylinder_along_axis.txt: A = B = 0 in the course's quadratic).  The float64 oracle
     divided by A: check excused any colour there (a PASS with the pixel painted red) and
     report ended in a traceback (a helper's fuzzing).  Now the wrong colour fails."""
-    import numpy as np
     from rt_core.imageio import read_image, write_ppm
     from tools.cli import main
     scene = REPO / "tests" / "scenes" / "cylinder_along_axis.txt"
