@@ -367,9 +367,28 @@ def first_crossing(F):
             left, right = _sg(_value(Fi, x - h)), _sg(_value(Fi, x + h))
         else:
             left, right = _sign_dyadic(Fi, *lo), _sign_dyadic(Fi, *hi)
+            # an end of the interval can be another root of F (sign 0 there, which differs
+            # from the other end's: a touching ray read as a crossing; a helper's fuzzing):
+            # F's sign just inside that end instead, which no root separates from its root
+            if left == 0:
+                left = _sign_inside(Fi, sf, _dy(lo), 1)
+            if right == 0:
+                right = _sign_inside(Fi, sf, _dy(hi), -1)
         if left != right:
             return TorusT.make(sf, lo, hi)
     return None
+
+
+def _sign_inside(Fi, sf, x: Fraction, toward: int) -> int:
+    """F's sign a little from its root ``x`` toward ``toward`` (±1), where no root lies
+    between."""
+    h = Fraction(1, 2)
+    while True:
+        y = x + toward * h
+        a, b = (x, y) if toward > 0 else (y, x)
+        if not _variations(sf, a, b) and _value(sf, y) != 0:
+            return _sg(_value(Fi, y))
+        h /= 2
 
 
 def eval_torus(p, D, Dd, rules):
