@@ -132,10 +132,10 @@ def hits(ob, base, d, rules, Cand, EF, esqrt, ops):
     disc = B * B - 4.0 * A * C
     line = outline(ob, w0, d, EF, ops)
     if not disc.v > 0.0:
-        # (A = 0: a ray along a cylinder's axis, which B = 0 then too: no t; a miss)
-        t = -B / (2.0 * A) if A.v != 0.0 else EF(math.inf, 0.0)
-        return Cand(False, t, base if A.v == 0.0 else sum3(base, scale3(t, d)), disc=disc,
-                    why="disc", outline=line)
+        if A.v == 0.0:      # a ray along a cylinder's axis (B = 0 then too): no t, a miss
+            return Cand(False, EF(math.inf, 0.0), base, disc=disc, why="disc", outline=line)
+        t = -B / (2.0 * A)
+        return Cand(False, t, sum3(base, scale3(t, d)), disc=disc, why="disc", outline=line)
     if A.v == 0.0:
         # a ray along a cone's side: one root, −C/B, as the exact references take it (it
         # divided by A = 0: a ZeroDivisionError that check read as no colour to name, and

@@ -285,6 +285,18 @@ class Interrupted(BaseException):
     pass
 
 
+def _sweep_interrupted_by_sigterm():
+    """run_cases on a local cluster of 2 workers, with SIGTERM raising Interrupted: it must
+    come out of the run."""
+    old = signal.signal(signal.SIGTERM, lambda signum, frame: (_ for _ in ()).throw(
+        Interrupted()))
+    try:
+        with pytest.raises(Interrupted):
+            P.run_cases(S.run_spec, SPECS, P.Plan(workers=2))
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
 def test08_a_signal_while_the_cluster_starts_waits_until_it_can_be_closed(monkeypatch):
     """SIGTERM arriving while the local cluster is built (here: as its constructor returns)
     is held back until the cluster is assigned, then raised, and the cluster closed: no
@@ -306,13 +318,7 @@ def test08_a_signal_while_the_cluster_starts_waits_until_it_can_be_closed(monkey
                 and c.ppid() != os.getpid()]            # the fork server's children
 
     monkeypatch.setattr(distributed, "LocalCluster", Late)
-    old = signal.signal(signal.SIGTERM, lambda signum, frame: (_ for _ in ()).throw(
-        Interrupted()))
-    try:
-        with pytest.raises(Interrupted):
-            P.run_cases(S.run_spec, SPECS, P.Plan(workers=2))
-    finally:
-        signal.signal(signal.SIGTERM, old)
+    _sweep_interrupted_by_sigterm()
     assert len(started) == 2
     _, alive = psutil.wait_procs(started, timeout=10)
     assert not alive, alive
@@ -330,13 +336,7 @@ def test08b_a_signal_while_the_cluster_closes_still_removes_its_scratch(monkeypa
         return close(self, *args, **kwargs)
     monkeypatch.setattr(distributed.Client, "close", late_close)
     before = scratch_dirs()
-    old = signal.signal(signal.SIGTERM, lambda signum, frame: (_ for _ in ()).throw(
-        Interrupted()))
-    try:
-        with pytest.raises(Interrupted):
-            P.run_cases(S.run_spec, SPECS, P.Plan(workers=2))
-    finally:
-        signal.signal(signal.SIGTERM, old)
+    _sweep_interrupted_by_sigterm()
     assert scratch_dirs() <= before
 
 

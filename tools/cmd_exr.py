@@ -233,11 +233,8 @@ def _file_error_is_4(run):
         except BrokenPipeError:
             raise
         except (InputError, OSError) as e:
-            if e is getattr(sys.stdout, "_error", None):    # standard output's (cli._Stdout),
-                e.exit_code = 4                             # which the command line reports
-                raise
-            _error(e)
-            return 4
+            e.exit_code = 4                 # (the command line says it, as for any command)
+            raise
     return wrapped
 
 
