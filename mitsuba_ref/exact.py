@@ -213,7 +213,8 @@ DECISIONS = {
     "tplane": ("parallel", "t", "clip"),
     "fplane": ("parallel", "t", "clip", "u>=0", "u<=w", "v>=0", "v<=h"),
     "sphere": ("outline", "outside", "front", "clip"),
-    "cylinder": quadric.DECISIONS, "cone": quadric.DECISIONS, "ellipsoid": quadric.DECISIONS,
+    "cylinder": quadric.OPEN_DECISIONS, "cone": quadric.OPEN_DECISIONS,
+    "ellipsoid": quadric.DECISIONS,
     **exact_planar.DECISIONS,
     "torus": ("crossing",),
 }
@@ -483,6 +484,8 @@ class ObjectVerdicts:
     def risk_by(self, u: float) -> tuple:
         """``risk`` and, per ray, the name of the decision it is (that nearest, or that
         farthest failed one)."""
+        if "other t" in self.margin:
+            return self._two_roots(u)
         names = list(self.margin)
         R = np.stack([self.ratio(k, u) for k in names])
         P = np.stack([self.passed[k] for k in names])
@@ -492,6 +495,29 @@ class ObjectVerdicts:
         which = np.where(self.valid, lose, gain)
         return (np.where(self.valid, R[lose, cols], np.maximum(G[gain, cols], 0.0)),
                 np.asarray(names, object)[which])
+
+    def _two_roots(self, u: float) -> tuple:
+        """``risk_by`` of an open quadric: the cheapest change of its answer (hit at the
+        near root, at the far one, or a miss) over both roots' decisions
+        (quadric.two_root_risk); the decisions named without "other "."""
+        R = {k: self.ratio(k, u) for k in self.margin}
+        P = self.passed
+        n = len(self.valid)
+        risk, which = np.empty(n), np.empty(n, object)
+        names = ("t", "axis>=0", "axis<=h")
+        for i in range(n):
+            got = lambda k, pre: (k, bool(P[pre + k][i]), float(R[pre + k][i]))
+            chosen, other = [got(k, "") for k in names], [got(k, "other ") for k in names]
+            clips = got("clip", ""), got("clip", "other ")
+            # (t's margin is the root's t: the chosen root is the near one unless the
+            # other's t is less)
+            near_first = not self.margin["other t"][i] < self.margin["t"][i]
+            near, far = (chosen, other) if near_first else (other, chosen)
+            cn, cf = clips if near_first else clips[::-1]
+            now = "miss" if not self.valid[i] else "near" if near_first else "far"
+            risk[i], which[i], _ = quadric.two_root_risk(
+                got("outline", ""), near, far, cn, cf, now)
+        return np.maximum(risk, 0.0), which
 
     @property
     def kappa_t(self) -> np.ndarray:
@@ -655,7 +681,7 @@ def trace_exact(xs: XScene, d: np.ndarray, rules: Rules = Rules(), rays=None) ->
             if q is not None:
                 tq[i] = q
                 t[i] = _ratio(*q)
-            valid[i] = all(tests[k][0] for k in names)
+            valid[i] = all(tests[k][0] for k in names if k not in quadric.OTHER)
         ov = ObjectVerdicts(p.kind, valid, t, tq, passed, margin)
         ov.cond = (torus_conditions(p, d.astype(np.float64)) if p.kind == "torus" else
                    _conditions(p.obj, V, d.astype(np.float64), rules))

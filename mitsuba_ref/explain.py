@@ -329,7 +329,8 @@ def depth_bound(scene: Scene, d: np.ndarray, ids: np.ndarray, t: np.ndarray, ext
     for k in np.unique(i[code == 2]).tolist():
         sel = np.flatnonzero(known & (ids == k))
         ev = ObjectEval(scene, scene.objects[k], d[sel], rules, extent)
-        rel_disc = np.clip(2 * ev.margin / max(ev.size, 1e-300), 1e-300, None)
+        with np.errstate(over="ignore"):       # (a root far out: a margin near 1e308)
+            rel_disc = np.clip(2 * ev.margin / max(ev.size, 1e-300), 1e-300, None)
         b = np.maximum(ev.bound(t[sel]),
                        K_ROUNDING * EPS32 * ev.scale / np.sqrt(np.minimum(rel_disc, 1.0)))
         out[sel] = b / ts[sel]

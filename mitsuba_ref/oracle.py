@@ -517,6 +517,15 @@ def _tests(ob: _Obj, c: Cand, base, d, rules: Rules) -> list:
     return out
 
 
+def _clip_test(rules: Rules):
+    """The screen clip of a quadric's root as a test (name, passed, margin), None where the
+    rules clip no quadric."""
+    if not (rules.clip_spheres and rules.screen_clip != "off"):
+        return lambda c: None
+    return lambda c: ("clip_margin", not _clipped(c.hitloc[2], rules),
+                      _margin(c.hitloc[2].v, c.hitloc[2].e))
+
+
 def _at_risk(tests: list, valid: bool) -> tuple:
     """(diagnostic, margin) of the cheapest flip of the verdict: a valid hit is lost if any test
     flips; an invalid one is gained only if every failed test flips."""
@@ -566,7 +575,7 @@ def trace(scene, base, dir, rules: Rules = Rules(), skip=None, flip=frozenset())
     base, d = vec(base), vec(dir)
     obs = prepared(scene)
     cands = []
-    win = None
+    win = wc = None                 # the winner and its Cand
     for ob in obs:
         if ob.idx == skip:
             cands.append(None)
@@ -574,7 +583,12 @@ def trace(scene, base, dir, rules: Rules = Rules(), skip=None, flip=frozenset())
         c = HITS[ob.kind](ob, base, d, rules)
         cands.append(c)
         ok = c.ok
-        if ob.idx in flip:
+        if ob.idx in flip and getattr(c, "roots", None):
+            # an open quadric: its cheapest other answer (the other root, or a miss); the
+            # diagnostics stay the computed answer's, as for the other kinds
+            c = quadric.risk(c, _margin, _clip_test(rules))[2]
+            ok = c.ok
+        elif ob.idx in flip:
             # (a sphere missed by its discriminant has no first-order place to be hit: a
             # float64 tracer whose disc comes out positive hits it √disc/2a, about √u of
             # the distance, from the tangent point, and what it reflects or shadows there
@@ -584,13 +598,12 @@ def trace(scene, base, dir, rules: Rules = Rules(), skip=None, flip=frozenset())
             ok = not ok
         if not ok:
             continue
-        if win is None or c.t.v < cands[win].t.v or (
-                c.t.v == cands[win].t.v and rules.ties == "last"):
-            win = ob.idx
+        if win is None or c.t.v < wc.t.v or (c.t.v == wc.t.v and rules.ties == "last"):
+            win, wc = ob.idx, c
 
     hit = Hit(cands=cands)
     if win is not None:
-        ob, c = obs[win], cands[win]
+        ob, c = obs[win], wc
         hit.hit, hit.id, hit.t, hit.err_t = True, win, c.t.v, c.t.e
         hit.position, hit.err_position = vals(c.hitloc), errs(c.hitloc)
         if ob.kind == "sphere":
@@ -604,15 +617,15 @@ def trace(scene, base, dir, rules: Rules = Rules(), skip=None, flip=frozenset())
         hit.normal, hit.err_normal = vals(n), errs(n)
         if ob.kind in ("fplane", "tplane", "triangle", "disk"):
             hit.uv, hit.err_uv = (c.newhit[0].v, c.newhit[1].v), (c.newhit[0].e, c.newhit[1].e)
-    _diagnose(hit, obs, cands, win, base, d, rules)
+    _diagnose(hit, obs, cands, win, base, d, rules, wc)
     return hit
 
 
-def _diagnose(hit: Hit, obs, cands, win, base, d, rules: Rules) -> None:
+def _diagnose(hit: Hit, obs, cands, win, base, d, rules: Rules, wc=None) -> None:
     """Margins of the decisions that could change this ray's answer: the winner's tests, the
     tests of each miss whose (near) t is not behind the winner, and near-ties with the winner.
     Each object contributes its cheapest flip (see _at_risk) to that flip's diagnostic."""
-    tw = cands[win].t if win is not None else None
+    tw = (wc or cands[win]).t if win is not None else None
     for ob, c in zip(obs, cands):
         if c is None or (c.ok and ob.idx != win):
             # a valid hit behind the winner: only a near-tie can matter (an identical surface
@@ -628,9 +641,13 @@ def _diagnose(hit: Hit, obs, cands, win, base, d, rules: Rules) -> None:
                 # nothing else is hit and the object is unbounded
                 if win is not None or ob.kind in ("fplane", "triangle", "disk"):
                     continue
-            elif tw is not None and abs(c.t.v) > tw.v + 1e-4 * (tw.v + tw.e + c.t.e):
+            elif tw is not None and min(abs(r.t.v) for r in getattr(c, "roots", [c])) > \
+                    tw.v + 1e-4 * (tw.v + tw.e + c.t.e):
                 continue                             # behind the winner: cannot matter
-        key, m = _at_risk(_tests(ob, c, base, d, rules), c.ok)
+        if getattr(c, "roots", None):       # an open quadric's two roots
+            key, m, _ = quadric.risk(c, _margin, _clip_test(rules))
+        else:
+            key, m = _at_risk(_tests(ob, c, base, d, rules), c.ok)
         setattr(hit, key, min(getattr(hit, key), m))
         hit.risks.append((ob.idx, m))
 

@@ -368,3 +368,87 @@ def test_a_ray_along_a_cylinders_axis_is_decided(tmp_path, capsys):
     assert "wrong 1" in capsys.readouterr().out
     assert main(["report", str(scene), "--columns", "13", "--reps", "1", "-o",
                  str(tmp_path / "r")]) == 0
+
+
+def test_a_far_root_on_the_rim_is_judged_with_the_near_one(tmp_path, capsys, monkeypatch):
+    """tests/scenes/cylinder_far_rim.txt at 21x16: the ray of column 4, row 14 (from the
+    top) misses the near root (above the rim by 0.68) and meets the far one exactly on the
+    base rim.  The references judged one root: the float64 oracle reported the near root's
+    margins, so the shaded comparison called rt_core's float64 image wrong there (a
+    helper's fuzzing).  A wrong colour there still fails check."""
+    from rt_core.imageio import read_image, write_ppm
+    from tools.cli import main
+    scene = REPO / "tests" / "scenes" / "cylinder_far_rim.txt"
+    monkeypatch.chdir(tmp_path)
+    assert main(["compare", str(scene), "--columns", "21", "--rows", "16", "--shaded",
+                 "--reference", "oracle"]) == 0
+    ppm = tmp_path / "c.ppm"
+    assert main(["render", str(scene), "--columns", "21", "--rows", "16", "--precision",
+                 "f64", "--ppm", str(ppm)]) == 0
+    assert main(["check", str(scene), str(ppm)]) == 0
+    img = read_image(str(ppm))
+    img[14, 4] = (200, 10, 10)          # a colour no answer at that pixel gives
+    write_ppm(str(ppm), img)
+    capsys.readouterr()
+    assert main(["check", str(scene), str(ppm)]) == 1
+    assert "wrong 1" in capsys.readouterr().out
+
+
+def test_the_exact_oracle_weighs_both_roots_of_a_miss():
+    """The same ray turned by 1e-14: both roots fail, exactly, the far one by 1e-13 below
+    the rim.  The exact oracle weighed the near root's failure (0.68 off): a float tracer
+    hitting the far root was unexplained.  Now the far root's axial test is within reach."""
+    from mitsuba_ref.exact import U
+    xs = parse_exact((REPO / "tests" / "scenes" / "cylinder_far_rim.txt").read_text())
+    W, H = 21, 16
+    _, d = ideal_rays(xs.window, xs.viewpoint, W, H, [14 * W + 4])
+    d = d + np.array([[-1e-14, 0.0, 0.0]])
+    ex = trace_exact(xs, d)
+    cyl = ex.objects[1]
+    assert ex.id[0] == 0 and not cyl.valid[0]
+    assert not cyl.passed["axis<=h"][0] and cyl.margin["axis<=h"][0] < -0.5   # the near root
+    for precision, most in (("f32", 1e-6), ("f64", 2.0)):
+        risk, which = cyl.risk_by(U[precision])
+        assert risk[0] <= most and which[0] == "axis>=0", (precision, risk, which)
+    assert ex.reasons(np.array([1]), U["f32"], reach=True)[0] == "axis>=0"
+    assert -1e-12 < cyl.margin["other axis>=0"][0] < 0                          # the far one
+
+
+def test_a_near_root_on_the_rim_flags_the_far_hit():
+    """Rays from outside through the top rim point (1, 2, 0) of a cylinder, on into its
+    open end: the near root lies on the rim exactly, so float64 puts it either side.  Where
+    the float64 oracle's near root came out above the rim it took the far root with that
+    root's margins alone (unflagged: 1e-4 against u = 1.1e-16; depth 6 % off); now the near
+    root's axial test flags the hit."""
+    import math
+    from mitsuba_ref import oracle
+    sc = parse_text("8 6\n0 0 5\n22\n" + M + "0 0 0\n0 1 0\n1 2\n", "c.txt")
+    far = 0
+    for k in range(30, 60):
+        base = (1 + 4 * k / 7, 2 + 2 * k / 7, 0.0)
+        n = math.hypot(1 - base[0], 2 - base[1])
+        h = oracle.trace(sc, base, ((1 - base[0]) / n, (2 - base[1]) / n, 0.0))
+        assert h.hit
+        if abs(h.t - n) > 1e-9 * n:     # the far root taken
+            far += 1
+            assert h.edge_margin < U["f64"], (k, h.t / n, h.edge_margin)
+    assert far >= 3
+
+
+def test_the_classifier_weighs_both_roots():
+    """The classifier's float64 view (quadric.classify_eval, behind compare's classes) of
+    that ray turned by 1e-12: a miss whose nearest change is the far root's rim, 1e-11 off
+    (it weighed the near root's, 0.58: rt_core float32 hitting the far root there against
+    Mitsuba's miss was unexplained)."""
+    from mitsuba_ref.quadric import classify_eval
+    sc = parse_scene(REPO / "tests" / "scenes" / "cylinder_far_rim.txt")
+    xs = parse_exact((REPO / "tests" / "scenes" / "cylinder_far_rim.txt").read_text())
+    _, d = ideal_rays(xs.window, xs.viewpoint, 21, 16, [14 * 21 + 4])
+    d = d + np.array([[-1e-12, 0.0, 0.0]])
+    O = np.array([sc.viewpoint], np.float64)
+    t, valid, margin, _ = classify_eval(sc.objects[1], O, d, Rules())
+    assert not valid[0] and 0 < margin[0] < 1e-10, margin
+    # the unturned ray: its far root exactly on the rim, which float64 puts either side
+    _, d0 = ideal_rays(xs.window, xs.viewpoint, 21, 16, [14 * 21 + 4])
+    t, valid, margin, _ = classify_eval(sc.objects[1], O, d0, Rules())
+    assert margin[0] < 1e-11
