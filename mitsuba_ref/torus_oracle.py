@@ -91,10 +91,18 @@ def _poly(ob, base, d):
             2 * b * k - R4 * (b - 2 * e * h), k * k - R4 * (c - h * h)]
 
 
-def _polish(ob, base, d, t):
+def _span(ob, d) -> float:
+    """The torus's size in units of t, (R + r)/|d|: the scale of the steps and tolerances
+    below (they were absolute, 1e-6·(|t| + 1): at a scene 1e-4 across a step spanned the
+    tube, and two pixels of a correct image were called wrong; a helper's fuzzing)."""
+    dd = math.sqrt(sum(c.v * c.v for c in d))
+    return (abs(ob.radius.v) + abs(ob.minor.v)) / dd if dd > 0 else 1.0
+
+
+def _polish(ob, base, d, t, span):
     for _ in range(POLISH):
         f, _, _ = _f(ob, base, d, t)
-        h = 1e-7 * (abs(t) + 1)
+        h = 1e-7 * (abs(t) + span)
         fp = (_f(ob, base, d, t + h)[0] - _f(ob, base, d, t - h)[0]) / (2 * h)
         if fp == 0 or not math.isfinite(fp):
             break
@@ -105,13 +113,13 @@ def _polish(ob, base, d, t):
     return t
 
 
-def _real_roots(coef):
+def _real_roots(coef, span):
     r = np.roots(coef)
-    return sorted(float(z.real) for z in r if abs(z.imag) <= 1e-7 * (1 + abs(z)))
+    return sorted(float(z.real) for z in r if abs(z.imag) <= 1e-7 * (span + abs(z)))
 
 
-def _dfdt(ob, base, d, t):
-    h = 1e-6 * (abs(t) + 1)
+def _dfdt(ob, base, d, t, span):
+    h = 1e-6 * (abs(t) + span)
     return (_f(ob, base, d, t + h)[0] - _f(ob, base, d, t - h)[0]) / (2 * h)
 
 
@@ -130,15 +138,19 @@ def torus_hits(ob, base, d, rules):
     """The oracle's verdict: the smallest t > 0 where f changes sign."""
     from .oracle import EF, scale3, sum3
     coef = _poly(ob, base, d)
-    cands = [_polish(ob, base, d, t) for t in _real_roots(coef)]
+    span = _span(ob, d)
+    cands = [_polish(ob, base, d, t, span) for t in _real_roots(coef, span)]
     # critical points of f: the roots of f' (polished on f' numerically)
-    crit = [t for t in _real_roots(np.polyder(coef))]
+    crit = [t for t in _real_roots(np.polyder(coef), span)]
     hit_t = None
-    for t in sorted(cands):
+    cands.sort()
+    for i, t in enumerate(cands):
         if not t > 0:
             continue
-        # a sign change: f on both sides (half the distance to the neighbours)
-        eps = 1e-6 * (abs(t) + 1)
+        # a sign change: f on both sides, a step small against the torus and under half
+        # the distance to the neighbouring roots
+        gaps = [abs(t - u) for u in cands[max(i - 1, 0):i + 2] if u != t]
+        eps = min([1e-6 * (abs(t) + span)] + [g / 2 for g in gaps])
         lo, hi = _f(ob, base, d, t - eps)[0], _f(ob, base, d, t + eps)[0]
         if (lo > 0) != (hi > 0):
             hit_t = t
@@ -155,7 +167,7 @@ def torus_hits(ob, base, d, rules):
         t = EF(tc, 0.0)
         return _torus_cand(False, t, sum3(base, scale3(t, d)), margin, "disc")
     f, e = _ferr(ob, base, d, hit_t)
-    fp = abs(_dfdt(ob, base, d, hit_t))
+    fp = abs(_dfdt(ob, base, d, hit_t, span))
     t = EF(hit_t, e / fp + abs(hit_t) if fp > 0 else math.inf)
     return _torus_cand(True, t, sum3(base, scale3(t, d)), margin, "")
 
