@@ -229,3 +229,25 @@ def test17_random_scenes_are_seen():
         assert len(ids) >= 2
         seen.update((seed, int(i)) for i in ids)
     assert len(seen) >= 12
+
+
+@pytest.mark.parametrize("columns, rows, sampling", [(17, 12, "corners"), (44, 33, "centers")])
+def test_an_orient_near_the_normal_widens_the_edge_bound(columns, rows, sampling):
+    """tests/scenes/fplane_orient_near_normal.txt: the orient 1e-4 off the normal, so
+    x̂ = unit(ô − (ô·n̂)n̂) cancels 4 digits.  The oracle took its frame as rounded once
+    (error u), and decided 8 pixels (23 at 44 columns) against the exact oracle with an
+    edge margin 2-100× over f64's u: unflagged.  Every pixel it decides otherwise than the
+    exact oracle must be flagged."""
+    from pathlib import Path
+    from mitsuba_ref.exact import U, ideal_rays, parse_exact, trace_exact
+    from rt_core.parser import parse_scene
+    path = Path(__file__).parent / "scenes" / "fplane_orient_near_normal.txt"
+    rules = Rules(edges="open")
+    o = render_oracle(parse_scene(path), columns, rows, sampling=sampling, rules=rules)
+    xs = parse_exact(path.read_text())
+    rays, d = ideal_rays(xs.window, xs.viewpoint, columns, rows, range(columns * rows),
+                         sampling)
+    ex = trace_exact(xs, d, rules, rays=rays)
+    assert ex.hit.sum() > 20
+    bad = np.flatnonzero((o["hit.mask"].ravel() > 0) != ex.hit)
+    assert (o["edge_margin"].ravel()[bad] < U["f64"]).all(), o["edge_margin"].ravel()[bad]
