@@ -14,7 +14,7 @@ from rt_core.rules import Rules
 from mitsuba_ref.convert import plane_extent
 from tools.harness.secondary import (CLASS_CODE, SkipScenes, classify_hits, compare_secondary,
                                     reference_hits)
-from tools.harness.validate import default_scene_paths, load_supported
+from tools.harness.validate import COURSE_SCENES, default_scene_paths, load_supported
 
 REPO = Path(__file__).resolve().parents[1]
 BUNDLED = sorted((REPO / "scenes").glob("*.txt"))
@@ -48,10 +48,29 @@ def test01_bundled_scene(path, precision):
         assert c.counts["agree"] >= 0.97 * len(c.classes), (c.name, c.counts)
 
 
+def _course_scenes(every: int = 1):
+    """The supported course scenes of validate's default set (the bundled ones are
+    test01's), every ``every``-th by path."""
+    paths = [p for p in default_scene_paths() if p.parent.parent == COURSE_SCENES]
+    if not paths:
+        pytest.skip(f"no course scenes at {COURSE_SCENES}")
+    scenes, _ = load_supported(sorted(paths)[::every], explicit=False)
+    return scenes
+
+
 @pytest.mark.parametrize("precision", PRECISIONS)
 def test02_course_scenes(precision):
-    scenes, _ = load_supported(default_scene_paths(), explicit=False)
+    """A sample of the course scenes (every one: test02b, slow, 3 minutes)."""
+    scenes = _course_scenes(6)
+    assert len(scenes) >= 15
     for scene in scenes:
+        check(scene, precision, columns=64)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test02b_every_course_scene(precision):
+    for scene in _course_scenes():
         check(scene, precision, columns=64)
 
 
