@@ -252,6 +252,14 @@ def _sphere_obj(i, o):
                 center=vec(o.center), radius=EF(o.radius))
 
 
+def _scaled(v):
+    """A direction as inputs rounded once, scaled by a power of two (exactly) so that its
+    squared length neither overflows nor underflows (a normal 1e200 0 1)."""
+    k = math.frexp(max(abs(float(c)) for c in v) or 1.0)[1]
+    return tuple(EF(math.ldexp(float(c), -k), 0.0 if _f32_exact(float(c)) else None)
+                 for c in v)
+
+
 def _plane_obj(i, o):
     """The normal computed here from the numbers as written (mitsuba_ref/geometry.py), then
     taken as an input rounded once (as a tracer's host would round it); a finite or tiled
@@ -262,7 +270,7 @@ def _plane_obj(i, o):
     n = normal(o)
     p = _Obj(i, o.kind, o, ("p", n, tuple(o.point)), normal=vec(n), point=vec(o.point))
     if o.kind in ("fplane", "tplane"):
-        ne, oe = unit3(vec(given_normal(o))), unit3(vec(o.orient))
+        ne, oe = unit3(_scaled(given_normal(o))), unit3(_scaled(o.orient))
         x = unit3(diff3(oe, scale3(dot3(oe, ne), ne)))
         p.rotmat = (x, unit3(cross3(ne, x)), ne)
         p.size = (EF(o.size[0]), EF(o.size[1]))

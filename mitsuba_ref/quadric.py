@@ -171,10 +171,10 @@ def hits(ob, base, d, rules, Cand, EF, esqrt, ops):
 
 
 def risk(c, margin, clip_test):
-    """(decision, margin, Cand of that answer or None for a miss) of the cheapest change of
-    an open quadric's answer (two_root_risk) from its Cand ``c`` (quadric.hits, or a Cand
-    this returned); ``margin(slack, err)``, ``clip_test(cand)``: (name, passed, margin) or
-    None where no clip applies."""
+    """(decision, margin, Cand of that answer: a root's, valid, or a miss) of the cheapest
+    change of an open quadric's answer (two_root_risk) from its Cand ``c`` (quadric.hits, or
+    a Cand this returned); ``margin(slack, err)``, ``clip_test(cand)``: (name, passed,
+    margin) or None where no clip applies."""
     near, far = c.roots
 
     def tests(r):
@@ -370,7 +370,8 @@ def evaluate(p: Prep, D, Dd, rules):
     closed = hh is None
     if Xn <= 0 or Ai == 0 and Bi == 0:
         t0 = Fraction(-Bi * Dd, Lw * Ai) if Ai else Fraction(0)         # −(β/2)/α
-        tests.update({k: (False, 0.0) for k in DECISIONS[1:] + (OTHER if hh is not None else ())})
+        names = DECISIONS[1:] + (OTHER if hh is not None else ())
+        tests.update({k: (False, 0.0) for k in names})
         return (t0.numerator, t0.denominator), tests
     A, Bh, da = (Fraction(Ai, Lm * Dd * Dd), Fraction(Bi, Lm * Lw * Dd),
                  Fraction(Di, p.La * Dd))                    # α, β/2, d·a
@@ -408,13 +409,13 @@ def evaluate(p: Prep, D, Dd, rules):
             res["clip"] = (True, math.inf)
         found.append((res, tv))
     # the near root if valid, else the far one if valid, else the near one (a miss)
-    k = next((i for i, (res, _) in enumerate(found)
-              if all(res[k][0] for k in ("t", "axis>=0", "axis<=h"))), 0)
-    res, tv = found[k]
+    pick = next((i for i, (res, _) in enumerate(found)
+                 if all(res[n][0] for n in ("t", "axis>=0", "axis<=h"))), 0)
+    res, tv = found[pick]
     tests.update(res)
     if not closed:
         # the other root's tests (a single root's other: never valid, never near)
-        other = found[1 - k][0] if len(found) == 2 else {n: (False, math.inf) for n in res}
+        other = found[1 - pick][0] if len(found) == 2 else {n: (False, math.inf) for n in res}
         tests.update({"other " + n: v for n, v in other.items()})
     tq = Fraction(tv) if math.isfinite(tv) else Fraction(0)
     return (tq.numerator, tq.denominator), tests
