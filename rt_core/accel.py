@@ -50,6 +50,19 @@ from .shapes import BOUND_FIELDS, TAME, object_t, sphere_live, sphere_t
 from .quadrics import KINDS as QUADRICS
 from .shapes_quadric import ROW_SLOTS, quadric_boxes, row_view as quadric_row_view
 
+def wide_vectors() -> bool:
+    """Has this CPU AVX-512 (Dr.Jit's LLVM backend then computes 16 floats a vector, else
+    8)?  Read from /proc/cpuinfo; False where it cannot be read."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("flags"):
+                    return "avx512f" in line.split()
+    except OSError:
+        pass
+    return False
+
+
 # More (bounded) objects than this: the symbolic loop instead of unrolled code.  Measured
 # crossover (bench, f32): unrolled wins up to ~8-12 objects, the binned loop above.
 UNROLL_MAX = 8
@@ -71,7 +84,12 @@ SECONDARY_FACTOR = 3
 # 0.99/0.99 against 1.09/1.09; mixed 16 3.76/3.42 against 3.12/2.90; finite planes 12
 # 2.87/2.87 against 2.19/2.20, 16 2.44/2.39 against 2.05/2.06); not float64 without
 # (before its finite planes branched: finite planes 12: 1.43, 16: 1.81; spheres 16: 1.04).
-CAMERA_FACTOR = 2
+# That measurement was on an AVX-512 CPU (16 floats a vector).  On an AVX2 one (8 floats:
+# an AMD EPYC, two sessions later) 16 spheres unrolled ran at 1.09-1.65x Mitsuba, and
+# through the binned loop 1.42-2.15x (medians of six alternated bench runs: 1.49 against
+# 1.99); 10 to 14 spheres about even (unrolled 1.95-2.06x at 10, the loop 1.29-1.87x): there
+# the camera rays unroll up to 12.
+CAMERA_FACTOR = 2 if wide_vectors() else 1.5
 CAMERA_SPHERES_F64 = 12
 # ... where every bounded object is of these kinds (measured on them; 12 tori unrolled took
 # 7 times the binned loop's time)
@@ -199,7 +217,7 @@ def looped(ks, kind: str, reflections: bool = False, camera: bool = False,
     if kind in BOUNDED:
         if camera and camera_unrolls(ks) and all(
                 k in CAMERA_KINDS for k in BOUNDED if ks.by_kind.get(k)):
-            limit *= CAMERA_FACTOR
+            limit = int(limit * CAMERA_FACTOR)
         return sum(len(ks.by_kind.get(k, ())) for k in BOUNDED) > limit
     return len(ks.by_kind.get(kind, ())) > limit
 

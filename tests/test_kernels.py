@@ -430,7 +430,7 @@ def test10b_float32_camera_rays_unroll_more(precision, exact):
         if precision == "f64" and exact:
             return certified_kernel(scene_of(objs))
         return hit_kernel(scene_of(objs), T, exact)["ir"].getvalue()
-    n = accel.UNROLL_MAX * accel.CAMERA_FACTOR
+    n = int(accel.UNROLL_MAX * accel.CAMERA_FACTOR)
     for objs in (spheres(n), spheres(n // 2) + fplanes(n - n // 2)):
         ir = kernel(objs)
         many = len([o for o in objs if o.kind == "sphere"]) > accel.CAMERA_SPHERES_F64

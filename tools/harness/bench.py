@@ -423,6 +423,9 @@ def machine(backend_name: str = "llvm") -> dict:
                     break
     except OSError:
         pass
+    from rt_core.accel import CAMERA_FACTOR, wide_vectors
+    # (the camera rays' unroll limit depends on it: rt_core/accel.py)
+    info["avx512"], info["camera_factor"] = wide_vectors(), CAMERA_FACTOR
     return info
 
 
