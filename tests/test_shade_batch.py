@@ -274,7 +274,7 @@ def test12_other_sides_of(limit, rules, monkeypatch):
     calls = []
     shade = shade_batch.shade
     monkeypatch.setattr(shade_batch, "shade", lambda *a, **k: calls.append(1) or shade(*a, **k))
-    for scene, W, H, pick, _ in _scenes_with_near_pixels(SCENES[1::2], rules, limit):
+    for scene, W, H, pick, _ in _scenes_with_near_pixels(SCENES[1::4], rules, limit):
         firsts = None
         if limit is None:
             firsts = shade_oracle.shade_pixels(scene, W, H, pick, "corners", rules)["paths"]
