@@ -162,9 +162,8 @@ def hits(ob, base, d, rules, Cand, EF, esqrt, ops):
     if len(cands) == 2:
         # both roots go with each (two_root_risk judges the answer from either)
         for c in cands:
-            c.roots, c.answer = cands, "miss"
-        first.answer = "near" if first is cands[0] and first.ok else "far" if first.ok \
-            else "miss"
+            c.roots = cands
+        first.answer = ("near" if first is cands[0] else "far") if first.ok else "miss"
     if first.ok and rules.clip_spheres and _clipped(first.hitloc[2], rules):
         first.ok, first.why, first.answer = False, "clip", "miss"
     return first

@@ -50,6 +50,7 @@ from .shapes import BOUND_FIELDS, TAME, object_t, sphere_live, sphere_t
 from .quadrics import KINDS as QUADRICS
 from .shapes_quadric import ROW_SLOTS, quadric_boxes, row_view as quadric_row_view
 
+
 def wide_vectors() -> bool:
     """Has this CPU AVX-512 (Dr.Jit's LLVM backend then computes 16 floats a vector, else
     8)?  Read from /proc/cpuinfo; False where it cannot be read."""
