@@ -35,6 +35,22 @@ def test01_command_bench_splits_a_render_into_phases(tmp_path):
     import hashlib
     assert res["scene_sha256"] == hashlib.sha256((REPO / res["scene"]).read_bytes()).hexdigest()
     assert res["rtval"] and res["drjit"] and "python" in res
+    assert "warm-up" in res["bytecode"]
+
+
+def test01b_timed_renders_read_compiled_bytecode(tmp_path, monkeypatch):
+    """Each timed render reads the bytecode its warm-up run wrote, as an installed rtval
+    does: with PYTHONDONTWRITEBYTECODE (set on this project's machines) every run compiled
+    every module again, 0.2-0.4 s of its import phase."""
+    from tools.harness.bench import command_env
+    monkeypatch.setenv("PYTHONDONTWRITEBYTECODE", "1")
+    env = command_env(str(tmp_path))
+    assert "PYTHONDONTWRITEBYTECODE" not in env and env["PATH"] == os.environ["PATH"]
+    code = "import tools.harness.flip"
+    for _ in range(2):
+        subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, check=True)
+    cached = list((tmp_path / "pycache").rglob("flip*.pyc"))
+    assert len(cached) == 1, cached
 
 
 def test02_shaded_bench_smoke(tmp_path):
