@@ -25,10 +25,10 @@ def test01_command_bench_splits_a_render_into_phases(tmp_path):
     for c in res["cases"]:
         p = c["phases"]
         assert c["columns"] == 48 and c["runs"] == 1
-        parts = sum(p[k]["median"] for k in ("import", "parse", "kernel", "write"))
+        parts = sum(p[k]["median"] for k in ("import", "parse", "kernel", "write", "exit"))
         assert abs(parts - p["wall"]["median"]) < 1e-6 and all(
-            p[k]["median"] > 0 for k in ("import", "kernel", "write"))
-        assert c["largest"] in ("import", "parse", "kernel", "write")
+            p[k]["median"] > 0 for k in ("import", "kernel", "write", "exit"))
+        assert c["largest"] in ("import", "parse", "kernel", "write", "exit")
     assert "largest" in r.stdout and "kernel" in r.stdout
     assert res["machine"]["backend"] == "llvm"
     # its provenance, as every output's (it had the machine alone: a review)

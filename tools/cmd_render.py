@@ -205,8 +205,8 @@ def run(args) -> int:
     phase("write")
     if os.environ.get("RTVAL_PHASES"):      # where rtval bench --command wants the split
         import json
-        with open(os.environ["RTVAL_PHASES"], "w") as f:
-            json.dump(phases, f)
+        with open(os.environ["RTVAL_PHASES"], "w") as f:     # (ended_at: exit = the rest)
+            json.dump({**phases, "ended_at": time.time()}, f)
     size = f"{cam.columns}x{cam.rows} {args.precision}"
     for opt, path in outs:
         if opt == "-o":

@@ -496,7 +496,7 @@ def table(result: dict) -> str:
 # --- the whole command: rtval bench --command ----------------------------------------------
 
 COMMAND_COLUMNS = (1920, 7680)
-COMMAND_PHASES = ("import", "parse", "kernel", "write")
+COMMAND_PHASES = ("import", "parse", "kernel", "write", "exit")
 # what a run writes: the geometry EXR; the course image (the PPM a course program writes) with
 # the shaded EXR beside it; the course image alone
 COMMAND_OUTPUTS = ("geometry", "shaded", "course")
@@ -517,7 +517,9 @@ def command_bench(columns=COMMAND_COLUMNS, repeats: int = 3, scene: str | None =
     """Wall time of whole ``rtval render`` runs (a new process each), split into phases:
     import (the interpreter's start, the CLI, rt_core, Dr.Jit, numpy, OpenEXR: the wall time
     before the scene is read), parse, kernel (camera, tracing, shading; Dr.Jit's kernel cache
-    warm), write (quantizing, provenance, the outputs).  ``outputs``: COMMAND_OUTPUTS' names.
+    warm), write (quantizing, provenance, the outputs), exit (the run's messages, then the
+    interpreter and Dr.Jit shutting down: the wall time after the outputs, by the clock of
+    the day on both sides).  ``outputs``: COMMAND_OUTPUTS' names.
     Medians and ranges of ``repeats`` runs, interleaved."""
     import json
     import subprocess
@@ -541,14 +543,15 @@ def command_bench(columns=COMMAND_COLUMNS, repeats: int = 3, scene: str | None =
                     r = subprocess.run([sys.executable, "-m", "tools.cli", "render", scene, *args],
                                        cwd=repo, capture_output=True, text=True,
                                        env={**command_env(d), "RTVAL_PHASES": phases})
-                    wall = time.perf_counter() - t0
+                    wall, ended = time.perf_counter() - t0, time.time()
                     if r.returncode != 0:
                         from rt_core.usererror import InputError
                         last = (r.stderr.strip().splitlines() or ["(no message)"])[-1]
                         raise InputError(f"bench --command: rtval render failed: {last}")
                     with open(phases) as f:
                         p = json.load(f)
-                    p["import"] = wall - p["parse"] - p["kernel"] - p["write"]
+                    p["exit"] = ended - p.pop("ended_at")
+                    p["import"] = wall - p["parse"] - p["kernel"] - p["write"] - p["exit"]
                     p["wall"] = wall
                     p["size_mb"] = os.path.getsize(exr if out != "course" else ppm) / 1e6
                     for f in (exr, ppm):        # (not replaced by the next run: an unlink of
