@@ -71,7 +71,7 @@ def add_parser(sub) -> None:
                         "the ratios)")
     p.add_argument("--command", action="store_true", dest="whole_command",
                    help="time whole `rtval render` runs instead (a new process each), split "
-                        "into start-up, import, parse, kernel and write")
+                        "into import (the start-up too), parse, kernel, write and exit")
     p.add_argument("--command-columns", type=positive_int, nargs="+", default=[1920, 7680],
                    metavar="N", help="--command: image widths (default: 1920 7680)")
     p.add_argument("--scene", metavar="SCENE",
