@@ -464,6 +464,7 @@ class ObjectVerdicts:
     margin: dict                      # decision -> float64 (N,), signed world units
     cond: dict = field(default_factory=dict)   # decision or 't' -> S (N,)
     representable: dict = field(default_factory=dict)  # u -> every input exact in that precision
+    length: np.ndarray = None          # per ray (trace_exact): t·length is t along d
 
     def ratio(self, name: str, u: float) -> np.ndarray:
         """|margin| / (K·u·S): <= 1 means the decision may flip in that precision."""
@@ -501,28 +502,50 @@ class ObjectVerdicts:
         near root, at the far one, or a miss) over both roots' decisions
         (quadric.two_root_risk); the decisions named without "other "."""
         R = {k: self.ratio(k, u) for k in self.margin}
-        P = self.passed
         n = len(self.valid)
         risk, which = np.empty(n), np.empty(n, object)
-        names = ("t", "axis>=0", "axis<=h")
         for i in range(n):
-            got = lambda k, pre: (k, bool(P[pre + k][i]), float(R[pre + k][i]))
-            chosen, other = [got(k, "") for k in names], [got(k, "other ") for k in names]
-            clips = got("clip", ""), got("clip", "other ")
-            # (t's margin is the root's t: the chosen root is the near one unless the
-            # other's t is less)
-            near_first = not self.margin["other t"][i] < self.margin["t"][i]
-            near, far = (chosen, other) if near_first else (other, chosen)
-            cn, cf = clips if near_first else clips[::-1]
-            now = "miss" if not self.valid[i] else "near" if near_first else "far"
-            risk[i], which[i], _ = quadric.two_root_risk(
-                got("outline", ""), near, far, cn, cf, now)
+            risk[i], which[i], _ = quadric.two_root_risk(*self._roots(R, i))
         return np.maximum(risk, 0.0), which
+
+    def _roots(self, R: dict, i: int) -> tuple:
+        """two_root_risk's arguments on ray i (``R``: each decision's ratio)."""
+        P = self.passed
+        got = lambda k, pre: (k, bool(P[pre + k][i]), float(R[pre + k][i]))
+        names = ("t", "axis>=0", "axis<=h")
+        chosen, other = [got(k, "") for k in names], [got(k, "other ") for k in names]
+        clips = got("clip", ""), got("clip", "other ")
+        # (t's margin is the root's t: the chosen root is the near one unless the other's
+        # t is less)
+        near_first = not self.margin["other t"][i] < self.margin["t"][i]
+        near, far = (chosen, other) if near_first else (other, chosen)
+        cn, cf = clips if near_first else clips[::-1]
+        now = "miss" if not self.valid[i] else "near" if near_first else "far"
+        return got("outline", ""), near, far, cn, cf, now
+
+    def other_root_within_reach(self, u: float, rays) -> np.ndarray:
+        """Per ray of ``rays`` (indices): is this object, hit at one root, hit at its other
+        root instead once decisions within reach of rounding in precision u flip?  False
+        for a miss and for a closed quadric."""
+        if "other t" not in self.margin:
+            return np.zeros(len(rays), bool)
+        R = {k: self.ratio(k, u) for k in self.margin}
+        out = np.zeros(len(rays), bool)
+        for j, i in enumerate(rays):
+            if self.valid[i]:               # (a valid hit: its outline passes)
+                *args, now = self._roots(R, i)
+                other = "far" if now == "near" else "near"
+                out[j] = quadric.two_root_costs(*args)[other][0] <= 1.0
+        return out
 
     @property
     def kappa_t(self) -> np.ndarray:
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return self.cond["t"] / np.abs(self.t)
+        """S_t / |t|, both along d: S_t is taken along d, t along the rays (``trace_exact``'s
+        ``rays``: the ideal rays are world − viewpoint, d unit; their t was in units of
+        that length, and rays 0.04 long in a scene 0.1 across had bounds 23 times too
+        tight)."""
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            return self.cond["t"] / np.abs(self.t * self.length)
 
 
 @dataclass
@@ -532,8 +555,9 @@ class ExactResult:
     d: np.ndarray
     hit: np.ndarray                    # bool
     id: np.ndarray                     # int, -1 on a miss
-    t: np.ndarray                      # float64, 0 on a miss
+    t: np.ndarray                      # float64, 0 on a miss; along the rays as given
     objects: list
+    length: np.ndarray = None          # per ray (trace_exact): t·length is t along d
 
     @property
     def kappa_t(self) -> np.ndarray:
@@ -587,7 +611,8 @@ class ExactResult:
         A, B = self.objects[a], self.objects[b]
         if not (A.valid[r] and B.valid[r]) or A.tq[r] is None or B.tq[r] is None:
             return False
-        gap = abs(_tq_diff(A.tq[r], B.tq[r]))
+        # (along d, as the conditions are: t is along the rays)
+        gap = abs(_tq_diff(A.tq[r], B.tq[r])) * A.length[r]
         return bool(gap <= K_ROUNDING * u * (A.cond["t"][r] + B.cond["t"][r]))
 
     def _reached(self, r: int, j: int, risks: list, u: float):
@@ -657,8 +682,14 @@ def trace_exact(xs: XScene, d: np.ndarray, rules: Rules = Rules(), rays=None) ->
     V = xs.viewpoint
     preps = [(quadric.Prep if o.kind in quadric.KINDS else _Prep)(o, V, rules)
              for o in xs.objects]
+    # t·length: t along d, as the conditions are taken (the ideal rays' d are unit)
     if rays is None:
         rays = [ray_ints(row) for row in d.astype(np.float64).tolist()]
+        length = np.ones(n)
+    else:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            length = np.array([_length(D, Dd) for D, Dd in rays]) / np.linalg.norm(
+                d.astype(np.float64), axis=1)
     verdicts = []
     for p in preps:
         names = DECISIONS[p.kind]
@@ -682,7 +713,7 @@ def trace_exact(xs: XScene, d: np.ndarray, rules: Rules = Rules(), rays=None) ->
                 tq[i] = q
                 t[i] = _ratio(*q)
             valid[i] = all(tests[k][0] for k in names if k not in quadric.OTHER)
-        ov = ObjectVerdicts(p.kind, valid, t, tq, passed, margin)
+        ov = ObjectVerdicts(p.kind, valid, t, tq, passed, margin, length=length)
         ov.cond = (torus_conditions(p, d.astype(np.float64)) if p.kind == "torus" else
                    _conditions(p.obj, V, d.astype(np.float64), rules))
         # (a quadric's decisions take square roots: exact inputs do not make them exact)
@@ -702,7 +733,15 @@ def trace_exact(xs: XScene, d: np.ndarray, rules: Rules = Rules(), rays=None) ->
                 best = j
         if best is not None:
             hit[i], ids[i], tbest[i] = True, best, verdicts[best].t[i]
-    return ExactResult(d, hit, ids, tbest, verdicts)
+    return ExactResult(d, hit, ids, tbest, verdicts, length)
+
+
+def _length(D, Dd) -> float:
+    """|D|/Dd in float64, from integers of any size (scaled by the largest first)."""
+    m = max(map(abs, D))
+    if m == 0:
+        return 0.0
+    return float(Fraction(m, Dd)) * math.sqrt(sum(float(Fraction(c, m)) ** 2 for c in D))
 
 
 # --- the camera, exactly ----------------------------------------------------------------------

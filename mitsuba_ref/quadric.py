@@ -225,18 +225,25 @@ def two_root_risk(outline, near, far, clip_near, clip_far, now):
     oracle took a far hit unflagged (a helper's fuzzing; docs/open-defects.md)."""
     if not outline[1]:
         return outline[2], outline[0], "near"
+    cost = two_root_costs(outline, near, far, clip_near, clip_far)
+    (c, k), answer = min((v, a) for a, v in cost.items() if a != now)
+    return c, k, answer
+
+
+def two_root_costs(outline, near, far, clip_near, clip_far) -> dict:
+    """{answer: (cost, decision)} of each answer of an open quadric along one ray whose
+    outline passes ("near", "far", "miss"; the answer it has costs 0): two_root_risk's
+    arguments, each answer's largest flip."""
     lose = (outline[2], outline[0])
     ok = lambda c: ZERO if c is None or c[1] else (c[2], c[0])
     fail = lambda c: NEVER if c is None else ((c[2], c[0]) if c[1] else ZERO)
-    cost = {
+    return {
         "near": max(_all_pass(near), ok(clip_near)),
         "far": max(_one_fails(near), _all_pass(far), ok(clip_far)),
         "miss": min(lose, max(_all_pass(near), fail(clip_near)),
                     max(_one_fails(near), _one_fails(far)),
                     max(_one_fails(near), _all_pass(far), fail(clip_far))),
     }
-    (c, k), answer = min((v, a) for a, v in cost.items() if a != now)
-    return c, k, answer
 
 
 def _clipped(z, rules) -> bool:

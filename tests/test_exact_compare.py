@@ -381,3 +381,52 @@ def test_a_sample_at_the_viewpoint_is_a_decided_miss(precision):
                        cwd=REPO, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
     assert "agree=117" in r.stdout, r.stdout
+
+
+def test09_a_tracer_at_an_open_quadrics_other_root_within_reach_is_no_depth_fault():
+    """tests/scenes/cylinder_rim_other_root.txt at 41 columns: the ray of the middle column,
+    row 4, meets the open cylinder's near wall exactly on its top rim (at 0.4·√5) and its
+    far wall inside (at 0.5·√5).  float32 rt_core fails the near root's axial test by a rounding
+    and takes the far one: the same object at 25% more depth, which the depth check counted
+    over its bound.  It is within reach (``other_root``); a far root where the near one is
+    not within reach still counts."""
+    from tools.harness import exact_compare
+    scene = parse_agreed(REPO / "tests" / "scenes" / "cylinder_rim_other_root.txt")
+    cmp = compare_exact(scene, 41, "f32")
+    assert cmp.ok and cmp.depth["over_bound"] == 0 and cmp.depth["other_root"] == 1, cmp.depth
+    assert abs(cmp.depth["max_rel"] - 0.25) < 1e-6
+    ex, t_ref = exact_compare._ORACLE[1]
+    rim = 4 * 41 + 20
+    cyl = ex.objects[ex.id[rim]]
+    assert cyl.kind == "cylinder" and abs(t_ref[rim] - 0.4 * np.sqrt(5)) < 1e-12
+    # every other pixel of the cylinder whose far root is valid: taking it is a depth fault
+    inside = np.flatnonzero((ex.id == ex.id[rim]) & cyl.passed["other axis>=0"] &
+                            cyl.passed["other axis<=h"] & cyl.passed["other t"])
+    inside = inside[inside != rim]
+    assert len(inside) > 0
+    t_other = np.zeros(len(ex.id))
+    t_other[inside] = cyl.margin["other t"][inside]
+    ids = ex.id.copy()
+    assert exact_compare._other_root(ex, ids, t_other, inside, U["f32"]) == 0
+    t_other[rim] = cyl.margin["other t"][rim]
+    assert exact_compare._other_root(ex, ids, t_other, np.array([rim]), U["f32"]) == 1
+
+
+@pytest.mark.parametrize("scale", [0.01, 1.0, 100.0])
+def test10_the_depth_bound_does_not_depend_on_the_rays_length(scale):
+    """kappa_t is S_t / |t| with both along the same rays: on the ideal rays (world −
+    viewpoint, t in units of their length) it is what it is on the same rays given as unit
+    directions.  It took t in units of the ideal ray and S_t along the unit one: in a scene
+    0.1 across (rays 0.04 long) the depth bound was 23 times too tight, and a correct
+    float32 image was called over its bound."""
+    text = (REPO / "tests" / "scenes" / "cylinder_rim_other_root.txt").read_text()
+    lines = text.splitlines()
+    for k in (0, 1, 4, 9, 11):              # window, viewpoint, light, base, radius height
+        lines[k] = " ".join(repr(float(x) * scale) for x in lines[k].split())
+    xs = parse_exact("\n".join(lines) + "\n")
+    rays, d = ideal_rays(xs.window, xs.viewpoint, 41, 41, range(41 * 41))
+    ideal, unit = trace_exact(xs, d, rays=rays), trace_exact(xs, d)
+    same = np.flatnonzero(ideal.hit & unit.hit & (ideal.id == unit.id))
+    assert len(same) > 10
+    np.testing.assert_allclose(ideal.kappa_t[same], unit.kappa_t[same], rtol=1e-6)
+    assert (unit.kappa_t[same] >= 1.0).all()

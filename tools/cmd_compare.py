@@ -106,7 +106,8 @@ def run(args) -> int:
             print(f"{mode:6s} {args.precision} {row['columns']}x{row['rows']}: {classes}")
             print(f"       depth over {d['pixels']} same-object pixels: max rel {d['max_rel']:.3g}"
                   f", p99 {d['p99_rel']:.3g}, mean {d['mean_rel']:.3g}, over bound "
-                  f"{d['over_bound']}")
+                  f"{d['over_bound']}" + (f", at an open quadric's other root within reach "
+                                          f"{d['other_root']}" if d.get("other_root") else ""))
             for path in row.get("evidence", []):
                 print(f"       evidence: {path}")
     if args.junit:

@@ -318,7 +318,9 @@ def comparison_row(row: dict, rows_given: int | None = None) -> Row:
         title = f"{row_stem(row)} · {row['mode']} · {row['precision']}"
         summary = (f"{row['columns']}×{row['rows']}: {listed}; depth: max rel error "
                    f"{d['max_rel']:.3g} on {d['pixels']} same-object pixels, "
-                   f"{d['over_bound']} over their bound")
+                   f"{d['over_bound']} over their bound"
+                   + (f", {d['other_root']} at an open quadric's other root within reach"
+                      if d.get("other_root") else ""))
         details = [row["note"]] if row.get("note") else []
     reference = {"exact": "the exact oracle", ORACLE_MODE: "the shading oracle"}.get(
         row["mode"], "Mitsuba")
