@@ -44,6 +44,7 @@ from types import SimpleNamespace
 import drjit as dr
 import numpy as np
 
+from .backend import host_cpu
 from .rules import Rules
 from .kinds import PLANE_KINDS
 from .shapes import BOUND_FIELDS, TAME, object_t, sphere_live, sphere_t
@@ -54,14 +55,7 @@ from .shapes_quadric import ROW_SLOTS, quadric_boxes, row_view as quadric_row_vi
 def wide_vectors() -> bool:
     """Has this CPU AVX-512 (Dr.Jit's LLVM backend then computes 16 floats a vector, else
     8)?  Read from /proc/cpuinfo; False where it cannot be read."""
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("flags"):
-                    return "avx512f" in line.split()
-    except OSError:
-        pass
-    return False
+    return "avx512f" in host_cpu().get("flags", "").split()
 
 
 # More (bounded) objects than this: the symbolic loop instead of unrolled code.  Measured
@@ -89,8 +83,9 @@ SECONDARY_FACTOR = 3
 # an AMD EPYC, two sessions later) 16 spheres unrolled ran at 1.09-1.65x Mitsuba, and
 # through the binned loop 1.42-2.15x (medians of six alternated bench runs: 1.49 against
 # 1.99); 10 to 14 spheres about even (unrolled 1.95-2.06x at 10, the loop 1.29-1.87x): there
-# the camera rays unroll up to 12.
-CAMERA_FACTOR = 2 if wide_vectors() else 1.5
+# the camera rays unroll up to 12.  CUDA's: the host CPU's vectors say nothing of a GPU's,
+# where the crossover has not been measured (the factor long used there, 2).
+CAMERA_FACTOR = {"avx512": 2, "avx2": 1.5, "cuda": 2}
 CAMERA_SPHERES_F64 = 12
 # ... where every bounded object is of these kinds (measured on them; 12 tori unrolled took
 # 7 times the binned loop's time)
@@ -186,6 +181,13 @@ def use_bvh(ks, kind: str, o) -> bool:
             and ks.__dict__.get("_accel_opts", {}).get("bvh", True))
 
 
+def camera_factor(backend: str) -> float:
+    """CAMERA_FACTOR of ``backend`` on this machine."""
+    if backend == "cuda":
+        return CAMERA_FACTOR["cuda"]
+    return CAMERA_FACTOR["avx512" if wide_vectors() else "avx2"]
+
+
 def camera_unrolls(ks) -> bool:
     """Do camera rays unroll up to CAMERA_FACTOR × UNROLL_MAX objects?  float32's, and
     float64's with exact decisions (tracer.exact_decisions), whose unrolled spheres and
@@ -218,7 +220,7 @@ def looped(ks, kind: str, reflections: bool = False, camera: bool = False,
     if kind in BOUNDED:
         if camera and camera_unrolls(ks) and all(
                 k in CAMERA_KINDS for k in BOUNDED if ks.by_kind.get(k)):
-            limit = int(limit * CAMERA_FACTOR)
+            limit = int(limit * camera_factor(ks.T.backend))
         return sum(len(ks.by_kind.get(k, ())) for k in BOUNDED) > limit
     return len(ks.by_kind.get(kind, ())) > limit
 

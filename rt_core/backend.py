@@ -12,6 +12,23 @@ PRECISIONS = ("f32", "f64")
 BACKENDS = ("llvm", "cuda")
 
 
+@functools.lru_cache(maxsize=None)
+def host_cpu() -> dict:
+    """The first processor's fields in /proc/cpuinfo ("model name", "flags", ...); empty
+    where it cannot be read."""
+    out = {}
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if not line.strip():
+                    break                       # (the first processor's block ends)
+                key, _, value = line.partition(":")
+                out[key.strip()] = value.strip()
+    except OSError:
+        pass
+    return out
+
+
 class BackendError(Exception):
     """Dr.Jit cannot run here (missing or too old LLVM, no CUDA device)."""
     exit_code = 2

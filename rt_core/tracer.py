@@ -3,7 +3,7 @@
 The kernel holds code only for the object kinds present; objects are grouped by kind and
 every number enters as opaque data, so scenes with the same kinds and counts share one
 compiled kernel.  Up to accel.UNROLL_MAX objects each gets its own unrolled block (float32
-camera rays: up to twice that, accel.CAMERA_FACTOR); above, a
+camera rays: up to 1.5 or 2 times that, accel.camera_factor); above, a
 kind is one symbolic loop over a table of its objects (with screen-space bins for rays from
 the viewpoint; rt_core/accel.py), whose kernel does not depend on the count either.
 Surface data (normal, uv) is computed once, for the closest hit only, from

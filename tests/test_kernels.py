@@ -430,7 +430,7 @@ def test10b_float32_camera_rays_unroll_more(precision, exact):
         if precision == "f64" and exact:
             return certified_kernel(scene_of(objs))
         return hit_kernel(scene_of(objs), T, exact)["ir"].getvalue()
-    n = int(accel.UNROLL_MAX * accel.CAMERA_FACTOR)
+    n = int(accel.UNROLL_MAX * accel.camera_factor(T.backend))
     for objs in (spheres(n), spheres(n // 2) + fplanes(n - n // 2)):
         ir = kernel(objs)
         many = len([o for o in objs if o.kind == "sphere"]) > accel.CAMERA_SPHERES_F64
@@ -448,6 +448,45 @@ def test10b_float32_camera_rays_unroll_more(precision, exact):
     disk = make_disk(GREY, (0, 0, -6), 1.0, (0, 0, 1))
     ir = kernel(spheres(accel.UNROLL_MAX) + [disk])
     assert "closest_sphere" in ir and "closest_disk" in ir
+
+
+def test10e_the_camera_unroll_limit_follows_the_backend_not_the_host(monkeypatch):
+    """The LLVM backend's camera rays unroll up to 16 bounded objects on a CPU with AVX-512
+    and 12 without (measured on each); CUDA's limit is its own, whatever the host's CPU
+    (it followed the host's vectors)."""
+    from types import SimpleNamespace
+    for flags in ("fpu sse avx2 fma", "fpu sse avx2 fma avx512f avx512dq"):
+        monkeypatch.setattr(accel, "host_cpu", lambda flags=flags: {"flags": flags})
+        for name in ("llvm", "cuda"):
+            T = SimpleNamespace(backend=name, precision="f32")
+            unrolled = [n for n in range(1, 40) if not accel.looped(
+                SimpleNamespace(T=T, by_kind={"sphere": [None] * n}), "sphere", camera=True)]
+            assert unrolled == list(range(1, max(unrolled) + 1))
+            want = {"llvm": 16 if "avx512f" in flags else 12, "cuda": 16}[name]
+            assert max(unrolled) == want, (name, flags)
+
+
+def test10f_host_cpu_reads_the_first_processor(tmp_path, monkeypatch):
+    """backend.host_cpu: the first processor's block of /proc/cpuinfo (bench's machine and
+    accel.wide_vectors both read it)."""
+    import builtins
+    info = tmp_path / "cpuinfo"
+    info.write_text("processor\t: 0\nmodel name\t: CPU A\nflags\t\t: fpu avx2\n\n"
+                    "processor\t: 1\nmodel name\t: CPU B\nflags\t\t: fpu avx512f\n")
+    real = builtins.open
+    monkeypatch.setattr(builtins, "open", lambda path, *a, **k: real(
+        info if path == "/proc/cpuinfo" else path, *a, **k))
+    backend.host_cpu.cache_clear()
+    try:
+        got = backend.host_cpu()
+        assert got["model name"] == "CPU A" and got["flags"] == "fpu avx2"
+        assert not accel.wide_vectors()
+        info.unlink()
+        backend.host_cpu.cache_clear()
+        assert backend.host_cpu() == {} and not accel.wide_vectors()
+    finally:
+        monkeypatch.undo()
+        backend.host_cpu.cache_clear()
 
 
 def test10c_shadow_rays_from_the_viewpoint_loop_without_bins(monkeypatch):

@@ -736,7 +736,7 @@ def test21h_rt_cores_plane_hit_carries_no_stand_in_term(monkeypatch):
     scene = parse_scene(path)
     # (its 10 bounded objects through the bins' loop, where the fault goes: certified
     # camera rays would unroll them)
-    monkeypatch.setattr(accel, "CAMERA_FACTOR", 1)
+    monkeypatch.setattr(accel, "camera_factor", lambda backend: 1)
     assert compare(scene, 64, None, "f64", "rays").ok
     rng = accel._range
 

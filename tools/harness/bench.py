@@ -415,17 +415,12 @@ def machine(backend_name: str = "llvm") -> dict:
             "kernel_cache": os.environ.get("DRJIT_CACHE_DIR", "~/.drjit (shared)")}
     if backend_name == "cuda":
         info["gpu"] = gpu_name()
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    info["cpu"] = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    from rt_core.accel import CAMERA_FACTOR, wide_vectors
+    from rt_core.accel import camera_factor, wide_vectors
+    from rt_core.backend import host_cpu
+    if "model name" in host_cpu():
+        info["cpu"] = host_cpu()["model name"]
     # (the camera rays' unroll limit depends on it: rt_core/accel.py)
-    info["avx512"], info["camera_factor"] = wide_vectors(), CAMERA_FACTOR
+    info["avx512"], info["camera_factor"] = wide_vectors(), camera_factor(backend_name)
     return info
 
 
