@@ -3,6 +3,7 @@ numbers as written (never from rt_core's scene model: tests/test_independence.py
 from __future__ import annotations
 
 import math
+from fractions import Fraction
 
 
 def dot(a, b) -> float:
@@ -22,6 +23,21 @@ def unit(v) -> tuple:
     s = tuple(c / m for c in v)
     n = math.sqrt(math.fsum(c * c for c in s))
     return tuple(c / n for c in s)
+
+
+def pow2_scaled(v, rounded: bool = False) -> tuple:
+    """v times the power of two that brings its largest component into [0.5, 1): exact,
+    and |v|² then neither overflows nor underflows float64 (a normal 1e200 0 1, a
+    centerline 1e-320 0 0).  Fractions stay exact; ``rounded``: every component rounded
+    to float64 first.  A zero vector as it is."""
+    if rounded:
+        v = tuple(float(c) for c in v)
+    big = max(abs(float(c)) for c in v)
+    if big == 0:
+        return tuple(v)
+    k = -math.frexp(big)[1]
+    return tuple(c * Fraction(2) ** k if isinstance(c, Fraction) else math.ldexp(c, k)
+                 for c in v)
 
 
 def given_normal(obj) -> tuple:

@@ -41,7 +41,7 @@ from rt_core.rules import Rules
 
 from . import quadric
 from . import oracle_planar
-from .geometry import given_normal, normal, unit
+from .geometry import given_normal, normal, pow2_scaled, unit
 from .torus_oracle import torus_hits, torus_obj, torus_surface, torus_tests
 
 INF = math.inf
@@ -255,9 +255,8 @@ def _sphere_obj(i, o):
 def _scaled(v):
     """A direction as inputs rounded once, scaled by a power of two (exactly) so that its
     squared length neither overflows nor underflows (a normal 1e200 0 1)."""
-    k = math.frexp(max(abs(float(c)) for c in v) or 1.0)[1]
-    return tuple(EF(math.ldexp(float(c), -k), 0.0 if _f32_exact(float(c)) else None)
-                 for c in v)
+    return tuple(EF(s, 0.0 if _f32_exact(float(c)) else None)
+                 for c, s in zip(v, pow2_scaled(v, rounded=True)))
 
 
 def _plane_obj(i, o):

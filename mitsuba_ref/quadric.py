@@ -21,6 +21,8 @@ from fractions import Fraction
 
 import numpy as np
 
+from .geometry import pow2_scaled
+
 KINDS = ("cylinder", "cone", "ellipsoid")
 INF = math.inf
 OPEN = ("cylinder", "cone")
@@ -36,13 +38,8 @@ def fields(o):
     axis = tuple(o.given_axis) if _has(o, "given_axis") else tuple(o.centerline)
     if all(c == 0 for c in axis):
         axis = tuple(type(axis[0])(c) for c in (0, 1, 0))
-    big = max(abs(float(c)) for c in axis)
-    if not 2.0 ** -200 < big < 2.0 ** 200:
-        # a direction: scaled by a power of two into a range where |axis|² neither
-        # overflows nor underflows float64 (a centerline 1e308 0.3 1, or 1e-320 0 0)
-        k = -math.frexp(big)[1]
-        axis = tuple(c * Fraction(2) ** k if isinstance(c, Fraction) else math.ldexp(c, k)
-                     for c in axis)
+    if not 2.0 ** -200 < max(abs(float(c)) for c in axis) < 2.0 ** 200:
+        axis = pow2_scaled(axis)        # (a direction: a centerline 1e308 0.3 1, 1e-320 0 0)
     if _has(o, "height"):
         r, h = o.radius, o.height
     else:

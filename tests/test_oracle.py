@@ -251,3 +251,26 @@ def test_an_orient_near_the_normal_widens_the_edge_bound(columns, rows, sampling
     assert ex.hit.sum() > 20
     bad = np.flatnonzero((o["hit.mask"].ravel() > 0) != ex.hit)
     assert (o["edge_margin"].ravel()[bad] < U["f64"]).all(), o["edge_margin"].ravel()[bad]
+
+
+def test_a_huge_normal_and_orient_frame_as_their_unit_ones(tmp_path):
+    """A finite plane's normal and orient written 1e200 times larger (or 1e-200 times
+    smaller) give the same image: the oracle scales each by a power of two before its
+    squared length (geometry.pow2_scaled), which overflowed to inf (or underflowed to 0)
+    otherwise."""
+    from pathlib import Path
+    from rt_core.parser import parse_scene
+    lines = (Path(__file__).parent / "scenes" / "fplane_orient_near_normal.txt").read_text() \
+        .splitlines()
+    got = []
+    for factor in (1.0, 1e200, 1e-200):
+        scaled = list(lines)
+        for k in (6, 8):                    # the normal and the orient
+            scaled[k] = " ".join(repr(float(x) * factor) for x in lines[k].split())
+        path = tmp_path / f"x{factor}.txt"
+        path.write_text("\n".join(scaled) + "\n")
+        got.append(render_oracle(parse_scene(path), 17, 12))
+    assert got[0]["hit.mask"].sum() > 20
+    for o in got[1:]:
+        np.testing.assert_array_equal(o["hit.mask"], got[0]["hit.mask"])
+        np.testing.assert_allclose(o["depth.Z"], got[0]["depth.Z"], rtol=1e-12)
