@@ -102,27 +102,37 @@ def scene_scale(scene: Scene) -> float:
 def _scene_scale(scene: Scene) -> float:
     v = scene.viewpoint
     r = math.hypot(*scene.window) / 2 + math.sqrt(dot(v, v))
-    for o in scene.objects:
-        if o.kind == "sphere":
-            r = max(r, math.sqrt(dot(sub(o.center, v), sub(o.center, v))) + o.radius)
-        elif o.kind in quadric.KINDS:      # the centre, and the object's largest extent
-            f = quadric.fields(o)
-            size = max(f[1]) if o.kind == "ellipsoid" else float(f[2]) + float(f[3])
-            r = max(r, math.sqrt(dot(sub(f[0], v), sub(f[0], v))) + float(size))
-        elif o.kind == "triangle":
-            for c in convert_planar.points(o):
-                r = max(r, math.sqrt(dot(sub(c, v), sub(c, v))))
-        elif o.kind == "disk":
-            r = max(r, math.sqrt(dot(sub(o.center, v), sub(o.center, v))) + o.radius)
-        elif o.kind == "torus":
-            r = max(r, math.sqrt(dot(sub(o.center, v), sub(o.center, v))) + o.major + o.minor)
-        elif o.kind == "fplane":
-            for c in corners(o):
-                r = max(r, math.sqrt(dot(sub(c, v), sub(c, v))))
-        else:
-            q = sub(o.point, v)
-            r = max(r, abs(dot(normal(o), q)), math.sqrt(dot(q, q)))
-    return r
+    return max([r] + [dispatch(_REACH, o.kind)(o, v) for o in scene.objects])
+
+
+def _far(v, points) -> float:
+    """The largest distance from v to the points."""
+    return max(math.sqrt(dot(sub(c, v), sub(c, v))) for c in points)
+
+
+def _quadric_reach(o, v) -> float:
+    """Its centre's distance and its largest extent (semi-axis; radius + height)."""
+    f = quadric.fields(o)
+    size = max(f[1]) if o.kind == "ellipsoid" else float(f[2]) + float(f[3])
+    return _far(v, [f[0]]) + float(size)
+
+
+def _plane_reach(o, v) -> float:
+    """An unbounded plane: its point, and the plane's distance from v."""
+    q = sub(o.point, v)
+    return max(abs(dot(normal(o), q)), math.sqrt(dot(q, q)))
+
+
+_REACH = {   # the largest distance from a viewpoint v to (a bound of) the object, per kind
+    "sphere": lambda o, v: _far(v, [o.center]) + o.radius,
+    "disk": lambda o, v: _far(v, [o.center]) + o.radius,
+    "torus": lambda o, v: _far(v, [o.center]) + o.major + o.minor,
+    "fplane": lambda o, v: _far(v, corners(o)),
+    "triangle": lambda o, v: _far(v, convert_planar.points(o)),
+    "plane": _plane_reach,
+    "tplane": _plane_reach,
+    **{k: _quadric_reach for k in quadric.KINDS},
+}
 
 
 def plane_extent(scene: Scene) -> float:

@@ -622,19 +622,34 @@ def trace(scene, base, dir, rules: Rules = Rules(), skip=None, flip=frozenset())
         ob, c = obs[win], wc
         hit.hit, hit.id, hit.t, hit.err_t = True, win, c.t.v, c.t.e
         hit.position, hit.err_position = vals(c.hitloc), errs(c.hitloc)
-        if ob.kind == "sphere":
-            n = unit3(diff3(c.hitloc, ob.center))
-        elif ob.kind in quadric.KINDS:
-            n = quadric.normal(ob, c, unit3, diff3)
-        elif ob.kind == "torus":
-            n, hit.uv, hit.err_uv = torus_surface(ob, c)
-        else:
-            n = ob.normal
+        n = dispatch(_SURFACE, ob.kind)(ob, c, hit)
         hit.normal, hit.err_normal = vals(n), errs(n)
-        if ob.kind in ("fplane", "tplane", "triangle", "disk"):
-            hit.uv, hit.err_uv = (c.newhit[0].v, c.newhit[1].v), (c.newhit[0].e, c.newhit[1].e)
     _diagnose(hit, obs, cands, win, base, d, rules, wc)
     return hit
+
+
+def _flat(ob, c, hit):
+    return ob.normal
+
+
+def _flat_uv(ob, c, hit):
+    """The plane's normal; the hit's (u, v) in its frame."""
+    hit.uv, hit.err_uv = (c.newhit[0].v, c.newhit[1].v), (c.newhit[0].e, c.newhit[1].e)
+    return ob.normal
+
+
+def _torus_normal(ob, c, hit):
+    n, hit.uv, hit.err_uv = torus_surface(ob, c)
+    return n
+
+
+_SURFACE = {   # the winner's normal (EF), per kind; where the kind has them, hit.uv set too
+    "sphere": lambda ob, c, hit: unit3(diff3(c.hitloc, ob.center)),
+    "plane": _flat,
+    **{k: _flat_uv for k in ("tplane", "fplane", "triangle", "disk")},
+    "torus": _torus_normal,
+    **{k: (lambda ob, c, hit: quadric.normal(ob, c, unit3, diff3)) for k in quadric.KINDS},
+}
 
 
 def _diagnose(hit: Hit, obs, cands, win, base, d, rules: Rules, wc=None) -> None:

@@ -120,7 +120,9 @@ def test04_every_table_covers_every_kind():
     from rt_core import accel, parser, shapes
     tables = {"shapes.OBJECT_T": shapes.OBJECT_T, "exact._EVAL": exact._EVAL,
               "exact.DECISIONS": exact.DECISIONS, "oracle._PREPARE": oracle._PREPARE,
-              "convert._SHAPES": convert._SHAPES, "accel.LAYOUT": accel.LAYOUT,
+              "oracle._SURFACE": oracle._SURFACE,
+              "convert._SHAPES": convert._SHAPES, "convert._REACH": convert._REACH,
+              "accel.LAYOUT": accel.LAYOUT,
               "scenefile.LAYOUT": {k: v for k, v in scenefile.LAYOUT.items() if k in KINDS},
               "parser._GROUPS": {k: v for k, v in parser._GROUPS.items() if k in KINDS},
               "kinds.KIND_CODE": KIND_CODE}
