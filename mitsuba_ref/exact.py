@@ -237,7 +237,9 @@ def _eval_plane(p: _Prep, D, Dd, rules: Rules):
         return None, tests
     sg = 1 if ND > 0 else -1
     tn, td = p.NQ * Dd * sg, p.L * ND * sg                  # t = tn/td, td > 0
-    tests = {"parallel": (True, _ratio(abs(ND), p.Ln * Dd))}
+    # (n·d̂ of the unit ray: a world-free ratio, as its condition along d̂ is; n·D/Dd was
+    # in units of the ray's length)
+    tests = {"parallel": (True, _per_length(abs(ND), p.Ln, D))}
     # the distance t·|D|/Dd against t_min (t is the parameter along D/Dd, which ideal rays
     # do not make unit): t > 0 and t²·|D|²·tmin_d² > tmin_n²·(td·Dd)², in integers
     DD = _dot(D, D)
@@ -395,14 +397,15 @@ def _inputs(values, n: int):
     return out
 
 
-def _conditions(obj: XObject, V, d: np.ndarray, rules: Rules) -> dict:
-    """{decision or 't': S} for one object along rays d (N, 3)."""
+def _conditions(obj: XObject, V, d: np.ndarray, rules: Rules, near=None) -> dict:
+    """{decision or 't': S} for one object along rays d (N, 3); ``near``: an open
+    quadric's exact choice per ray, the near root (else the far one)."""
     n = len(d)
     fl = lambda vals: [float(x) for x in vals]
     base = fl(V) + [d[:, 0], d[:, 1], d[:, 2]]
     with np.errstate(all="ignore"):     # (as every kind's: extreme scales give inf or NaN)
         if obj.kind in quadric.KINDS:
-            return quadric.conditions(obj, V, d, _Dual, _inputs, _ddot)
+            return quadric.conditions(obj, V, d, _Dual, _inputs, _ddot, near)
         if obj.kind == "sphere":
             x = _inputs(base + fl(obj.center) + [float(obj.radius)], n)
             Vv, dv, C, r = x[0:3], x[3:6], x[6:9], x[9]
@@ -464,7 +467,7 @@ class ObjectVerdicts:
     margin: dict                      # decision -> float64 (N,), signed world units
     cond: dict = field(default_factory=dict)   # decision or 't' -> S (N,)
     representable: dict = field(default_factory=dict)  # u -> every input exact in that precision
-    length: np.ndarray = None          # per ray (trace_exact): t·length is t along d
+    length: np.ndarray = None          # |D|/Dd per ray (trace_exact): t·length in world units
 
     def ratio(self, name: str, u: float) -> np.ndarray:
         """|margin| / (K·u·S): <= 1 means the decision may flip in that precision."""
@@ -540,10 +543,9 @@ class ObjectVerdicts:
 
     @property
     def kappa_t(self) -> np.ndarray:
-        """S_t / |t|, both along d: S_t is taken along d, t along the rays (``trace_exact``'s
-        ``rays``: the ideal rays are world − viewpoint, d unit; their t was in units of
-        that length, and rays 0.04 long in a scene 0.1 across had bounds 23 times too
-        tight)."""
+        """S_t / |t|, both world distances: S_t is taken along the unit ray, t along the ray
+        D/Dd (``trace_exact``: ideal rays are world − viewpoint; rays 0.04 long in a scene
+        0.1 across had bounds 23 times too tight when t was left in their units)."""
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             return self.cond["t"] / np.abs(self.t * self.length)
 
@@ -557,7 +559,7 @@ class ExactResult:
     id: np.ndarray                     # int, -1 on a miss
     t: np.ndarray                      # float64, 0 on a miss; along the rays as given
     objects: list
-    length: np.ndarray = None          # per ray (trace_exact): t·length is t along d
+    length: np.ndarray = None          # |D|/Dd per ray (trace_exact): t·length in world units
 
     @property
     def kappa_t(self) -> np.ndarray:
@@ -611,7 +613,7 @@ class ExactResult:
         A, B = self.objects[a], self.objects[b]
         if not (A.valid[r] and B.valid[r]) or A.tq[r] is None or B.tq[r] is None:
             return False
-        # (along d, as the conditions are: t is along the rays)
+        # (world distances, as the conditions are: t is along the ray D/Dd)
         gap = abs(_tq_diff(A.tq[r], B.tq[r])) * A.length[r]
         return bool(gap <= K_ROUNDING * u * (A.cond["t"][r] + B.cond["t"][r]))
 
@@ -682,14 +684,14 @@ def trace_exact(xs: XScene, d: np.ndarray, rules: Rules = Rules(), rays=None) ->
     V = xs.viewpoint
     preps = [(quadric.Prep if o.kind in quadric.KINDS else _Prep)(o, V, rules)
              for o in xs.objects]
-    # t·length: t along d, as the conditions are taken (the ideal rays' d are unit)
     if rays is None:
         rays = [ray_ints(row) for row in d.astype(np.float64).tolist()]
-        length = np.ones(n)
-    else:
-        with np.errstate(divide="ignore", invalid="ignore"):
-            length = np.array([_length(D, Dd) for D, Dd in rays]) / np.linalg.norm(
-                d.astype(np.float64), axis=1)
+    # every margin and condition is a world distance (or a ratio): the conditions are
+    # taken along the unit rays du, t along the rays D/Dd, t·length the world distance
+    # (ideal rays are world − viewpoint, a tracer's own need not be unit: stability's
+    # edges family; they were taken along d as given, and t along D/Dd)
+    length = np.array([_length(D, Dd) for D, Dd in rays])
+    du = _unit_rows(d.astype(np.float64))
     verdicts = []
     for p in preps:
         names = DECISIONS[p.kind]
@@ -714,8 +716,10 @@ def trace_exact(xs: XScene, d: np.ndarray, rules: Rules = Rules(), rays=None) ->
                 t[i] = _ratio(*q)
             valid[i] = all(tests[k][0] for k in names if k not in quadric.OTHER)
         ov = ObjectVerdicts(p.kind, valid, t, tq, passed, margin, length=length)
-        ov.cond = (torus_conditions(p, d.astype(np.float64)) if p.kind == "torus" else
-                   _conditions(p.obj, V, d.astype(np.float64), rules))
+        # (an open quadric's conditions are of the roots the exact tests chose)
+        near = ~(margin["other t"] < margin["t"]) if "other t" in margin else None
+        ov.cond = (torus_conditions(p, du, rays, length) if p.kind == "torus" else
+                   _conditions(p.obj, V, du, rules, near))
         # (a quadric's decisions take square roots: exact inputs do not make them exact)
         ov.representable = {} if ideal else {
             u: _representable(xs, p.obj, u) and p.kind not in quadric.KINDS for u in U.values()}
@@ -739,9 +743,29 @@ def trace_exact(xs: XScene, d: np.ndarray, rules: Rules = Rules(), rays=None) ->
 def _length(D, Dd) -> float:
     """|D|/Dd in float64, from integers of any size (scaled by the largest first)."""
     m = max(map(abs, D))
-    if m == 0:
-        return 0.0
-    return float(Fraction(m, Dd)) * math.sqrt(sum(float(Fraction(c, m)) ** 2 for c in D))
+    return float(Fraction(m, abs(Dd))) * _norm_scaled(D) if m else 0.0
+
+
+def _norm_scaled(D) -> float:
+    """|D| / max|D_i| (1 to √3) of an integer vector; 0 for a zero one."""
+    m = max(map(abs, D))
+    return math.sqrt(sum(float(Fraction(c, m)) ** 2 for c in D)) if m else 0.0
+
+
+def _per_length(num: int, den: int, D) -> float:
+    """num / (den·|D|) in float64, from integers of any size; inf for a zero D."""
+    m = max(map(abs, D))
+    return _ratio(num, den * m) / _norm_scaled(D) if m else math.inf
+
+
+def _unit_rows(d: np.ndarray) -> np.ndarray:
+    """Each row of d over its length (scaled by its largest component first, as
+    ideal_rays does: a tiny or huge scene's squared norm leaves float64's range); zero
+    rows stay zero."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = d / np.abs(d).max(axis=1, keepdims=True)
+        s = s / np.linalg.norm(s, axis=1, keepdims=True)
+    return np.nan_to_num(s, nan=0.0)
 
 
 # --- the camera, exactly ----------------------------------------------------------------------
@@ -811,5 +835,6 @@ def ideal_rays(window, viewpoint, columns: int, rows: int, pixels, sampling: str
     # float directions' squared norm underflowed to 0 and d came out NaN)
     d = np.array([[c / max(map(abs, e)) if any(e) else 0.0 for c in e] for e in E],
                  np.float64).reshape(-1, 3)
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    with np.errstate(invalid="ignore"):     # (a sample at the viewpoint: NaN, a miss)
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
     return rays, d

@@ -424,10 +424,12 @@ def evaluate(p: Prep, D, Dd, rules):
     return (tq.numerator, tq.denominator), tests
 
 
-def conditions(obj, V, d, Dual, inputs, ddot):
+def conditions(obj, V, d, Dual, inputs, ddot, near=None):
     """{decision or 't': S} (exact.py's componentwise condition) along unit rays d (N, 3),
-    of the root the float64 arithmetic picks (the near one if neither is valid) and, for
-    an open quadric, of the other ("other t", ...)."""
+    of the root ``evaluate`` picks (the near one if neither is valid) and, for an open
+    quadric, of the other ("other t", ...).  ``near`` (an open quadric's): per ray, is
+    evaluate's pick the near root (the float64 arithmetic picked here once, and at a rim
+    chose the other root: its conditions went with the exact root's margins)."""
     n = len(d)
     f = fields(obj)
     fl = lambda vals: [float(x) for x in vals]
@@ -454,18 +456,15 @@ def conditions(obj, V, d, Dual, inputs, ddot):
             y = (ddot(w0, a) + t * ddot(dv, a)) / ddot(a, a).sqrt() if hh is not None else t
             hl = (hh.sqrt() / ddot(a, a).sqrt()) if hh is not None else t
             z = Vv[2] + t * dv[2]
-            ok = (t.v > 0) & ((hh is None) | ((y.v >= 0) & (y.v <= hl.v)))
-            conds.append((ok, {"t": t.cond(), "axis>=0": y.cond(), "axis<=h": (hl - y).cond(),
-                               "clip": z.cond()}))
-        near = np.where(lo_first, 0, 1)
-        ok_near = np.where(lo_first, conds[0][0], conds[1][0])
-        ok_far = np.where(lo_first, conds[1][0], conds[0][0])
-        # evaluate's choice: the near root unless it fails and the far one does not
-        pick = near if hh is None else np.where(ok_near | ~ok_far, near, 1 - near)
-        for k in conds[0][1]:
-            out[k] = np.where(pick == 0, conds[0][1][k], conds[1][1][k])
+            conds.append({"t": t.cond(), "axis>=0": y.cond(), "axis<=h": (hl - y).cond(),
+                          "clip": z.cond()})
+        # evaluate's choice (``near``; a closed quadric's: the near root)
+        near_i = np.where(lo_first, 0, 1)
+        pick = near_i if hh is None else np.where(near, near_i, 1 - near_i)
+        for k in conds[0]:
+            out[k] = np.where(pick == 0, conds[0][k], conds[1][k])
             if hh is not None:
-                out["other " + k] = np.where(pick == 0, conds[1][1][k], conds[0][1][k])
+                out["other " + k] = np.where(pick == 0, conds[1][k], conds[0][k])
     return {k: np.nan_to_num(v, nan=np.inf) for k, v in out.items()}
 
 

@@ -471,20 +471,25 @@ def _np_roots(coef):
     return np.roots(coef) if len(coef) > 1 else []
 
 
-def conditions(p, d):
+def conditions(p, d, rays, length):
     """{'crossing': S, 't': S} per ray (exact.py's risk): the first-order change of the
     decided quantity (world units) when every input moves by one unit of itself, bounded
     by |value| + Σ|viewpoint| + Σ|centre| + R + r + |t|·Σ|d| (over the incidence cosine
-    for t)."""
+    for t), t the world distance along the unit ray d: the rays ``rays`` (D, Dd) were
+    evaluated with t along D/Dd, t·``length`` the world distance.  A ray of no direction
+    was not evaluated (trace_exact decides it a miss): S = 0 there."""
     import numpy as np
     o = p.obj
     scale = (sum(abs(float(c)) for c in p.V) + sum(abs(float(c)) for c in o.center)
              + sum(abs(float(c)) for c in o.size))
-    info = getattr(p, "torus_info", [])
+    info = iter(getattr(p, "torus_info", []))
     n = len(d)
     sc, st = np.zeros(n), np.zeros(n)
-    for i in range(min(n, len(info))):
-        tc, m, cos, t = info[i]
+    for i, (D, _) in enumerate(rays):
+        if not any(D):
+            continue
+        tc, m, cos, t = next(info)
+        tc, t = tc * length[i], t * length[i]
         d1 = float(np.abs(d[i]).sum())
         sc[i] = (abs(m) if math.isfinite(m) else 0.0) + scale + abs(tc) * d1
         st[i] = abs(t) + (scale + abs(t) * d1) / max(cos, 1e-300)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from decimal import Decimal
 import subprocess
 import sys
 from pathlib import Path
@@ -412,21 +413,69 @@ def test09_a_tracer_at_an_open_quadrics_other_root_within_reach_is_no_depth_faul
     assert exact_compare._other_root(ex, ids, t_other, np.array([rim]), U["f32"]) == 1
 
 
-@pytest.mark.parametrize("scale", [0.01, 1.0, 100.0])
-def test10_the_depth_bound_does_not_depend_on_the_rays_length(scale):
-    """kappa_t is S_t / |t| with both along the same rays: on the ideal rays (world −
-    viewpoint, t in units of their length) it is what it is on the same rays given as unit
-    directions.  It took t in units of the ideal ray and S_t along the unit one: in a scene
-    0.1 across (rays 0.04 long) the depth bound was 23 times too tight, and a correct
-    float32 image was called over its bound."""
-    text = (REPO / "tests" / "scenes" / "cylinder_rim_other_root.txt").read_text()
-    lines = text.splitlines()
-    for k in (0, 1, 4, 9, 11):              # window, viewpoint, light, base, radius height
-        lines[k] = " ".join(repr(float(x) * scale) for x in lines[k].split())
-    xs = parse_exact("\n".join(lines) + "\n")
-    rays, d = ideal_rays(xs.window, xs.viewpoint, 41, 41, range(41 * 41))
-    ideal, unit = trace_exact(xs, d, rays=rays), trace_exact(xs, d)
-    same = np.flatnonzero(ideal.hit & unit.hit & (ideal.id == unit.id))
-    assert len(same) > 10
-    np.testing.assert_allclose(ideal.kappa_t[same], unit.kappa_t[same], rtol=1e-6)
-    assert (unit.kappa_t[same] >= 1.0).all()
+# (scene, the lines that hold lengths, scales)
+LENGTHS = [("cylinder_rim_other_root.txt", {0, 1, 4, 9, 11}, ("0.01", "1", "100")),
+           ("six_kinds.txt", {0, 1, 4, 8, 12, 14, 17, 18, 21, 22, 23, 26, 27, 31, 32},
+            ("0.01", "1", "100")),
+           ("torus_tiny.txt", {0, 1, 4, 9, 11, 12}, ("1", "1e4", "1e5"))]
+
+
+@pytest.mark.parametrize("name, lengths, scales", LENGTHS, ids=[n for n, _, _ in LENGTHS])
+def test10_the_bounds_do_not_depend_on_how_long_the_rays_are(name, lengths, scales):
+    """Every decision's margin over its bound, and kappa_t, are the same whether the rays
+    are the ideal ones (world − viewpoint, as long as the scene is large), the same rays as
+    unit directions, or a tracer's own not unit (2⁻³⁰ of them: stability's edges family
+    traces rays 8·2^k long), and the same at every scale of the scene.  Margins and
+    conditions were in different units: kappa_t took t along the ideal ray (bounds 23
+    times too tight in a scene 0.1 across), a plane's 'parallel' margin n·D was as long as
+    the ray, the torus's conditions took t along it, and a plane's 't' margin (a world
+    distance) met a condition along the tracer's own ray (every wrong answer of a tracer
+    'explained' on rays 2⁻⁴⁰ long)."""
+    text = (REPO / "tests" / "scenes" / name).read_text().splitlines()
+    u = U["f32"]
+    first = None
+    for scale in scales:
+        # (in decimal: the scene scaled exactly, every exact decision the same)
+        lines = [" ".join(str(Decimal(x) * Decimal(scale)) for x in ln.split())
+                 if k in lengths else ln for k, ln in enumerate(text)]
+        xs = parse_exact("\n".join(lines) + "\n")
+        rays, d = ideal_rays(xs.window, xs.viewpoint, 41, 31, range(41 * 31))
+        runs = [trace_exact(xs, d, rays=rays), trace_exact(xs, d),
+                trace_exact(xs, d * 2.0 ** -30)]
+        ratios = {(j, k): [ex.objects[j].ratio(k, u) for ex in runs]
+                  for j, ob in enumerate(runs[0].objects) for k in ob.margin}
+        assert sum(len(r[0]) for r in ratios.values()) > 0
+        for (j, k), rs in ratios.items():
+            ok = np.isfinite(rs[0]) & (rs[0] > 0)
+            for r in rs[1:]:
+                np.testing.assert_allclose(r[ok], rs[0][ok], rtol=1e-6, err_msg=(scale, j, k))
+        same = runs[0].hit & runs[1].hit & runs[2].hit & (runs[0].id == runs[1].id) & \
+            (runs[0].id == runs[2].id)
+        assert same.sum() > 10
+        for ex in runs[1:]:
+            np.testing.assert_allclose(ex.kappa_t[same], runs[0].kappa_t[same], rtol=1e-6)
+        # and at every scale the same (the geometry scaled, nothing else)
+        if first is None:
+            first = ratios
+        for key, rs in ratios.items():
+            ok = np.isfinite(first[key][0]) & (first[key][0] > 0)
+            np.testing.assert_allclose(rs[0][ok], first[key][0][ok], rtol=1e-6,
+                                       err_msg=(scale, key))
+
+
+def test10b_a_ray_of_no_direction_leaves_the_torus_conditions_in_step():
+    """A sample at the viewpoint (a ray of no direction, decided a miss without evaluating
+    it): the torus's conditions of every other ray are what they are without that ray
+    (each later ray took the previous ray's, the last none)."""
+    text = (REPO / "tests" / "scenes" / "torus_tiny.txt").read_text().splitlines()
+    text[1] = "0 0 0"                       # the viewpoint on the middle sample
+    xs = parse_exact("\n".join(text) + "\n")
+    rays, d = ideal_rays(xs.window, xs.viewpoint, 21, 15, range(21 * 15))
+    empty = [i for i, (D, _) in enumerate(rays) if not any(D)]
+    assert empty == [7 * 21 + 10]
+    keep = [i for i in range(len(rays)) if i not in empty]
+    ex = trace_exact(xs, d, rays=rays)
+    ex2 = trace_exact(xs, d[keep], rays=[rays[i] for i in keep])
+    for k in ("crossing", "t"):
+        np.testing.assert_array_equal(ex.objects[0].cond[k][keep], ex2.objects[0].cond[k])
+    assert not ex.hit[empty].any()
