@@ -413,15 +413,16 @@ def test09_a_tracer_at_an_open_quadrics_other_root_within_reach_is_no_depth_faul
     assert exact_compare._other_root(ex, ids, t_other, np.array([rim]), U["f32"]) == 1
 
 
-# (scene, the lines that hold lengths, scales)
-LENGTHS = [("cylinder_rim_other_root.txt", {0, 1, 4, 9, 11}, ("0.01", "1", "100")),
+# (scene, the lines that hold lengths, scales, columns and rows)
+LENGTHS = [("cylinder_rim_other_root.txt", {0, 1, 4, 9, 11}, ("0.01", "1", "100"), (41, 31)),
            ("six_kinds.txt", {0, 1, 4, 8, 12, 14, 17, 18, 21, 22, 23, 26, 27, 31, 32},
-            ("0.01", "1", "100")),
-           ("torus_tiny.txt", {0, 1, 4, 9, 11, 12}, ("1", "1e4", "1e5"))]
+            ("0.01", "1", "100"), (25, 19)),
+           ("torus_tiny.txt", {0, 1, 4, 9, 11, 12}, ("1", "1e4", "1e5"), (25, 19))]
 
 
-@pytest.mark.parametrize("name, lengths, scales", LENGTHS, ids=[n for n, _, _ in LENGTHS])
-def test10_the_bounds_do_not_depend_on_how_long_the_rays_are(name, lengths, scales):
+@pytest.mark.parametrize("name, lengths, scales, size", LENGTHS,
+                         ids=[n for n, *_ in LENGTHS])
+def test10_the_bounds_do_not_depend_on_how_long_the_rays_are(name, lengths, scales, size):
     """Every decision's margin over its bound, and kappa_t, are the same whether the rays
     are the ideal ones (world − viewpoint, as long as the scene is large), the same rays as
     unit directions, or a tracer's own not unit (2⁻³⁰ of them: stability's edges family
@@ -439,7 +440,7 @@ def test10_the_bounds_do_not_depend_on_how_long_the_rays_are(name, lengths, scal
         lines = [" ".join(str(Decimal(x) * Decimal(scale)) for x in ln.split())
                  if k in lengths else ln for k, ln in enumerate(text)]
         xs = parse_exact("\n".join(lines) + "\n")
-        rays, d = ideal_rays(xs.window, xs.viewpoint, 41, 31, range(41 * 31))
+        rays, d = ideal_rays(xs.window, xs.viewpoint, *size, range(size[0] * size[1]))
         runs = [trace_exact(xs, d, rays=rays), trace_exact(xs, d),
                 trace_exact(xs, d * 2.0 ** -30)]
         ratios = {(j, k): [ex.objects[j].ratio(k, u) for ex in runs]
