@@ -47,6 +47,7 @@ from rt_core.rules import Rules
 
 from . import quadric
 from . import exact_planar
+from .geometry import int_norm, ray_length
 from .scenefile import read_text
 from .torus_exact import TorusT, conditions as torus_conditions, eval_torus, less as torus_less
 
@@ -149,8 +150,8 @@ def _ratio(num: int, den: int) -> float:
     """num/den correctly rounded (Python's integer true division), +-inf on overflow."""
     try:
         return num / den
-    except OverflowError:
-        return math.copysign(math.inf, num) * (1 if den > 0 else -1)
+    except OverflowError:       # (copysign(inf, num) took num to a float: overflowed too)
+        return math.inf if (num > 0) == (den > 0) else -math.inf
 
 
 def ray_ints(d) -> tuple:
@@ -244,8 +245,10 @@ def _eval_plane(p: _Prep, D, Dd, rules: Rules):
     # do not make unit): t > 0 and t²·|D|²·tmin_d² > tmin_n²·(td·Dd)², in integers
     DD = _dot(D, D)
     slack2 = tn * tn * DD * p.tmin_d ** 2 - (p.tmin_n * td * Dd) ** 2
-    tests["t"] = (tn > 0 and slack2 > 0,
-                  _ratio(tn, td) * math.sqrt(_ratio(DD, Dd * Dd)) - _ratio(p.tmin_n, p.tmin_d))
+    # (the world distance t·|D|/Dd as (t·max|D|/Dd)·(|D|/max|D|): |D|/Dd alone underflowed
+    # to 0 on rays 2⁻⁵⁴⁰ long, and a miss was excused as 't')
+    m, r = int_norm(D)
+    tests["t"] = (tn > 0 and slack2 > 0, _ratio(tn * m, td * Dd) * r - _ratio(p.tmin_n, p.tmin_d))
     if rules.screen_clip != "off":
         zint = p.VZ * Dd * td + tn * D[2] * p.L             # z · (L·Dd·td)
         zs = (zint > 0) - (zint < 0)
@@ -465,9 +468,9 @@ class ObjectVerdicts:
     tq: list                          # exact (num, den) per ray, or None
     passed: dict                      # decision -> bool (N,)
     margin: dict                      # decision -> float64 (N,), signed world units
+    length: np.ndarray                # |D|/Dd per ray (trace_exact): t·length in world units
     cond: dict = field(default_factory=dict)   # decision or 't' -> S (N,)
     representable: dict = field(default_factory=dict)  # u -> every input exact in that precision
-    length: np.ndarray = None          # |D|/Dd per ray (trace_exact): t·length in world units
 
     def ratio(self, name: str, u: float) -> np.ndarray:
         """|margin| / (K·u·S): <= 1 means the decision may flip in that precision."""
@@ -559,7 +562,7 @@ class ExactResult:
     id: np.ndarray                     # int, -1 on a miss
     t: np.ndarray                      # float64, 0 on a miss; along the rays as given
     objects: list
-    length: np.ndarray = None          # |D|/Dd per ray (trace_exact): t·length in world units
+    length: np.ndarray                 # |D|/Dd per ray: t·length in world units
 
     @property
     def kappa_t(self) -> np.ndarray:
@@ -690,7 +693,7 @@ def trace_exact(xs: XScene, d: np.ndarray, rules: Rules = Rules(), rays=None) ->
     # taken along the unit rays du, t along the rays D/Dd, t·length the world distance
     # (ideal rays are world − viewpoint, a tracer's own need not be unit: stability's
     # edges family; they were taken along d as given, and t along D/Dd)
-    length = np.array([_length(D, Dd) for D, Dd in rays])
+    length = np.array([ray_length(D, Dd) for D, Dd in rays])
     du = _unit_rows(d.astype(np.float64))
     verdicts = []
     for p in preps:
@@ -715,7 +718,7 @@ def trace_exact(xs: XScene, d: np.ndarray, rules: Rules = Rules(), rays=None) ->
                 tq[i] = q
                 t[i] = _ratio(*q)
             valid[i] = all(tests[k][0] for k in names if k not in quadric.OTHER)
-        ov = ObjectVerdicts(p.kind, valid, t, tq, passed, margin, length=length)
+        ov = ObjectVerdicts(p.kind, valid, t, tq, passed, margin, length)
         # (an open quadric's conditions are of the roots the exact tests chose)
         near = ~(margin["other t"] < margin["t"]) if "other t" in margin else None
         ov.cond = (torus_conditions(p, du, rays, length) if p.kind == "torus" else
@@ -740,22 +743,10 @@ def trace_exact(xs: XScene, d: np.ndarray, rules: Rules = Rules(), rays=None) ->
     return ExactResult(d, hit, ids, tbest, verdicts, length)
 
 
-def _length(D, Dd) -> float:
-    """|D|/Dd in float64, from integers of any size (scaled by the largest first)."""
-    m = max(map(abs, D))
-    return float(Fraction(m, abs(Dd))) * _norm_scaled(D) if m else 0.0
-
-
-def _norm_scaled(D) -> float:
-    """|D| / max|D_i| (1 to √3) of an integer vector; 0 for a zero one."""
-    m = max(map(abs, D))
-    return math.sqrt(sum(float(Fraction(c, m)) ** 2 for c in D)) if m else 0.0
-
-
 def _per_length(num: int, den: int, D) -> float:
     """num / (den·|D|) in float64, from integers of any size; inf for a zero D."""
-    m = max(map(abs, D))
-    return _ratio(num, den * m) / _norm_scaled(D) if m else math.inf
+    m, r = int_norm(D)
+    return _ratio(num, den * m) / r if m else math.inf
 
 
 def _unit_rows(d: np.ndarray) -> np.ndarray:

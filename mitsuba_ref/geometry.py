@@ -40,6 +40,19 @@ def pow2_scaled(v, rounded: bool = False) -> tuple:
                  for c in v)
 
 
+def int_norm(D) -> tuple:
+    """(m, r) with |D| = m·r for an integer vector: m its largest |component|, r in
+    [1, √3] (0, 0 for a zero one); neither overflows nor underflows float64."""
+    m = max(map(abs, D))
+    return (m, math.sqrt(sum((c / m) ** 2 for c in D))) if m else (0, 0.0)   # (c/m rounded once)
+
+
+def ray_length(D, Dd) -> float:
+    """|D|/Dd in float64 for integers of any size (a ray D/Dd given exactly)."""
+    m, r = int_norm(D)
+    return m / abs(Dd) * r if m else 0.0
+
+
 def given_normal(obj) -> tuple:
     """The plane's normal as written in the file (rt_core objects keep it as
     ``given_normal``; mitsuba_ref.scenefile items as ``normal``)."""

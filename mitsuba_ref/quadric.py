@@ -21,7 +21,7 @@ from fractions import Fraction
 
 import numpy as np
 
-from .geometry import pow2_scaled
+from .geometry import pow2_scaled, ray_length
 
 KINDS = ("cylinder", "cone", "ellipsoid")
 INF = math.inf
@@ -293,10 +293,15 @@ def _sgn2(p, q, r, u, v) -> int:
 
 
 def _float(p, q, r) -> float:
-    """p + q√r as a float; beyond a float's range term by term (a scene at 1e-155: 1/A near
-    1e310), in 60-digit decimal arithmetic."""
+    """p + q√r as a float; where a term leaves a float's range (a scene at 1e-155: 1/A near
+    1e310; rays 2⁻⁶⁰⁰ long: r near 2⁻¹²⁰⁰, q near 2⁶⁰⁰, r underflowed to 0) in 60-digit
+    decimal arithmetic."""
     try:
-        return float(p) + float(q) * math.sqrt(float(r))
+        fq, fr = float(q), float(r)
+        if (r and not 2.0 ** -1000 < fr < 2.0 ** 1000) or (
+                q and not 2.0 ** -1000 < abs(fq) < 2.0 ** 1000):
+            raise OverflowError
+        return float(p) + fq * math.sqrt(fr)
     except OverflowError:
         import decimal
         with decimal.localcontext() as ctx:
@@ -380,7 +385,7 @@ def evaluate(p: Prep, D, Dd, rules):
                  Fraction(Di, p.La * Dd))                    # α, β/2, d·a
     C = p.C
     X = Fraction(Xn, Lm * Lm * Lw * Lw * Dd * Dd * Cd)
-    norm = (DD / (Dd * Dd)) ** 0.5
+    norm = ray_length(D, Dd)            # (|D|²/Dd² left float64's range on rays 2^±600 long)
     if A == 0:
         roots = [(-C / (2 * Bh), Fraction(0))]
     else:
@@ -459,6 +464,8 @@ def conditions(obj, V, d, Dual, inputs, ddot, near=None):
             conds.append({"t": t.cond(), "axis>=0": y.cond(), "axis<=h": (hl - y).cond(),
                           "clip": z.cond()})
         # evaluate's choice (``near``; a closed quadric's: the near root)
+        if hh is not None and near is None:
+            raise ValueError("an open quadric's conditions need evaluate's choice of root")
         near_i = np.where(lo_first, 0, 1)
         pick = near_i if hh is None else np.where(near, near_i, 1 - near_i)
         for k in conds[0]:

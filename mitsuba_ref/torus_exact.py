@@ -424,7 +424,10 @@ def eval_torus(p, D, Dd, rules):
         return None, {"crossing": (False, -gap)}
     G, K = _poly(c, D, Dd)
     hit = first_crossing(G)
-    margin, tc, cos = _margin([g / K for g in G], Q, A, R, r, D, Dd, hit)
+    # (F's coefficients over the largest, not over K: the same critical points, where a
+    # torus 1e-100 across had them underflow to 0)
+    margin, tc, cos = _margin([g / (max(map(abs, G)) or 1) for g in G], Q, A, R, r, D, Dd,
+                              hit)
     p.torus_info.append((tc, margin, cos, float(hit[0]) / hit[1] if hit is not None else 0.0))
     return hit, {"crossing": (hit is not None, margin if hit is not None else -margin)}
 
@@ -440,7 +443,7 @@ def _geom(w, a, R, r):
 
 def _margin(F, Q, A, R, r, D, Dd, hit):
     """(min |F(t_c)|/|∇F(t_c)| over F's critical points t_c in (0, hit), that t_c, the
-    cosine of the hit's incidence), floats."""
+    cosine of the hit's incidence), floats; F's coefficients in any common scale."""
     d = [c / Dd for c in D]
     fF = [float(c) for c in F]      # (F: floats already, F's coefficients rounded once)
     crit = [float(z.real) for z in _np_roots(list(reversed(
@@ -449,18 +452,23 @@ def _margin(F, Q, A, R, r, D, Dd, hit):
     an = math.sqrt(sum(float(c) ** 2 for c in A))
     a = [float(c) / an for c in A]
     Rf, rf = float(R), float(r)
+    # F and ∇F in units of the torus's size k (F/k⁴, ∇F/k³: a torus 1e-100 across had F
+    # and ∇F underflow to 0, its incidence cosine 0 and its t's condition 1e300)
+    k = (Rf + rf) or 1.0
+    d = [c / k for c in d]
+    Qk, Rk, rk = [float(c) / k for c in Q], Rf / k, rf / k
     best, tbest = math.inf, 0.0
     for t in crit:
         if not 0 < t < th:
             continue
-        f, g = _geom([t * d[i] - float(Q[i]) for i in range(3)], a, Rf, rf)
+        f, g = _geom([t * d[i] - Qk[i] for i in range(3)], a, Rk, rk)
         ng = math.sqrt(sum(c * c for c in g))
-        m = abs(f) / ng if ng > 0 else 0.0
+        m = k * abs(f) / ng if ng > 0 else 0.0
         if m < best:
             best, tbest = m, t
     cos = 1.0
     if hit is not None:
-        _, g = _geom([th * d[i] - float(Q[i]) for i in range(3)], a, Rf, rf)
+        _, g = _geom([th * d[i] - Qk[i] for i in range(3)], a, Rk, rk)
         ng = math.sqrt(sum(c * c for c in g)) * math.sqrt(sum(c * c for c in d))
         cos = abs(sum(x * y for x, y in zip(g, d))) / ng if ng > 0 else 0.0
     return best, tbest, cos
