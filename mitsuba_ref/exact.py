@@ -560,7 +560,7 @@ class ExactResult:
     d: np.ndarray
     hit: np.ndarray                    # bool
     id: np.ndarray                     # int, -1 on a miss
-    t: np.ndarray                      # float64, 0 on a miss; along the rays as given
+    t: np.ndarray                      # float64, 0 on a miss; along the rays D/Dd
     objects: list
     length: np.ndarray                 # |D|/Dd per ray: t·length in world units
 
@@ -691,8 +691,8 @@ def trace_exact(xs: XScene, d: np.ndarray, rules: Rules = Rules(), rays=None) ->
         rays = [ray_ints(row) for row in d.astype(np.float64).tolist()]
     # every margin and condition is a world distance (or a ratio): the conditions are
     # taken along the unit rays du, t along the rays D/Dd, t·length the world distance
-    # (ideal rays are world − viewpoint, a tracer's own need not be unit: stability's
-    # edges family; they were taken along d as given, and t along D/Dd)
+    # (the conditions were taken along d as given: ideal rays' d is unit but their D/Dd is
+    # world − viewpoint, and a tracer's own d need not be unit, stability's edges family)
     length = np.array([ray_length(D, Dd) for D, Dd in rays])
     du = _unit_rows(d.astype(np.float64))
     verdicts = []
